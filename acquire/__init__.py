@@ -1,0 +1,1 @@
+"""acquire: hardware drivers (stage, cameras), their simulated twins and the capture plan."""

@@ -1,0 +1,1 @@
+"""calib: polarizer calibration (mounting offset, per-shot angle errors)."""

@@ -1,0 +1,1 @@
+"""separate: optics, canonical projection, data synthesis, network, training, inference, baselines."""

@@ -1,0 +1,151 @@
+"""The separation network (paper §3.2, Fig. 3).
+
+A canonical projection layer turns the polarization shots into I⊥ and I∥; the three shots and
+the two canonical images (15 channels for RGB) feed an encoder-decoder with skip connections:
+three down-sampling stages of two ResNet blocks each and a mirrored decoder with transposed
+convolutions. The 8 output channels are residual images T̃, R̃ and weights ξ∥, ξ⊥:
+
+    R̂ = ξ⊥·R̃ + (1−ξ⊥)·B_R,   T̂ = ξ∥·T̃ + (1−ξ∥)·B_T.
+
+The bases are the canonical images in the units of urd's separation target (R_obs + T_obs =
+S0, see `separate.optics.observable_layers`): B_T = 2·I∥ and B_R = S0 − B_T = I⊥ − I∥. At the
+Brewster angle these are the layers themselves up to the small R_s·I∥ term; the paper's bare
+I⊥, I∥ are half the scale of the transmission target. The "direct" variant is the same network
+fed the three shots alone, predicting R̂ and T̂ with no projection and no residual.
+
+Inputs of any exposure are scaled so that mean(S0) = 0.25 before the network and back after.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from separate import optics
+
+NOMINAL_ANGLES = tuple(np.radians([0.0, 45.0, 90.0]))
+VARIANTS = ("canonical", "direct")
+TARGET_MEAN = 0.25
+
+
+def _check_obs(obs: torch.Tensor) -> None:
+    if not isinstance(obs, torch.Tensor):
+        raise TypeError(f"expected a torch.Tensor, got {type(obs).__name__}")
+    if obs.ndim != 5 or obs.shape[1] < 3:
+        raise ValueError(f"expected observations of shape (B, N>=3, C, H, W), got {tuple(obs.shape)}")
+
+
+def canonical_inputs(obs: torch.Tensor, angles: Sequence[float] = NOMINAL_ANGLES) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Canonical projection layer.
+
+    Args:
+        obs: (B, N, C, H, W) linear shots, N ≥ 3.
+        angles: the N polarizer angles (rad); only their differences matter.
+
+    Returns:
+        shots (B, 3, C, H, W) at angles[0] + 0/45/90° (re-rendered from the Stokes fit unless
+        the input already is exactly that), I⊥ and I∥ (B, C, H, W) with φ⊥ within ±45° of
+        angles[0].
+    """
+    _check_obs(obs)
+    stokes = optics.stokes_from_images(obs.transpose(0, 1), angles)
+    phi_ref = float(angles[0])
+    nominal = np.allclose(np.asarray(angles) - phi_ref, NOMINAL_ANGLES, atol=1e-9)
+    if obs.shape[1] == 3 and nominal:
+        shots = obs
+    else:
+        shots = torch.stack([optics.intensity_from_stokes(stokes, phi_ref + a) for a in NOMINAL_ANGLES], dim=1)
+    i_perp, i_par, _ = optics.canonical_projection(stokes, phi_ref)
+    return shots, i_perp, i_par
+
+
+class ResBlock(nn.Module):
+    """Two 3×3 convolutions with an identity shortcut."""
+
+    def __init__(self, channels: int):
+        super().__init__()
+        self.conv1 = nn.Conv2d(channels, channels, 3, padding=1)
+        self.conv2 = nn.Conv2d(channels, channels, 3, padding=1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return F.relu(x + self.conv2(F.relu(self.conv1(x))))
+
+
+class SeparationNet(nn.Module):
+    """Encoder-decoder separating reflection and transmission from polarization shots.
+
+    Args:
+        width: channels at full resolution (doubling at each of the 3 down-sampling stages;
+            16 gives the paper's size, ~1.7 M parameters).
+        variant: "canonical" (paper) or "direct" (no projection layer, no residual).
+        channels: colour channels per shot.
+    """
+
+    def __init__(self, width: int = 16, variant: str = "canonical", channels: int = 3):
+        super().__init__()
+        if variant not in VARIANTS:
+            raise ValueError(f"expected variant in {VARIANTS}, got {variant!r}")
+        self.variant, self.width, self.channels = variant, width, channels
+        n_in = channels * (5 if variant == "canonical" else 3)
+        n_out = 2 * channels + (2 if variant == "canonical" else 0)
+        widths = [width, 2 * width, 4 * width, 8 * width]
+        self.head = nn.Conv2d(n_in, width, 3, padding=1)
+        self.enc = nn.ModuleList([nn.Sequential(ResBlock(c), ResBlock(c)) for c in widths])
+        self.down = nn.ModuleList([nn.Conv2d(a, b, 3, stride=2, padding=1) for a, b in zip(widths, widths[1:])])
+        self.up = nn.ModuleList([nn.ConvTranspose2d(b, a, 2, stride=2) for a, b in zip(widths, widths[1:])])
+        self.dec = nn.ModuleList([nn.Sequential(ResBlock(c), ResBlock(c)) for c in widths[:-1]])
+        self.tail = nn.Conv2d(width, n_out, 3, padding=1)
+
+    def config(self) -> dict:
+        return {"width": self.width, "variant": self.variant, "channels": self.channels}
+
+    def backbone(self, x: torch.Tensor) -> torch.Tensor:
+        """The encoder-decoder on a (B, n_in, H, W) tensor, H and W multiples of 8."""
+        x = F.relu(self.head(x))
+        skips = []
+        for i, block in enumerate(self.enc):
+            x = block(x)
+            if i < len(self.down):
+                skips.append(x)
+                x = F.relu(self.down[i](x))
+        for i in reversed(range(len(self.up))):
+            x = self.dec[i](F.relu(self.up[i](x)) + skips[i])
+        return self.tail(x)
+
+    def forward(
+        self, obs: torch.Tensor, angles: Sequence[float] = NOMINAL_ANGLES, scale: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Separate a batch.
+
+        Args:
+            obs: (B, N, C, H, W) linear shots at ``angles`` (rad), N ≥ 3, any H, W.
+            angles: polarizer angles (rad) of the N shots.
+            scale: (B,) exposure scale; default mean(S0) per sample. Pass one global value
+                when separating tiles of one image.
+
+        Returns:
+            (R̂, T̂), each (B, C, H, W), linear, in the units of ``obs``.
+        """
+        shots, i_perp, i_par = canonical_inputs(obs, angles)
+        if scale is None:
+            scale = (i_perp + i_par).mean(dim=(1, 2, 3)).clamp_min(1e-6)
+        gain = (TARGET_MEAN / scale).view(-1, 1, 1, 1).to(obs.dtype)
+        b, _, c, h, w = shots.shape
+        parts = [shots.reshape(b, 3 * c, h, w)] + ([i_perp, i_par] if self.variant == "canonical" else [])
+        x = torch.cat(parts, dim=1) * gain
+        pad_h, pad_w = (-h) % 8, (-w) % 8
+        x = F.pad(x, (0, pad_w, 0, pad_h), mode="replicate")
+        out = self.backbone(x)[..., :h, :w].float()
+        if self.variant == "direct":
+            return out[:, :c] / gain, out[:, c : 2 * c] / gain
+        t_res, r_res = out[:, :c], out[:, c : 2 * c]
+        xi_par, xi_perp = torch.sigmoid(out[:, 2 * c : 2 * c + 1]), torch.sigmoid(out[:, 2 * c + 1 :])
+        base_t = 2.0 * i_par * gain
+        base_r = (i_perp - i_par) * gain
+        r_hat = xi_perp * r_res + (1 - xi_perp) * base_r
+        t_hat = xi_par * t_res + (1 - xi_par) * base_t
+        return r_hat / gain, t_hat / gain

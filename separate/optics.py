@@ -1,0 +1,240 @@
+"""Optics of a dielectric semi-reflector seen through a linear polarizer.
+
+This module is the one place where the Fresnel, Malus and Stokes formulas live; the
+synthesizer, the virtual camera, calibration, the network and the baselines all call it.
+
+Conventions (stated once, here and in the README):
+
+* images are float32, linear, H×W×C (or any shape whose leading axis stacks the shots);
+* angles are radians inside the code (degrees only at the CLI and in manifests);
+* a polarizer angle φ is measured in the image plane from the +x axis (towards increasing
+  column), counter-clockwise as the viewer sees the image (towards row 0);
+* θ is the angle of incidence on the glass, φ⊥ the direction of s-polarization (perpendicular
+  to the plane of incidence) in the same image-plane convention;
+* Stokes: I_φ = (S0 + S1·cos 2φ + S2·sin 2φ) / 2 for an ideal linear polarizer.
+
+Every function accepts numpy arrays and, where it makes sense, torch tensors of any shape
+(broadcasting applies); the result has the input's type.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import numpy as np
+
+#: Refractive index of window glass used by default (the paper's value).
+N_GLASS = 1.474
+
+Array = Any  # numpy.ndarray or torch.Tensor
+
+
+def _xp(x: Array):
+    """Return the array module (numpy or torch) of ``x``."""
+    if type(x).__module__.startswith("torch"):
+        import torch
+
+        return torch
+    return np
+
+
+def _like(value: np.ndarray, x: Array) -> Array:
+    """Convert a numpy constant to the type, dtype and device of ``x``."""
+    if type(x).__module__.startswith("torch"):
+        import torch
+
+        return torch.as_tensor(value, dtype=x.dtype, device=x.device)
+    return np.asarray(value, dtype=np.result_type(x, np.float32))
+
+
+def snell(theta: Array, n: float = N_GLASS) -> Array:
+    """Angle of refraction (rad) for incidence ``theta`` (rad) from air into index ``n``."""
+    xp = _xp(theta)
+    return xp.arcsin(xp.sin(theta) / n)
+
+
+def brewster_angle(n: float = N_GLASS) -> float:
+    """Brewster angle (rad), where R_p vanishes: θ_B = atan(n)."""
+    return float(np.arctan(n))
+
+
+def fresnel_reflectance(theta: Array, n: float = N_GLASS) -> tuple[Array, Array]:
+    """Power reflectances (R_s, R_p) of one air–dielectric interface.
+
+    Args:
+        theta: angle of incidence (rad) in [0, π/2], any shape.
+        n: refractive index of the dielectric (> 1).
+
+    Returns:
+        R_s, R_p in [0, 1], the shape of ``theta``.
+    """
+    if n <= 1.0:
+        raise ValueError(f"expected a refractive index n > 1, got {n}")
+    xp = _xp(theta)
+    cos_i = xp.cos(theta)
+    cos_t = xp.sqrt(1.0 - (xp.sin(theta) / n) ** 2)
+    r_s = (cos_i - n * cos_t) / (cos_i + n * cos_t)
+    r_p = (n * cos_i - cos_t) / (n * cos_i + cos_t)
+    return r_s**2, r_p**2
+
+
+def reflectance(theta: Array, n: float = N_GLASS) -> Array:
+    """Reflectance ρ = (R_s + R_p)/2 of unpolarized light at incidence ``theta`` (rad)."""
+    r_s, r_p = fresnel_reflectance(theta, n)
+    return (r_s + r_p) / 2
+
+
+def mixing_alpha(theta: Array, phi_perp: Array, phi: Array, n: float = N_GLASS) -> Array:
+    """Mixing coefficient α = R_s·cos²(φ−φ⊥) + R_p·sin²(φ−φ⊥) of the paper's Eq. 1.
+
+    All angles in radians; arguments broadcast against each other.
+    """
+    xp = _xp(theta)
+    r_s, r_p = fresnel_reflectance(theta, n)
+    c2 = xp.cos(phi - phi_perp) ** 2
+    return r_s * c2 + r_p * (1.0 - c2)
+
+
+def _expand(angle_map: Array, image: Array) -> Array:
+    """Give an H×W map a trailing channel axis when ``image`` is H×W×C."""
+    ndim = getattr(angle_map, "ndim", 0)
+    if ndim and ndim == image.ndim - 1:
+        return angle_map[..., None]
+    return angle_map
+
+
+def render(
+    i_r: Array, i_t: Array, theta: Array, phi_perp: Array, phi: float, n: float = N_GLASS
+) -> Array:
+    """Image through a polarizer at angle ``phi`` (paper Eq. 1).
+
+    I_φ = α·I_R/2 + (1−α)·I_T/2.
+
+    Args:
+        i_r, i_t: reflected and transmitted radiance at the glass, H×W×C (or H×W), linear.
+        theta: angle of incidence (rad), scalar or H×W map.
+        phi_perp: s-direction φ⊥ (rad), scalar or H×W map.
+        phi: polarizer angle (rad), scalar.
+        n: refractive index.
+
+    Returns:
+        The observation, same shape as ``i_r``.
+    """
+    alpha = _expand(mixing_alpha(theta, phi_perp, phi, n), i_r)
+    return alpha * i_r / 2 + (1.0 - alpha) * i_t / 2
+
+
+def observable_layers(
+    i_r: Array, i_t: Array, theta: Array, n: float = N_GLASS
+) -> tuple[Array, Array]:
+    """The separation target used everywhere in urd.
+
+    R_obs = ρ·I_R and T_obs = (1−ρ)·I_T with ρ = (R_s+R_p)/2, so that R_obs + T_obs = S0,
+    the image an unpolarized camera would record.
+
+    Args:
+        i_r, i_t: H×W×C (or H×W) radiance at the glass, linear.
+        theta: angle of incidence (rad), scalar or H×W map.
+
+    Returns:
+        (R_obs, T_obs), each the shape of ``i_r``.
+    """
+    rho = _expand(reflectance(theta, n), i_r)
+    return rho * i_r, (1.0 - rho) * i_t
+
+
+def stokes_matrix(angles: Sequence[float]) -> np.ndarray:
+    """Measurement matrix A (N×3), rows (1, cos 2φ, sin 2φ)/2, so that I = A·S."""
+    phi = np.asarray(angles, dtype=np.float64)
+    return np.stack([np.ones_like(phi), np.cos(2 * phi), np.sin(2 * phi)], axis=1) / 2
+
+
+def check_angles(angles: Sequence[float], min_span: float = 0.0) -> np.ndarray:
+    """Validate polarizer angles (rad) for a Stokes fit and return them as float64.
+
+    Raises ValueError unless there are at least 3 angles giving a well-conditioned fit and,
+    when ``min_span`` > 0, the angles (mod π) span at least ``min_span`` radians.
+    """
+    phi = np.asarray(angles, dtype=np.float64)
+    if phi.ndim != 1 or phi.size < 3:
+        raise ValueError(f"expected at least 3 polarizer angles, got {np.degrees(phi).round(2).tolist()} deg")
+    if np.linalg.cond(stokes_matrix(phi)) > 100:
+        raise ValueError(
+            "expected polarizer angles that determine S0, S1, S2 (at least 3 distinct "
+            f"directions mod 180 deg), got {np.degrees(phi).round(2).tolist()} deg"
+        )
+    if min_span > 0:
+        wrapped = np.sort(np.mod(phi, np.pi))
+        gaps = np.diff(np.concatenate([wrapped, wrapped[:1] + np.pi]))
+        span = np.pi - gaps.max()
+        if span < min_span - 1e-9:
+            raise ValueError(
+                f"expected polarizer angles spanning at least {np.degrees(min_span):.0f} deg, "
+                f"got {np.degrees(phi).round(2).tolist()} deg (span {np.degrees(span):.1f} deg)"
+            )
+    return phi
+
+
+def stokes_from_images(images: Array, angles: Sequence[float]) -> Array:
+    """Least-squares linear Stokes parameters from N ≥ 3 polarizer angles.
+
+    Exact for 0/45/90 and 0/45/90/135 and for any N ≥ 3 well-spread angles without noise.
+
+    Args:
+        images: (N, ...) stack of linear observations, one per angle.
+        angles: N polarizer angles (rad).
+
+    Returns:
+        (3, ...) stack S0, S1, S2, same type as ``images``.
+    """
+    phi = check_angles(angles)
+    if images.shape[0] != phi.size:
+        raise ValueError(f"expected {phi.size} images (one per angle), got {images.shape[0]}")
+    pinv = _like(np.linalg.pinv(stokes_matrix(phi)), images)
+    if _xp(images) is np:
+        return np.tensordot(pinv, images, axes=1)
+    return _xp(images).tensordot(pinv, images, dims=1)
+
+
+def intensity_from_stokes(stokes: Array, phi: float) -> Array:
+    """Intensity behind an ideal polarizer at ``phi`` (rad) for Stokes stack (3, ...)."""
+    return (stokes[0] + stokes[1] * np.cos(2 * phi) + stokes[2] * np.sin(2 * phi)) / 2
+
+
+def dolp(stokes: Array, eps: float = 1e-8) -> Array:
+    """Degree of linear polarization sqrt(S1²+S2²)/S0 in [0, 1] for a (3, ...) stack."""
+    xp = _xp(stokes)
+    return xp.sqrt(stokes[1] ** 2 + stokes[2] ** 2) / (stokes[0] + eps)
+
+
+def aolp(stokes: Array) -> Array:
+    """Angle of linear polarization ½·atan2(S2, S1) (rad) in (−π/2, π/2] for a (3, ...) stack."""
+    xp = _xp(stokes)
+    return 0.5 * xp.arctan2(stokes[2], stokes[1])
+
+
+def canonical_projection(stokes: Array, phi_ref: float = 0.0) -> tuple[Array, Array, Array]:
+    """Project onto the canonical polarization angles (paper Eq. 2).
+
+    I_φ = I⊥·cos²(φ−φ⊥) + I∥·sin²(φ−φ⊥). The fit determines φ⊥ only up to 90°: swapping φ⊥
+    and φ∥ swaps I⊥ and I∥. Like the paper, urd resolves it by taking φ⊥ within ±45° of the
+    reference ``phi_ref`` (the first polarizer angle by convention), so I⊥ may be darker than
+    I∥ (it is whenever the transmission outshines the reflection).
+
+    Args:
+        stokes: (3, ...) stack S0, S1, S2.
+        phi_ref: reference angle (rad).
+
+    Returns:
+        (I⊥, I∥, φ⊥) with φ⊥ − phi_ref in [−π/4, π/4]; I⊥ + I∥ = S0.
+    """
+    xp = _xp(stokes)
+    c, s = float(np.cos(2 * phi_ref)), float(np.sin(2 * phi_ref))
+    s1 = stokes[1] * c + stokes[2] * s
+    s2 = -stokes[1] * s + stokes[2] * c
+    sign = xp.where(s1 >= 0, 1.0, -1.0)
+    if xp is not np:
+        sign = sign.to(stokes.dtype)
+    psi = 0.5 * xp.arctan2(sign * s2, sign * s1)
+    diff = sign * xp.sqrt(s1**2 + s2**2)
+    return (stokes[0] + diff) / 2, (stokes[0] - diff) / 2, phi_ref + psi

@@ -1,0 +1,241 @@
+"""Training data synthesis (paper §3.3): polarization triplets with known layers.
+
+From two natural photos, in linear light (inverse gamma 2.2):
+
+1. dynamic-range manipulation: reflection ×β, transmission ÷β with β ~ U[1, K];
+2. abrupt reflections (random subset): the reflection zeroed below mean(R̃ + T̃);
+3. non-rigid deformation, NRD (random subset): a coarse grid of anchors moved by Gaussian
+   offsets with a per-patch σ, interpolated to a smooth warp, drawn anew for each shot;
+4. surface geometry: uniform angle of incidence (LCG off), or (LCG on) a flat or parabolic
+   pane seen from a camera at a finite distance, the angle of incidence in closed form;
+5. polarizer angles φ0 + i·45° with ±4° error per shot, rendered with the optics core;
+6. exposure, shot and read noise, and rejection of flat, dark or saturated patches.
+
+Every step has a switch in `SynthesisConfig`; a generator seeded with the same seed yields
+the same patches.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from separate import optics
+
+GAMMA = 2.2
+SHARED_NATURAL = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "natural"
+#: scikit-image photos that ship with the package (no download): the fallback image pool.
+BUNDLED_PHOTOS = ("astronaut", "chelsea", "coffee", "rocket", "camera", "coins", "moon", "page", "text", "brick", "grass", "gravel")
+
+
+@dataclasses.dataclass
+class SynthesisConfig:
+    """Switches and ranges of the synthesis pipeline (defaults: the paper's full pipeline)."""
+
+    patch: int = 128
+    dynamic_range: bool = True
+    k_max: float = 2.8
+    abrupt_prob: float = 0.2
+    nrd_prob: float = 0.5
+    nrd_grid: int = 5
+    nrd_sigma_max_px: float = 1.5
+    curvature: bool = True
+    curved_prob: float = 0.5
+    aoi_deg: tuple[float, float] = (10.0, 80.0)
+    angle_noise_deg: float = 4.0
+    noise: bool = True
+    n: float = optics.N_GLASS
+
+    @classmethod
+    def ablation(cls, name: str, patch: int = 128) -> "SynthesisConfig":
+        """The paper's ablation settings: 'DR', 'DR+NRD' or 'DR+NRD+LCG' (the full pipeline)."""
+        settings = {
+            "DR": dict(nrd_prob=0.0, curvature=False),
+            "DR+NRD": dict(curvature=False),
+            "DR+NRD+LCG": {},
+        }
+        if name not in settings:
+            raise ValueError(f"expected one of {sorted(settings)}, got {name!r}")
+        return cls(patch=patch, **settings[name])
+
+
+def load_image_pool(folders: list[Path] | None = None, max_side: int = 512) -> list[np.ndarray]:
+    """Natural photos as uint8 RGB arrays, at most ``max_side`` pixels on the long side.
+
+    With no folders, scikit-image's bundled photos are used (no download needed).
+    """
+    images = []
+    if folders:
+        files = sorted(f for d in folders for f in Path(d).iterdir() if f.suffix.lower() in (".jpg", ".jpeg", ".png"))
+        if not files:
+            raise FileNotFoundError(f"no JPEG or PNG photos in {[str(d) for d in folders]}")
+        for f in files:
+            bgr = cv2.imread(str(f), cv2.IMREAD_COLOR)
+            if bgr is None:
+                raise ValueError(f"cannot read image {f}")
+            images.append(_shrink(bgr[..., ::-1], max_side))
+    else:
+        import skimage.data
+
+        for name in BUNDLED_PHOTOS:
+            img = getattr(skimage.data, name)()
+            if img.ndim == 2:
+                img = np.repeat(img[..., None], 3, axis=2)
+            images.append(_shrink(np.ascontiguousarray(img[..., :3]), max_side))
+    return images
+
+
+def default_pool(split: str) -> list[np.ndarray]:
+    """The image pool for a split: shared BSDS500 (+ Sun–Hays for train) or bundled photos."""
+    bsds = SHARED_NATURAL / "bsds500" / split
+    if not bsds.is_dir():
+        return load_image_pool(None)
+    folders = [bsds] + ([SHARED_NATURAL / "sunhays80"] if split == "train" else [])
+    return load_image_pool(folders)
+
+
+def _shrink(img: np.ndarray, max_side: int) -> np.ndarray:
+    scale = max_side / max(img.shape[:2])
+    if scale >= 1:
+        return img
+    return cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+
+
+def to_linear(img_u8: np.ndarray) -> np.ndarray:
+    """Gamma-2.2 8-bit image to linear float32 in [0, 1]."""
+    return (img_u8.astype(np.float32) / 255.0) ** GAMMA
+
+
+def random_crop(rng: np.random.Generator, img: np.ndarray, size: int) -> np.ndarray:
+    """A random crop of ``size``² at a random scale in [1, 2], randomly flipped; uint8 in, uint8 out."""
+    h, w = img.shape[:2]
+    side = int(min(h, w, size * rng.uniform(1.0, 2.0)))
+    y, x = rng.integers(0, h - side + 1), rng.integers(0, w - side + 1)
+    crop = cv2.resize(img[y : y + side, x : x + side], (size, size), interpolation=cv2.INTER_AREA)
+    return crop[:, ::-1] if rng.random() < 0.5 else crop
+
+
+def smooth_warp_field(rng: np.random.Generator, size: int, grid: int, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """A smooth random warp: grid×grid anchor offsets ~ N(0, σ²), bicubic to size², as remap maps."""
+    offsets = rng.normal(0.0, sigma_px, (2, grid, grid)).astype(np.float32)
+    dx = cv2.resize(offsets[0], (size, size), interpolation=cv2.INTER_CUBIC)
+    dy = cv2.resize(offsets[1], (size, size), interpolation=cv2.INTER_CUBIC)
+    ys, xs = np.mgrid[0:size, 0:size].astype(np.float32)
+    return xs + dx, ys + dy
+
+
+def parabola_aoi(
+    theta_c: float, distance: float, length: float, sagitta: float, convexity: int, t: np.ndarray
+) -> np.ndarray:
+    """Angle of incidence (rad) along a parabolic glass profile, in closed form.
+
+    In the plane of incidence the camera is at the origin looking along +y; the surface point
+    P_S = (0, d) is seen at incidence ``theta_c``. The profile is x(t) = P_S + t·τ + κt²·ν with
+    tangent τ = (cos θc, sin θc), normal ν = (sin θc, −cos θc) and κ = ±4·sagitta/ℓ², over
+    t ∈ [−ℓ/2, ℓ/2] (``t`` given in units of ℓ, in [−½, ½]). At each point the normal is
+    ν − 2κt·τ and the angle of incidence is the angle between it and the viewing ray.
+    """
+    tau = np.array([np.cos(theta_c), np.sin(theta_c)])
+    nu = np.array([np.sin(theta_c), -np.cos(theta_c)])
+    kappa = convexity * 4.0 * sagitta / length**2
+    tt = t * length
+    points = np.array([0.0, distance])[:, None] + tau[:, None] * tt + nu[:, None] * kappa * tt**2
+    normals = nu[:, None] - 2.0 * kappa * tt * tau[:, None]
+    cos_aoi = np.abs((points * normals).sum(0)) / (np.linalg.norm(points, axis=0) * np.linalg.norm(normals, axis=0))
+    return np.arccos(np.clip(cos_aoi, 0.0, 1.0))
+
+
+def surface_maps(rng: np.random.Generator, cfg: SynthesisConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel angle of incidence θ and s-direction φ⊥ (rad), each P×P float32."""
+    p = cfg.patch
+    theta_c = np.radians(rng.uniform(*cfg.aoi_deg))
+    omega = rng.uniform(0, np.pi)  # image direction along which the plane of incidence runs
+    phi_perp = np.full((p, p), omega + np.pi / 2, np.float32)
+    if not cfg.curvature:
+        return np.full((p, p), theta_c, np.float32), phi_perp
+    distance = rng.uniform(1.0, 5.0)
+    length = distance * rng.uniform(0.05, 0.8)
+    curved = rng.random() < cfg.curved_prob
+    sagitta = length * rng.uniform(0.0, 0.05) if curved else 0.0
+    convexity = 1 if rng.random() < 0.5 else -1
+    ys, xs = np.mgrid[0:p, 0:p].astype(np.float32) / (p - 1) - 0.5
+    t = xs * np.cos(omega) - ys * np.sin(omega)  # rows grow downwards, angles count upwards
+    theta = parabola_aoi(theta_c, distance, length, sagitta, convexity, t.ravel()).reshape(p, p)
+    return np.minimum(theta, np.radians(85.0)).astype(np.float32), phi_perp
+
+
+class Synthesizer:
+    """Draws training samples from an image pool; deterministic for a seed.
+
+    A sample is a dict of float32 arrays: ``obs`` 3×P×P×3 (shots at φ0, φ0+45°, φ0+90°),
+    ``r`` and ``t`` P×P×3 (the observable layers R_obs, T_obs), ``theta`` and ``phi_perp``
+    P×P, and ``angles`` (3,) the true polarizer angles (rad).
+    """
+
+    def __init__(self, pool: list[np.ndarray], cfg: SynthesisConfig, seed: int):
+        if len(pool) < 2:
+            raise ValueError(f"expected at least 2 images in the pool, got {len(pool)}")
+        self.pool = [img for img in pool if min(img.shape[:2]) >= cfg.patch]
+        if len(self.pool) < 2:
+            raise ValueError(f"expected at least 2 images of at least {cfg.patch} px, got {len(self.pool)}")
+        self.cfg = cfg
+        self.rng = np.random.default_rng(seed)
+        self.rejected = 0
+
+    def sample(self) -> dict[str, np.ndarray]:
+        """One accepted sample (rejected draws are counted in ``self.rejected``)."""
+        while True:
+            sample = self._draw()
+            if sample is not None:
+                return sample
+            self.rejected += 1
+
+    def batch(self, size: int) -> dict[str, np.ndarray]:
+        """``size`` samples stacked on a new leading axis."""
+        samples = [self.sample() for _ in range(size)]
+        return {k: np.stack([s[k] for s in samples]) for k in samples[0]}
+
+    def _draw(self) -> dict[str, np.ndarray] | None:
+        cfg, rng, p = self.cfg, self.rng, self.cfg.patch
+        i, j = rng.choice(len(self.pool), 2, replace=False)
+        refl = to_linear(random_crop(rng, self.pool[i], p))
+        trans = to_linear(random_crop(rng, self.pool[j], p))
+        if cfg.dynamic_range:
+            beta = rng.uniform(1.0, cfg.k_max)
+            refl, trans = refl * beta, trans / beta
+        if rng.random() < cfg.abrupt_prob:
+            refl = np.where(refl.mean(axis=2, keepdims=True) < (refl + trans).mean(), 0.0, refl).astype(np.float32)
+        theta, phi_perp = surface_maps(rng, cfg)
+        phi0 = phi_perp[0, 0] - rng.uniform(-np.pi / 4, np.pi / 4)
+        noise = np.radians(rng.uniform(-cfg.angle_noise_deg, cfg.angle_noise_deg, 3))
+        angles = (phi0 + np.radians([0.0, 45.0, 90.0]) + noise).astype(np.float32)
+        deform = rng.random() < cfg.nrd_prob
+        sigma = rng.uniform(0.0, cfg.nrd_sigma_max_px) * p / 128
+        shots = []
+        for phi in angles:
+            r_i, t_i = refl, trans
+            if deform:
+                mx, my = smooth_warp_field(rng, p, cfg.nrd_grid, sigma)
+                r_i = cv2.remap(refl, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+                t_i = cv2.remap(trans, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+            shots.append(optics.render(r_i, t_i, theta, phi_perp, float(phi), cfg.n))
+        obs = np.stack(shots).astype(np.float32)
+        r_obs, t_obs = optics.observable_layers(refl, trans, theta, cfg.n)
+        exposure = rng.uniform(0.1, 0.35) / max(float((r_obs + t_obs).mean()), 1e-6)
+        obs, r_obs, t_obs = obs * exposure, r_obs * exposure, t_obs * exposure
+        if cfg.noise:
+            shot_gain, read_var = 10 ** rng.uniform(-4, -2.5), 10 ** rng.uniform(-7, -5)
+            obs = obs + rng.normal(0.0, 1.0, obs.shape).astype(np.float32) * np.sqrt(shot_gain * obs + read_var)
+        if (obs > 1.0).mean() > 0.01 or (r_obs + t_obs).mean() < 0.02 or t_obs.std() < 0.01:
+            return None
+        return {
+            "obs": np.clip(obs, 0.0, 1.0).astype(np.float32),
+            "r": r_obs.astype(np.float32),
+            "t": t_obs.astype(np.float32),
+            "theta": theta,
+            "phi_perp": phi_perp,
+            "angles": angles,
+        }

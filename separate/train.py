@@ -1,0 +1,195 @@
+"""Training of the separation network on synthesized data.
+
+Configured by a TOML file (see `TrainConfig`; `configs/` holds the paper's and a CPU
+setting). A run folder holds ``config.toml`` as used, ``last.pt`` (resumed automatically),
+``best.pt`` (best validation PSNR of T̂), and ``log.jsonl``. Works on CPU and CUDA; with
+``torchrun --nproc_per_node K`` it runs DistributedDataParallel (gloo on CPU, nccl on CUDA),
+each rank drawing its own synthetic stream.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import time
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.distributed as dist
+
+from separate import metrics
+from separate.model import SeparationNet
+from separate.synthesis import SynthesisConfig, Synthesizer, default_pool
+from urd.dataset import atomic_path
+
+
+@dataclasses.dataclass
+class TrainConfig:
+    """A training run. Defaults are the paper's (Adam, lr 5e-3, batch 32, 128² patches)."""
+
+    variant: str = "canonical"
+    width: int = 16
+    patch: int = 128
+    batch: int = 32
+    micro_batch: int = 8
+    lr: float = 5e-3
+    lr_min: float = 1e-5
+    steps: int = 100_000
+    max_minutes: float = 0.0
+    seed: int = 0
+    pipeline: str = "DR+NRD+LCG"
+    val_samples: int = 256
+    val_every: int = 500
+    ckpt_every: int = 100
+    bf16: bool = True
+    threads: int = 0
+
+    @classmethod
+    def from_toml(cls, path: Path) -> "TrainConfig":
+        """Read a config file; unknown keys are an error naming the key."""
+        data = tomllib.loads(Path(path).read_text())
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - names)
+        if unknown:
+            raise ValueError(f"{path}: unknown config keys {unknown}; expected some of {sorted(names)}")
+        return cls(**data)
+
+    def to_toml(self) -> str:
+        lines = []
+        for key, value in dataclasses.asdict(self).items():
+            lines.append(f"{key} = {json.dumps(value)}")
+        return "\n".join(lines) + "\n"
+
+
+def to_tensors(batch: dict[str, np.ndarray], device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Synthesizer batch → (obs (B,3,C,H,W), R (B,C,H,W), T (B,C,H,W)) tensors on ``device``."""
+    obs = torch.from_numpy(batch["obs"]).permute(0, 1, 4, 2, 3).contiguous().to(device)
+    r = torch.from_numpy(batch["r"]).permute(0, 3, 1, 2).contiguous().to(device)
+    t = torch.from_numpy(batch["t"]).permute(0, 3, 1, 2).contiguous().to(device)
+    return obs, r, t
+
+
+def validation_set(cfg: TrainConfig) -> dict[str, np.ndarray]:
+    """The fixed validation patches: bsds500/val (bundled photos when absent), seed 1234."""
+    synth = Synthesizer(default_pool("val"), SynthesisConfig.ablation("DR+NRD+LCG", cfg.patch), seed=1234)
+    return synth.batch(cfg.val_samples)
+
+
+@torch.no_grad()
+def evaluate(model: torch.nn.Module, data: dict[str, np.ndarray], device: torch.device, chunk: int = 32) -> dict:
+    """Mean PSNR of R̂ and T̂ (linear, see `separate.metrics.psnr`) over a validation set."""
+    model.eval()
+    psnr_r, psnr_t = [], []
+    for i in range(0, len(data["obs"]), chunk):
+        obs, r, t = to_tensors({k: v[i : i + chunk] for k, v in data.items()}, device)
+        r_hat, t_hat = model(obs)
+        psnr_r += metrics.psnr(r_hat.cpu().numpy(), r.cpu().numpy(), axis=(1, 2, 3)).tolist()
+        psnr_t += metrics.psnr(t_hat.cpu().numpy(), t.cpu().numpy(), axis=(1, 2, 3)).tolist()
+    model.train()
+    return {"psnr_r": float(np.mean(psnr_r)), "psnr_t": float(np.mean(psnr_t))}
+
+
+def save_checkpoint(path: Path, model: torch.nn.Module, optim, step: int, cfg: TrainConfig, extra: dict) -> None:
+    """Atomically write a checkpoint (model, optimizer, step, config, bookkeeping)."""
+    state = {
+        "model": model.state_dict(),
+        "model_config": model.config(),
+        "optim": optim.state_dict() if optim is not None else None,
+        "step": step,
+        "train_config": dataclasses.asdict(cfg),
+        **extra,
+    }
+    with atomic_path(path, overwrite=True) as tmp:
+        torch.save(state, tmp)
+
+
+def lr_at(cfg: TrainConfig, step: int) -> float:
+    """Cosine decay from lr to lr_min over ``steps``, after a 200-step warm-up."""
+    warm = min(1.0, (step + 1) / 200)
+    return cfg.lr_min + (cfg.lr - cfg.lr_min) * warm * 0.5 * (1 + math.cos(math.pi * min(step, cfg.steps) / cfg.steps))
+
+
+def train(cfg: TrainConfig, run_dir: Path, init: Path | None = None, progress=None) -> dict:
+    """Train (or resume) a run in ``run_dir``; returns the final log record.
+
+    ``init`` optionally starts from a weights or checkpoint file (fine-tuning); a run folder
+    with ``last.pt`` always resumes from it instead.
+    """
+    distributed = int(os.environ.get("WORLD_SIZE", "1")) > 1
+    if distributed:
+        dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+    rank = dist.get_rank() if distributed else 0
+    world = dist.get_world_size() if distributed else 1
+    device = torch.device(f"cuda:{int(os.environ.get('LOCAL_RANK', 0))}" if torch.cuda.is_available() else "cpu")
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(cfg.seed)
+    model = SeparationNet(cfg.width, cfg.variant).to(device)
+    optim = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    step, best, started = 0, -math.inf, time.time()
+    elapsed_before = 0.0
+    last = run_dir / "last.pt"
+    if last.exists() or init is not None:
+        state = torch.load(last if last.exists() else init, map_location=device, weights_only=False)
+        model.load_state_dict(state["model"])
+        if last.exists():
+            optim.load_state_dict(state["optim"])
+            step, best = state["step"], state.get("best_psnr_t", -math.inf)
+            elapsed_before = state.get("wall_s", 0.0)
+    if rank == 0:
+        (run_dir / "config.toml").write_text(cfg.to_toml())
+    ddp = torch.nn.parallel.DistributedDataParallel(model) if distributed else model
+    synth = Synthesizer(default_pool("train"), SynthesisConfig.ablation(cfg.pipeline, cfg.patch), seed=cfg.seed * 1000 + rank + 7919 * step)
+    val = validation_set(cfg) if rank == 0 else None
+    per_rank = cfg.batch // world
+    micro = max(1, min(cfg.micro_batch, per_rank))
+    use_bf16 = cfg.bf16 and (device.type == "cpu" or torch.cuda.is_bf16_supported())
+    record: dict = {}
+    log = open(run_dir / "log.jsonl", "a") if rank == 0 else None
+    while step < cfg.steps:
+        for group in optim.param_groups:
+            group["lr"] = lr_at(cfg, step)
+        optim.zero_grad(set_to_none=True)
+        loss_sum = 0.0
+        for _ in range(0, per_rank, micro):
+            obs, r, t = to_tensors(synth.batch(micro), device)
+            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16):
+                r_hat, t_hat = ddp(obs)
+            loss = (torch.mean((r_hat - r) ** 2) + torch.mean((t_hat - t) ** 2)) * micro / per_rank
+            loss.backward()
+            loss_sum += loss.item()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        optim.step()
+        step += 1
+        wall = elapsed_before + time.time() - started
+        out_of_time = cfg.max_minutes > 0 and (time.time() - started) > cfg.max_minutes * 60
+        if distributed:
+            flag = torch.tensor([float(out_of_time)])
+            dist.all_reduce(flag, op=dist.ReduceOp.MAX)
+            out_of_time = bool(flag.item())
+        if rank == 0:
+            record = {"step": step, "loss": loss_sum, "lr": lr_at(cfg, step), "wall_s": round(wall, 1),
+                      "patches_seen": step * cfg.batch}
+            if step % cfg.val_every == 0 or step == cfg.steps or out_of_time:
+                record.update(evaluate(model, val, device))
+                if record["psnr_t"] > best:
+                    best = record["psnr_t"]
+                    save_checkpoint(run_dir / "best.pt", model, None, step, cfg, {"best_psnr_t": best, "val": record, "wall_s": wall})
+            if step % cfg.ckpt_every == 0 or step == cfg.steps or out_of_time or "psnr_t" in record:
+                save_checkpoint(last, model, optim, step, cfg, {"best_psnr_t": best, "wall_s": wall})
+            if step % 10 == 0 or "psnr_t" in record:
+                log.write(json.dumps(record) + "\n")
+                log.flush()
+            if progress is not None:
+                progress(record)
+        if out_of_time:
+            break
+    if distributed:
+        dist.destroy_process_group()
+    return record

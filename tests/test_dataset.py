@@ -1,0 +1,117 @@
+"""Manifests: round trip, validation naming the field, hashes, atomic writes."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+
+import pytest
+
+from urd import dataset
+from urd.errors import DatasetError, ManifestError
+
+
+def make_scene(tmp_path):
+    ds = dataset.Dataset.open_or_create(tmp_path / "ds")
+    scene = ds.new_scene()
+    (scene.path / "raw").mkdir()
+    record = dataset.new_scene_manifest(scene.name, "test", {"stage": "sim"})
+    for i, angle in enumerate((0, 45, 90)):
+        path = scene.path / "raw" / f"shot_{i:02d}.dng"
+        dataset.write_bytes_atomic(path, bytes([i]) * 1000)
+        record["shots"].append(
+            {"index": i, "angle_commanded_deg": angle, "angle_measured_deg": angle + 0.01,
+             "angle_calibrated_deg": None, "time": dataset.now_iso(), **dataset.file_record(scene.path, path)}
+        )
+    scene.save(record)
+    return ds, scene, record
+
+
+def test_manifest_round_trip(tmp_path):
+    ds, scene, record = make_scene(tmp_path)
+    assert ds.scene_names() == ["scene_01"]
+    assert ds.scene("scene_01").load() == record
+    assert ds.next_scene_name() == "scene_02"
+
+
+def test_corrupted_file_is_rejected_by_hash(tmp_path):
+    _, scene, _ = make_scene(tmp_path)
+    path = scene.path / "raw" / "shot_01.dng"
+    data = bytearray(path.read_bytes())
+    data[10] ^= 0xFF
+    path.write_bytes(bytes(data))
+    with pytest.raises(ManifestError, match="shot_01.dng.*SHA-256"):
+        scene.load()
+
+
+@pytest.mark.parametrize("field", ["name", "shots", "provenance"])
+def test_missing_field_is_named(tmp_path, field):
+    _, scene, record = make_scene(tmp_path)
+    del record[field]
+    scene.manifest_path.write_text(json.dumps(record))
+    with pytest.raises(ManifestError, match=f"missing field '{field}'"):
+        scene.load()
+
+
+def test_missing_shot_field_is_named_with_its_index(tmp_path):
+    _, scene, record = make_scene(tmp_path)
+    del record["shots"][2]["sha256"]
+    scene.manifest_path.write_text(json.dumps(record))
+    with pytest.raises(ManifestError, match=r"shots\[2\]: missing field 'sha256'"):
+        scene.load()
+
+
+def test_wrong_type_and_schema_are_named(tmp_path):
+    _, scene, record = make_scene(tmp_path)
+    record["shots"][0]["size"] = "big"
+    with pytest.raises(ManifestError, match=r"shots\[0\]: field 'size'"):
+        scene.save(record)
+    record["shots"][0]["size"] = 1000
+    record["schema"] = "other"
+    with pytest.raises(ManifestError, match="field 'schema'"):
+        scene.save(record)
+
+
+def test_scene_folders_are_never_reused(tmp_path):
+    ds, scene, _ = make_scene(tmp_path)
+    with pytest.raises(DatasetError, match="already exists"):
+        ds.new_scene("scene_01")
+    with pytest.raises(DatasetError, match="no scene 'scene_07'"):
+        ds.scene("scene_07")
+
+
+def test_no_silent_overwrite(tmp_path):
+    path = tmp_path / "a.bin"
+    dataset.write_bytes_atomic(path, b"one")
+    with pytest.raises(DatasetError, match="refusing to overwrite"):
+        dataset.write_bytes_atomic(path, b"two")
+    assert path.read_bytes() == b"one"
+
+
+def test_interrupted_write_leaves_old_manifest_intact(tmp_path):
+    path = tmp_path / "scene.json"
+    dataset.write_json_atomic(path, {"version": "old"})
+    # A child process starts writing a large manifest and is killed mid-write.
+    code = (
+        "import sys, urd.dataset as d, pathlib, time\n"
+        "p = pathlib.Path(sys.argv[1])\n"
+        "with d.atomic_path(p, overwrite=True) as tmp:\n"
+        "    with open(tmp, 'w') as fh:\n"
+        "        fh.write('{\"version\": \"new\", \"pad\": \"' + 'x' * 100000)\n"
+        "        fh.flush()\n"
+        "        print('writing', flush=True)\n"
+        "        time.sleep(30)\n"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", code, str(path)], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "writing"
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert json.loads(path.read_text()) == {"version": "old"}
+    # the exception path cleans its temporary file
+    with pytest.raises(RuntimeError):
+        with dataset.atomic_path(path, overwrite=True) as tmp:
+            tmp.write_text("partial")
+            raise RuntimeError("boom")
+    assert json.loads(path.read_text()) == {"version": "old"}
+    assert not [p for p in tmp_path.iterdir() if "tmp" in p.name and p.stat().st_size == len("partial")]
