@@ -1,0 +1,89 @@
+"""Shared fixtures: the shared data folder and a scripted serial peer on a real pty."""
+
+import os
+import select
+import threading
+import tty
+from pathlib import Path
+
+import pytest
+
+SHARED_DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
+
+
+def shared_data(*parts: str) -> Path:
+    """Path under ../shared/data; skips the test when it is absent."""
+    path = SHARED_DATA.joinpath(*parts)
+    if not path.exists():
+        pytest.skip(f"shared data {path} is not present (fresh checkout without ../shared/data)")
+    return path
+
+
+class ScriptedPeer:
+    """A serial peer behind a pseudo-terminal that expects an exact byte conversation.
+
+    ``script`` is a list of (bytes the driver must send, bytes to answer). Any unexpected
+    write is recorded as a mismatch; `check` fails on mismatches and unused pairs.
+    """
+
+    def __init__(self, script):
+        self.script = list(script)
+        self.mismatch = None
+        self.master, self.slave = os.openpty()
+        tty.setraw(self.slave)
+        self.port_name = os.ttyname(self.slave)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._serve, daemon=True)
+        self._thread.start()
+
+    def _serve(self):
+        buffer = b""
+        while not self._stop.is_set() and self.mismatch is None:
+            ready, _, _ = select.select([self.master], [], [], 0.02)
+            if not ready:
+                continue
+            buffer += os.read(self.master, 256)
+            while buffer and self.mismatch is None:
+                if not self.script:
+                    self.mismatch = f"unexpected write {buffer!r} after the script ended"
+                    break
+                expected, reply = self.script[0]
+                if len(buffer) < len(expected):
+                    if not expected.startswith(buffer):
+                        self.mismatch = f"expected {expected!r}, got {buffer!r}"
+                    break
+                if buffer[: len(expected)] != expected:
+                    self.mismatch = f"expected {expected!r}, got {buffer[:len(expected)]!r}"
+                    break
+                buffer = buffer[len(expected):]
+                self.script.pop(0)
+                if reply:
+                    os.write(self.master, reply)
+
+    def check(self):
+        self._stop.set()
+        self._thread.join(timeout=1)
+        assert self.mismatch is None, self.mismatch
+        assert not self.script, f"unused conversation pairs: {self.script}"
+
+    def close(self):
+        self._stop.set()
+        for fd in (self.master, self.slave):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+
+
+@pytest.fixture
+def scripted_peer():
+    peers = []
+
+    def make(script):
+        peer = ScriptedPeer(script)
+        peers.append(peer)
+        return peer
+
+    yield make
+    for peer in peers:
+        peer.close()

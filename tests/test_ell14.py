@@ -1,0 +1,123 @@
+"""ELL14 driver: byte-exact conversations over a real pty, and the simulated twin."""
+
+import pytest
+import serial
+
+from acquire.ell14 import Ell14, DeviceStatusError, decode_counts, encode_counts, parse_info
+from acquire.sim_ell14 import SimulatedEll14
+from urd.errors import DeviceTimeoutError, ProtocolError
+
+INFO = b"0IN0E1140051720231701016800023000\r\n"  # ELL14, 360° travel, 143360 counts per turn
+
+
+def open_port(name):
+    return serial.Serial(name, 9600, timeout=0.1)
+
+
+def test_counts_codec():
+    assert encode_counts(0x8C00) == "00008C00"
+    assert encode_counts(-1) == "FFFFFFFF"
+    assert decode_counts("FFFFFFFF") == -1
+    assert decode_counts("00023000") == 143360
+
+
+def test_parse_info():
+    info = parse_info(INFO[3:-2].decode())
+    assert (info.device_type, info.serial_number, info.year, info.travel, info.pulses_per_rev) == (
+        0x0E, "11400517", "2023", 360, 143360)
+
+
+def test_info_home_move_position_conversation(scripted_peer):
+    peer = scripted_peer([
+        (b"0in", INFO),
+        (b"0ho0", b"0GS09\r\n0PO00000000\r\n"),          # busy, then done
+        (b"0ma00008C00", b"0PO00008C00\r\n"),             # 90° = 143360/4 = 0x8C00
+        (b"0gp", b"0PO00008C00\r\n"),
+        (b"0gs", b"0GS00\r\n"),
+    ])
+    with open_port(peer.port_name) as port, Ell14(port) as stage:
+        assert stage.info().pulses_per_rev == 143360
+        assert stage.home() == 0.0
+        assert stage.move_to(90.0) == pytest.approx(90.0)
+        assert stage.position() == pytest.approx(90.0)
+        assert stage.status() == 0
+    peer.check()
+
+
+def test_status_fault_maps_to_a_clear_error(scripted_peer):
+    peer = scripted_peer([(b"0in", INFO), (b"0ma00004600", b"0GS02\r\n")])
+    with open_port(peer.port_name) as port, Ell14(port) as stage:
+        stage.info()
+        with pytest.raises(DeviceStatusError, match="status 2: mechanical time-out") as err:
+            stage.move_to(45.0)
+        assert err.value.code == 2
+    peer.check()
+
+
+def test_garbled_reply_is_retried(scripted_peer):
+    peer = scripted_peer([(b"0gp", b"0P#\x00garbage\r\n"), (b"0gp", b"0PO00004600\r\n"), (b"0in", INFO)])
+    with open_port(peer.port_name) as port:
+        stage = Ell14(port, retries=1)
+        assert stage.position() == pytest.approx(45.0)
+    peer.check()
+
+
+def test_lost_reply_times_out_after_bounded_retries(scripted_peer):
+    peer = scripted_peer([(b"0gs", b""), (b"0gs", b""), (b"0gs", b"")])
+    with open_port(peer.port_name) as port:
+        with pytest.raises(DeviceTimeoutError, match="did not answer"):
+            Ell14(port, timeout_s=0.2, retries=2).status()
+    peer.check()
+
+
+def test_not_an_ell14(scripted_peer):
+    peer = scripted_peer([(b"0in", b"0IN061140051720231701001F00000200\r\n")])
+    with open_port(peer.port_name) as port:
+        with pytest.raises(ProtocolError, match="not an ELL14"):
+            Ell14(port, retries=0).info()
+    peer.check()
+
+
+def test_reply_from_wrong_address_is_a_protocol_error(scripted_peer):
+    peer = scripted_peer([(b"0gs", b"3GS00\r\n")])
+    with open_port(peer.port_name) as port:
+        with pytest.raises(ProtocolError, match="address 3"):
+            Ell14(port, retries=0).status()
+    peer.check()
+
+
+def test_bad_address_argument():
+    with pytest.raises(ValueError, match="address"):
+        Ell14(None, address="G")
+
+
+def test_simulator_quantizes_offsets_and_moves():
+    with SimulatedEll14(sim_offset_deg=3.0, pulses_per_rev=143360) as sim, open_port(sim.port_name) as port:
+        stage = Ell14(port)
+        stage.info()
+        stage.home()
+        measured = stage.move_to(45.001)
+        assert measured == pytest.approx(45.0, abs=360 / 143360)
+        assert sim.true_angle_deg() == pytest.approx(measured + 3.0)
+        assert [e["command"] for e in sim.log] == ["0in", "0ho0", f"0ma{encode_counts(round(45.001 / 360 * 143360))}"]
+
+
+@pytest.mark.parametrize("fault", ["drop", "garble"])
+def test_simulator_transient_faults_are_absorbed_by_retries(fault):
+    with SimulatedEll14() as sim, open_port(sim.port_name) as port:
+        stage = Ell14(port, timeout_s=0.3, move_timeout_s=1.0)
+        stage.info()
+        sim.sim_force(fault)
+        assert stage.move_to(90.0) == pytest.approx(90.0)
+        assert [e["fault"] for e in sim.log].count(fault) == 1
+
+
+def test_simulator_vanishing_device_times_out():
+    with SimulatedEll14() as sim, open_port(sim.port_name) as port:
+        stage = Ell14(port, timeout_s=0.2, move_timeout_s=0.5, retries=1)
+        stage.info()
+        sim.sim_force("vanish")
+        with pytest.raises(DeviceTimeoutError):
+            stage.move_to(45.0)
+        sim.sim_revive()
+        assert stage.move_to(45.0) == pytest.approx(45.0)
