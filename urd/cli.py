@@ -49,19 +49,88 @@ def run_guarded(func, *args, **kwargs):
     """Call ``func``, turning urd's errors into a one-line message and exit status 1."""
     try:
         return func(*args, **kwargs)
-    except (UrdError, ValueError, FileNotFoundError) as exc:
+    except (UrdError, ValueError, OSError) as exc:
         fail(str(exc))
     except KeyboardInterrupt:
         fail("interrupted; completed files are kept and a re-run resumes", 130)
 
 
+def parse_faults(text: str) -> dict[str, float]:
+    """'drop=0.1,garble=0.05' → {'drop': 0.1, 'garble': 0.05}."""
+    faults = {}
+    for item in filter(None, (t.strip() for t in text.split(","))):
+        kind, _, prob = item.partition("=")
+        try:
+            faults[kind] = float(prob)
+        except ValueError:
+            raise typer.BadParameter(f"expected KIND=PROBABILITY items like drop=0.1, got {item!r}")
+    return faults
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """'1536x1024' → (1536, 1024)."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise typer.BadParameter(f"expected WIDTHxHEIGHT like 1536x1024, got {text!r}")
+    return w, h
+
+
+def do_capture(dataset: Path, stage: str, camera: str, angles: list[float], scene_name: str | None,
+               tolerance: float, address: str, sim) -> "Scene":
+    """Capture (or resume) one scene; shared by ``urd capture`` and ``urd demo``."""
+    from acquire.plan import plan_capture, run_capture
+    from acquire.rig import open_rig
+    from acquire.virtual_camera import VirtualCamera
+    from urd.dataset import Dataset, Scene
+
+    ds = Dataset.open_or_create(dataset)
+    calibration = ds.read_calibration() or {}
+    offset = float(calibration.get("offset_deg", 0.0))
+    scene = ds.scene(scene_name) if scene_name and (ds.root / scene_name / "scene.json").exists() else ds.new_scene(scene_name)
+    with open_rig(stage, camera, address, sim) as rig:
+        done = {s["index"] for s in scene.load()["shots"]} if scene.exists() else set()
+        steps = plan_capture(angles, done)
+        typer.echo(f"capturing {scene.path} at {angles} deg ({len(angles) - len(done)} shots to take)")
+        with typer.progressbar(length=len(steps), label="capture", file=sys.stderr) as bar:
+            try:
+                run_capture(scene, rig.stage, rig.camera, angles, offset, tolerance,
+                            capture_info=rig.info, progress=lambda step: bar.update(1))
+            except (UrdError, OSError) as exc:
+                raise type(exc)(f"{exc}\ncapture of {scene.name} stopped; completed shots are kept. "
+                                f"Resume with: urd capture {dataset} --scene {scene.name} ...") from exc
+        if isinstance(rig.camera, VirtualCamera) and not (scene.path / "truth").exists():
+            rig.camera.write_truth(scene.path / "truth")
+    return scene
+
+
 @app.command()
 def capture(
     dataset: Path = typer.Argument(..., help="Dataset folder; created when new."),
-    stage: str = typer.Option(..., help="Serial port of the ELL14 stage (e.g. /dev/ttyUSB0), or 'sim'."),
+    stage: str = typer.Option(..., help="Serial port of the ELL14 stage (e.g. /dev/ttyUSB0), or 'sim' for the simulated stage."),
+    camera: str = typer.Option("gphoto2", help="Camera driver: 'gphoto2' (real camera over USB) or 'virtual' (needs --stage sim)."),
+    angles: str = typer.Option("0,45,90", help="Polarizer angles in degrees, comma-separated (at least 3 distinct)."),
+    scene: Optional[str] = typer.Option(None, help="Scene name; an existing incomplete scene is resumed. Default: next free scene_NN."),
+    tolerance: float = typer.Option(0.5, help="Largest accepted difference of read-back and commanded angle (deg)."),
+    address: str = typer.Option("0", help="ELL14 device address 0-F."),
+    sim_offset: float = typer.Option(0.0, help="[sim] polarizer mounting offset (deg)."),
+    sim_jitter: float = typer.Option(0.0, help="[sim] per-move angle error the encoder does not see, std (deg)."),
+    sim_faults: str = typer.Option("", help="[sim] fault probabilities per command, e.g. drop=0.05,garble=0.05,mech_timeout=0.02,miss=0.02,vanish=0.01."),
+    sim_size: str = typer.Option("1536x1024", help="[virtual] sensor size WIDTHxHEIGHT."),
+    sim_shake: float = typer.Option(4.0, help="[virtual] camera shake between shots, max translation (px)."),
+    reflection: Optional[Path] = typer.Option(None, help="[virtual] image file reflected in the glass (default: bundled photo)."),
+    transmission: Optional[Path] = typer.Option(None, help="[virtual] image file seen through the glass (default: bundled photo)."),
+    seed: int = typer.Option(0, help="[sim/virtual] random seed."),
 ) -> None:
     """Capture one scene: home the polarizer stage, then move, verify, trigger and download at each angle."""
-    not_built("capture")
+    from acquire.rig import SimSettings
+
+    angle_list = parse_angles(angles)
+    width, height = parse_size(sim_size)
+    sim = SimSettings(sim_offset, sim_jitter, parse_faults(sim_faults), width, height, sim_shake, 0.5,
+                      reflection, transmission, seed)
+    result = run_guarded(do_capture, dataset, stage, camera, angle_list, scene, tolerance, address, sim)
+    typer.echo(f"scene complete: {result.path}")
 
 
 @app.command()

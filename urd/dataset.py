@@ -98,6 +98,7 @@ def atomic_path(path: Path, overwrite: bool = False) -> Iterator[Path]:
     os.close(fd)
     tmp = Path(tmp_name)
     try:
+        os.chmod(tmp, 0o644)
         yield tmp
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())

@@ -1,0 +1,87 @@
+"""Assemble a capture rig: a stage (real port or simulated twin) and a camera.
+
+``open_rig`` is a context manager: it opens the serial port (the only place that does),
+starts the simulated stage when asked, and closes everything on exit.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+from pathlib import Path
+from typing import Iterator
+
+import serial
+
+from acquire.camera import CameraKind, Gphoto2Camera
+from acquire.ell14 import Ell14
+from acquire.sim_ell14 import SimulatedEll14
+from acquire.virtual_camera import VirtualCamera, make_glass_scene
+from urd.errors import DeviceError
+
+SIM = "sim"
+
+
+@dataclasses.dataclass
+class SimSettings:
+    """Knobs of the simulated stage and virtual camera (simulation only)."""
+
+    offset_deg: float = 0.0
+    jitter_deg: float = 0.0
+    faults: dict[str, float] = dataclasses.field(default_factory=dict)
+    width: int = 1536
+    height: int = 1024
+    shake_px: float = 4.0
+    shake_deg: float = 0.5
+    reflection: Path | None = None
+    transmission: Path | None = None
+    seed: int = 0
+
+
+@dataclasses.dataclass
+class Rig:
+    stage: Ell14
+    camera: object
+    info: dict
+    sim: SimulatedEll14 | None = None
+
+
+def open_serial(port: str, timeout_s: float = 0.1) -> serial.Serial:
+    """Open a serial port at the ELL14's settings (9600 8N1); DeviceError if it cannot."""
+    try:
+        return serial.Serial(port, 9600, bytesize=8, parity="N", stopbits=1, timeout=timeout_s)
+    except (serial.SerialException, OSError, ValueError) as exc:
+        raise DeviceError(f"cannot open serial port {port}: {exc}") from exc
+
+
+@contextlib.contextmanager
+def open_rig(stage: str, camera: str, address: str = "0", sim: SimSettings | None = None) -> Iterator[Rig]:
+    """Open the stage on ``stage`` (a port, or 'sim') and the ``camera`` kind."""
+    sim = sim or SimSettings()
+    try:
+        kind = CameraKind(camera)
+    except ValueError:
+        raise DeviceError(f"unknown camera {camera!r}; expected one of {[k.value for k in CameraKind]}") from None
+    with contextlib.ExitStack() as stack:
+        twin = None
+        if stage == SIM:
+            twin = stack.enter_context(SimulatedEll14(address, sim_offset_deg=sim.offset_deg, sim_jitter_deg=sim.jitter_deg,
+                                                      sim_faults=sim.faults, seed=sim.seed))
+            port_name = twin.port_name
+        else:
+            port_name = stage
+        port = stack.enter_context(open_serial(port_name))
+        driver = stack.enter_context(Ell14(port, address))
+        info = driver.info()
+        stage_info = {"kind": "ELL14", "port": stage, "address": address, "serial": info.serial_number,
+                      "firmware": info.firmware, "pulses_per_rev": info.pulses_per_rev}
+        if kind is CameraKind.VIRTUAL:
+            if twin is None:
+                raise DeviceError("the virtual camera needs the simulated stage (--stage sim): it reads the true polarizer angle from it")
+            scene = make_glass_scene(sim.width, sim.height, sim.reflection, sim.transmission)
+            cam = VirtualCamera(scene, twin.true_angle_deg, sim.shake_px, sim.shake_deg, seed=sim.seed)
+        else:
+            cam = Gphoto2Camera()
+        if twin is not None:
+            stage_info["simulated"] = {"offset_deg": sim.offset_deg, "jitter_deg": sim.jitter_deg, "faults": sim.faults}
+        yield Rig(driver, cam, {"stage": stage_info, "camera": cam.describe()}, twin)
