@@ -133,10 +133,64 @@ def capture(
     typer.echo(f"scene complete: {result.path}")
 
 
+def do_ingest(source: Path, dataset: Optional[Path], opts) -> list:
+    """Ingest a RAW folder into ``dataset``, or a captured scene / dataset in place."""
+    from urd.dataset import Dataset, Scene
+    from urd.ingest import ingest_folder, ingest_scene
+
+    outcomes, ignored = [], []
+    with typer.progressbar(length=1, label="ingest", file=sys.stderr, show_pos=False) as bar:
+        def progress(message: str) -> None:
+            bar.label = message[:60]
+            bar.render_progress()
+
+        if (source / "scene.json").is_file():
+            outcomes = [ingest_scene(Scene(source), opts, progress)]
+        elif (source / "dataset.json").is_file():
+            ds = Dataset.open(source)
+            todo = [ds.scene(n) for n in ds.scene_names() if opts.redo or "ingest" not in ds.scene(n).load(verify=False)]
+            outcomes = [ingest_scene(scene, opts, progress) for scene in todo]
+        else:
+            outcomes, ignored = ingest_folder(source, dataset or Path("dataset"), opts, progress)
+        bar.update(1)
+    for path in ignored:
+        typer.echo(f"ignored (not a RAW file name): {path}", err=True)
+    return outcomes
+
+
 @app.command()
-def ingest(raw: Path = typer.Argument(..., help="Folder of RAW shots.")) -> None:
+def ingest(
+    source: Path = typer.Argument(..., help="A folder of RAW shots, a captured scene folder, or a dataset folder."),
+    dataset: Optional[Path] = typer.Argument(None, help="Dataset to add scenes to when SOURCE is a RAW folder (default: ./dataset)."),
+    angles: str = typer.Option("0,45,90", help="Polarizer angles of consecutive shots (deg), for RAW folders without a capture manifest."),
+    motion: str = typer.Option("euclidean", help="Alignment model: translation, euclidean or homography."),
+    half_size: bool = typer.Option(False, help="Decode at half resolution (one pixel per 2x2 CFA tile; ~4x faster)."),
+    demosaic: str = typer.Option("linear", help="Demosaicing: linear (fast), ahd or dht."),
+    gap: float = typer.Option(60.0, help="Seconds between shots that start a new scene when grouping by capture time."),
+    redo: bool = typer.Option(False, help="Decode and align again scenes that are already ingested (replaces aligned/)."),
+) -> None:
     """Decode RAW shots to linear images, group them into scenes and align each scene (ECC)."""
-    not_built("ingest")
+    from urd.align import Motion
+    from urd.ingest import IngestOptions
+    from urd.raw import Demosaic
+
+    try:
+        opts = IngestOptions(tuple(parse_angles(angles)), Motion(motion), half_size, Demosaic(demosaic), gap, redo)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc))
+    outcomes = run_guarded(do_ingest, source, dataset, opts)
+    failed = 0
+    for outcome in outcomes:
+        if outcome.error:
+            failed += 1
+            where = outcome.name or ", ".join(p.name for p in outcome.files)
+            typer.secho(f"FAILED {where}: {outcome.error}", fg=typer.colors.RED, err=True)
+        else:
+            typer.echo(f"ingested {outcome.name} ({len(outcome.files)} shots)")
+    if not outcomes:
+        typer.echo("nothing to ingest")
+    if failed:
+        fail(f"{failed} of {len(outcomes)} scenes failed or were flagged")
 
 
 @app.command()
