@@ -172,7 +172,8 @@ class VirtualCamera:
         r_obs, t_obs = optics.observable_layers(s.reflection, s.transmission, s.theta, s.n)
         for name, array in (("R_obs", r_obs * self.gain), ("T_obs", t_obs * self.gain),
                             ("theta_deg", np.degrees(s.theta)), ("phi_perp_deg", np.degrees(s.phi_perp))):
-            tifffile.imwrite(folder / f"{name}.tiff", np.asarray(array, np.float32))
+            array = np.asarray(array, np.float32)
+            tifffile.imwrite(folder / f"{name}.tiff", array, photometric="rgb" if array.ndim == 3 else "minisblack")
         (folder / "truth.json").write_text(json.dumps({"n": s.n, "gain": self.gain, "camera": self.describe()}, indent=2))
 
 

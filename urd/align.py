@@ -8,8 +8,9 @@ turns a layer's gain change into an additive offset, and subtracting a wide Gaus
 removes that offset locally, leaving the edges of both layers, which move together with the
 camera. Saturated pixels are masked.
 
-Coarse-to-fine: ECC runs on a pyramid, from a level about 256 px high up to ``finest_level``
-(0 is full resolution), each level starting from the previous warp.
+Coarse-to-fine: phase correlation gives a starting translation on the coarsest level (about
+256 px on the short side); ECC then refines on each pyramid level up to ``finest_level`` (0 is
+full resolution), each level starting from the previous warp.
 """
 
 from __future__ import annotations
@@ -94,6 +95,10 @@ def align(reference: np.ndarray, shot: np.ndarray, motion: Motion = Motion.EUCLI
         size = ((r.shape[1] + 1) // 2, (r.shape[0] + 1) // 2)
         pyramid.append((cv2.pyrDown(r), cv2.pyrDown(s), cv2.resize(m, size, interpolation=cv2.INTER_NEAREST)))
     warp = np.eye(3, dtype=np.float32) if motion is Motion.HOMOGRAPHY else np.eye(2, 3, dtype=np.float32)
+    coarse_ref, coarse_shot, _ = pyramid[levels]
+    window = cv2.createHanningWindow(coarse_ref.shape[::-1], cv2.CV_32F)
+    (dx, dy), _ = cv2.phaseCorrelate(coarse_ref, coarse_shot, window)
+    warp[0, 2], warp[1, 2] = dx, dy
     correlation = 0.0
     for level in range(levels, finest_level - 1, -1):
         r, s, m = pyramid[level]

@@ -183,6 +183,7 @@ def ingest_scene(scene: Scene, opts: IngestOptions, progress=None) -> SceneOutco
 def ingest_group(ds: Dataset, files: list[Path], opts: IngestOptions, progress=None) -> SceneOutcome:
     """Make a new scene from RAW files taken at ``opts.angles_deg``; nothing is left on failure."""
     tmp = Path(tempfile.mkdtemp(prefix=".ingest-", dir=ds.root))
+    copies: dict[str, str] = {}
     try:
         scene = Scene(tmp)
         (tmp / "raw").mkdir()
@@ -191,6 +192,7 @@ def ingest_group(ds: Dataset, files: list[Path], opts: IngestOptions, progress=N
         for i, (src, angle) in enumerate(zip(files, opts.angles_deg)):
             meta = rawio.metadata(src)
             dst = tmp / "raw" / f"shot_{i:02d}_{angle:05.1f}deg{src.suffix.lower()}"
+            copies[str(dst)], copies[dst.name] = str(src), src.name
             with atomic_path(dst) as part:
                 shutil.copyfile(src, part)
             if sha256_file(dst) != sha256_file(src):
@@ -206,7 +208,10 @@ def ingest_group(ds: Dataset, files: list[Path], opts: IngestOptions, progress=N
         return SceneOutcome(name, files, None if record["ingest"]["ok"] else record["ingest"]["error"])
     except UrdError as exc:
         shutil.rmtree(tmp, ignore_errors=True)
-        return SceneOutcome(None, files, str(exc))
+        message = str(exc)
+        for copy, source in sorted(copies.items(), key=lambda kv: -len(kv[0])):
+            message = message.replace(copy, source)
+        return SceneOutcome(None, files, message)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

@@ -38,6 +38,11 @@ def _open(path: Path) -> rawpy.RawPy:
         raw = rawpy.imread(str(path))
     except rawpy.LibRawError as exc:
         raise RawFormatError(f"{path}: not a RAW file rawpy can read ({type(exc).__name__}: {exc})") from exc
+    try:
+        raw.unpack()
+    except rawpy.LibRawError as exc:
+        raw.close()
+        raise RawFormatError(f"{path}: corrupt or truncated RAW data ({type(exc).__name__}: {exc})") from exc
     if raw.raw_type != rawpy.RawType.Flat or raw.raw_pattern is None:
         raw.close()
         raise RawFormatError(f"{path}: not a colour-filter-array camera image (LibRaw reports a {raw.raw_type.name} raw)")
@@ -74,7 +79,7 @@ def metadata(path: Path) -> dict:
             "iso": float(other.iso_speed) or None,
             "aperture": float(other.aperture) or None,
             "focal_length_mm": float(other.focal_length) or None,
-            "time": other.timestamp.isoformat() if other.timestamp else None,
+            "time": other.timestamp.isoformat() if other.timestamp and other.timestamp.year > 1970 else None,
             "width": int(sizes.width),
             "height": int(sizes.height),
             "black_level": [int(v) for v in raw.black_level_per_channel],

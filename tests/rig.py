@@ -1,0 +1,21 @@
+"""Helpers: capture scenes on the simulated rig through the real driver and plan."""
+
+import serial
+
+from acquire.ell14 import Ell14
+from acquire.plan import run_capture
+from acquire.sim_ell14 import SimulatedEll14
+from acquire.virtual_camera import VirtualCamera, make_glass_scene
+
+
+def capture_virtual(ds, angles=(0.0, 45.0, 90.0), size=(768, 512), shake_px=8.0, shake_deg=1.0, seed=0,
+                    offset_deg=0.0, jitter_deg=0.0, scene=None, glass=None):
+    """Capture one scene with the simulated stage and the virtual camera; return (scene, camera)."""
+    glass = glass or make_glass_scene(*size)
+    target = ds.new_scene()
+    with SimulatedEll14(sim_offset_deg=offset_deg, sim_jitter_deg=jitter_deg, seed=seed) as sim, \
+            serial.Serial(sim.port_name, 9600, timeout=0.05) as port:
+        cam = VirtualCamera(glass, sim.true_angle_deg, shake_px, shake_deg, seed=seed)
+        run_capture(target, Ell14(port), cam, list(angles))
+        cam.write_truth(target.path / "truth")
+    return target, cam

@@ -1,0 +1,140 @@
+"""Ingest: RAW decoding, grouping, ECC alignment accuracy, failure handling."""
+
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from acquire.virtual_camera import make_glass_scene
+from conftest import shared_data
+from rig import capture_virtual
+from urd import raw as rawio
+from urd.dataset import Dataset
+from urd.errors import RawFormatError
+from urd.ingest import IngestOptions, ingest_folder, ingest_scene, load_stack
+
+
+def urd(*args):
+    return subprocess.run([sys.executable, "-m", "urd.cli", *map(str, args)], capture_output=True, text=True, timeout=600)
+
+
+def warp_rms(estimate, truth, h, w):
+    ys, xs = np.mgrid[0:h:16, 0:w:16]
+    pts = np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)])
+    return float(np.sqrt(((np.asarray(estimate)[:2] @ pts - np.asarray(truth)[:2] @ pts) ** 2).sum(0).mean()))
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_alignment_recovers_known_shake_within_a_tenth_of_a_pixel(tmp_path, seed):
+    ds = Dataset.open_or_create(tmp_path / "ds")
+    scene, cam = capture_virtual(ds, angles=(0, 45, 90, 135), size=(1024, 768), shake_px=8, shake_deg=1.0, seed=seed)
+    outcome = ingest_scene(scene, IngestOptions())
+    assert outcome.error is None
+    record = scene.load()
+    for entry in record["ingest"]["alignment"][1:]:
+        truth = cam.shake(entry["shot"])
+        assert np.abs(truth[:, 2]).max() > 1.0 or entry["shot"] == 0     # the shake is real
+        assert warp_rms(entry["warp"], truth, 768, 1024) < 0.1, entry
+    stack, angles = load_stack(scene)
+    assert stack.shape == (4, 768, 1024, 3) and angles == [0.0, 45.0, 90.0, 135.0]
+    # aligned shots agree with the noiseless rendering in the reference frame (away from borders)
+    for i, angle in enumerate(angles):
+        expected = cam.render(angle, 0)
+        err = np.abs(stack[i] - expected)[40:-40, 40:-40].mean()
+        assert err < 0.02, (i, err)
+
+
+def test_unalignable_scene_is_flagged_and_no_stack_is_written(tmp_path):
+    ds = Dataset.open_or_create(tmp_path / "ds")
+    scene, _ = capture_virtual(ds, size=(512, 384), seed=3)
+    other_glass = make_glass_scene(512, 384, reflection=None, transmission=None, theta_center_deg=30)
+    other_glass.transmission = np.ascontiguousarray(other_glass.reflection[::-1, ::-1])
+    other_glass.reflection = np.ascontiguousarray(other_glass.reflection[:, ::-1] * 0.1)
+    other, _ = capture_virtual(ds, size=(512, 384), seed=4, glass=other_glass)
+    # replace shot 2 of the first scene by a shot of another scene (and fix up the manifest hash)
+    record = scene.load()
+    src = other.path / other.load()["shots"][2]["file"]
+    dst = scene.path / record["shots"][2]["file"]
+    shutil.copyfile(src, dst)
+    from urd.dataset import file_record
+    record["shots"][2].update(file_record(scene.path, dst))
+    scene.save(record)
+    out = urd("ingest", scene.path)
+    assert out.returncode == 1 and "alignment failed" in out.stderr
+    assert not (scene.path / "aligned").exists()
+    assert scene.load()["ingest"]["ok"] is False
+
+
+def test_ingest_folder_groups_by_time_and_reports_bad_files(tmp_path, monkeypatch):
+    ds = Dataset.open_or_create(tmp_path / "cap")
+    scenes = [capture_virtual(ds, size=(256, 192), seed=s)[0] for s in (5, 6, 7, 8, 9)]
+    raw_dir = tmp_path / "raw"
+    raw_dir.mkdir()
+    for k, scene in enumerate(scenes):
+        for i, shot in enumerate(scene.load()["shots"]):
+            shutil.copyfile(scene.path / shot["file"], raw_dir / f"IMG_{k}{i}.dng")
+    # scene 1: truncated file; scene 2: a text file named .dng; scene 3: one shot missing
+    data = (raw_dir / "IMG_11.dng").read_bytes()
+    (raw_dir / "IMG_11.dng").write_bytes(data[: len(data) // 3])
+    (raw_dir / "IMG_21.dng").write_text("not a raw file")
+    (raw_dir / "IMG_32.dng").unlink()
+    (raw_dir / "notes.txt").write_text("sidecar")
+    t0 = time.time() - 10000
+    for path in raw_dir.glob("IMG_*.dng"):
+        k, i = int(path.stem[4]), int(path.stem[5])
+        os.utime(path, (t0 + 1000 * k + i, t0 + 1000 * k + i))
+    opts = IngestOptions(gap_s=100)
+    from urd import ingest as ingest_mod
+    monkeypatch.setattr(ingest_mod, "capture_time", lambda p: p.stat().st_mtime)  # the staged times
+    outcomes, ignored = ingest_folder(raw_dir, tmp_path / "ds", opts)
+    assert ignored == [raw_dir / "notes.txt"]
+    good = [o for o in outcomes if o.error is None]
+    errors = {o.files[0].name[:5]: o.error for o in outcomes if o.error}
+    assert len(good) == 2 and Dataset.open(tmp_path / "ds").scene_names() == ["scene_01", "scene_02"]
+    assert "IMG_11.dng" in errors["IMG_1"] and "truncated" in errors["IMG_1"]
+    assert "IMG_21.dng" in errors["IMG_2"] and "not a RAW file" in errors["IMG_2"]
+    assert "wrong shot count" in errors["IMG_3"]
+    assert not [p for p in (tmp_path / "ds").iterdir() if p.name.startswith(".ingest")]
+
+
+def test_mixed_sizes_and_missing_folder(tmp_path):
+    ds = Dataset.open_or_create(tmp_path / "cap")
+    a, _ = capture_virtual(ds, size=(256, 192), seed=1)
+    b, _ = capture_virtual(ds, size=(320, 192), seed=2)
+    raw_dir = tmp_path / "raw"
+    raw_dir.mkdir()
+    files = [a.path / s["file"] for s in a.load()["shots"][:2]] + [b.path / b.load()["shots"][2]["file"]]
+    for i, f in enumerate(files):
+        shutil.copyfile(f, raw_dir / f"x{i}.dng")
+    out = urd("ingest", raw_dir, tmp_path / "ds")
+    assert out.returncode == 1 and "x2.dng: size 320×192 differs" in out.stderr
+    out = urd("ingest", tmp_path / "nowhere", tmp_path / "ds")
+    assert out.returncode == 1 and "no such folder" in out.stderr
+
+
+def test_real_camera_raws_decode_linear_and_the_scanner_is_rejected():
+    canon = shared_data("raw", "canon_eos550d_magiclantern_colorchart.dng")
+    img = rawio.decode(canon)
+    assert img.shape == (1156, 1734, 3) and img.dtype == np.float32
+    assert 0.0 <= img.min() and img.max() <= 1.0 and 0.01 < img.mean() < 0.5
+    half = rawio.decode(canon, half_size=True)
+    assert half.shape == (578, 867, 3)
+    assert abs(half.mean() - img.mean()) < 0.01          # same linear scale at half size
+    meta = rawio.metadata(shared_data("raw", "kodak_dc50.kdc"))
+    assert meta["model"].startswith("Kodak") and meta["exposure_s"] == pytest.approx(0.00435, rel=1e-3)
+    with pytest.raises(RawFormatError, match="not a colour-filter-array camera image"):
+        rawio.decode(shared_data("raw", "nikon_coolscan_iv_scanner.nef"))
+
+
+def test_virtual_dng_decodes_to_the_rendered_linear_scene(tmp_path):
+    ds = Dataset.open_or_create(tmp_path / "ds")
+    scene, cam = capture_virtual(ds, size=(256, 192), shake_px=0, shake_deg=0, seed=1)
+    for shot in scene.load()["shots"]:
+        img = rawio.decode(scene.path / shot["file"])
+        expected = cam.render(shot["angle_commanded_deg"], shot["index"])
+        np.testing.assert_allclose(img.mean(axis=(0, 1)), expected.mean(axis=(0, 1)), rtol=0.01)
