@@ -40,6 +40,47 @@ class GlassScene:
     phi_perp: np.ndarray
     n: float = optics.N_GLASS
 
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.theta.shape
+
+    def render(self, phi: float) -> np.ndarray:
+        """Linear H×W×3 image behind a polarizer at ``phi`` (rad), paper Eq. 1."""
+        return optics.render(self.reflection, self.transmission, self.theta, self.phi_perp, phi, self.n)
+
+    def layers(self) -> tuple[np.ndarray, np.ndarray]:
+        """The observable layers (R_obs, T_obs), H×W×3."""
+        return optics.observable_layers(self.reflection, self.transmission, self.theta, self.n)
+
+
+@dataclasses.dataclass
+class PolarizedTarget:
+    """A calibration target: an image whose light is linearly polarized at ``angle`` (rad)
+    with degree ``dolp`` (e.g. a sheet polarizer in front of a light box or an LCD)."""
+
+    image: np.ndarray
+    angle: float
+    dolp: float = 0.95
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.image.shape[:2]
+
+    def render(self, phi: float) -> np.ndarray:
+        stokes = np.stack([self.image, self.image * self.dolp * np.cos(2 * self.angle),
+                           self.image * self.dolp * np.sin(2 * self.angle)])
+        return optics.intensity_from_stokes(stokes, phi)
+
+    def layers(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.zeros_like(self.image), self.image
+
+
+def make_polarized_target(width: int, height: int, angle_deg: float = 0.0) -> PolarizedTarget:
+    """A bundled photo seen through a sheet polarizer whose axis is at ``angle_deg``."""
+    import skimage.data
+
+    return PolarizedTarget(to_linear(_cover(skimage.data.chelsea(), width, height)) * 0.8 + 0.05, np.radians(angle_deg))
+
 
 def _cover(img: np.ndarray, width: int, height: int) -> np.ndarray:
     """Scale and centre-crop an image to exactly width×height."""
@@ -84,7 +125,7 @@ class VirtualCamera:
     """Simulated camera with a Bayer sensor; same `capture` API as the real drivers.
 
     Args:
-        scene: what is in front of the camera.
+        scene: what is in front of the camera (a `GlassScene` or a `PolarizedTarget`).
         angle_source: returns the polarizer's true angle (deg) when the shutter fires.
         shake_px, shake_deg: maximum random translation (px) and rotation (deg) of shots ≥ 1.
         exposure: mean linear level of the unpolarized image (1.0 = white level).
@@ -97,7 +138,7 @@ class VirtualCamera:
     white_level = 4095
     neutral = (0.5, 1.0, 0.7)
 
-    def __init__(self, scene: GlassScene, angle_source: Callable[[], float], shake_px: float = 4.0,
+    def __init__(self, scene: GlassScene | PolarizedTarget, angle_source: Callable[[], float], shake_px: float = 4.0,
                  shake_deg: float = 0.5, exposure: float = 0.3, full_well: float = 20000.0,
                  read_noise_dn: float = 1.5, seed: int = 0):
         self.scene = scene
@@ -105,18 +146,18 @@ class VirtualCamera:
         self.shake_px, self.shake_deg = shake_px, shake_deg
         self.full_well, self.read_noise_dn = full_well, read_noise_dn
         self.seed = seed
-        r_obs, t_obs = optics.observable_layers(scene.reflection, scene.transmission, scene.theta, scene.n)
+        r_obs, t_obs = scene.layers()
         self.gain = exposure / float((r_obs + t_obs).mean())
         self.triggers: list[dict] = []
 
     def describe(self) -> dict:
-        h, w = self.scene.theta.shape
+        h, w = self.scene.shape
         return {"kind": CameraKind.VIRTUAL.value, "model": "urd virtual camera", "width": w, "height": h,
                 "shake_px": self.shake_px, "shake_deg": self.shake_deg, "seed": self.seed}
 
     def shake(self, index: int) -> np.ndarray:
         """The 2×3 affine warp M of shot ``index``: shot(M·x) = scene(x); identity for shot 0."""
-        h, w = self.scene.theta.shape
+        h, w = self.scene.shape
         if index == 0:
             return np.float32([[1, 0, 0], [0, 1, 0]])
         rng = np.random.default_rng([self.seed, index, 1])
@@ -128,9 +169,8 @@ class VirtualCamera:
 
     def render(self, angle_deg: float, index: int) -> np.ndarray:
         """The noiseless linear image of shot ``index`` at polarizer angle ``angle_deg``."""
-        s = self.scene
-        img = optics.render(s.reflection, s.transmission, s.theta, s.phi_perp, np.radians(angle_deg), s.n) * self.gain
-        h, w = s.theta.shape
+        img = self.scene.render(np.radians(angle_deg)) * self.gain
+        h, w = self.scene.shape
         return cv2.warpAffine(img.astype(np.float32), self.shake(index), (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
 
     def mosaic(self, img: np.ndarray, index: int) -> np.ndarray:
@@ -166,15 +206,17 @@ class VirtualCamera:
 
     def write_truth(self, folder: Path) -> None:
         """Write the ground truth in decoded units: R_obs.tiff, T_obs.tiff (float32 H×W×3),
-        theta_deg.tiff and phi_perp_deg.tiff (float32 H×W) and truth.json."""
+        for glass scenes theta_deg.tiff and phi_perp_deg.tiff (float32 H×W), and truth.json."""
         folder.mkdir(parents=True, exist_ok=True)
         s = self.scene
-        r_obs, t_obs = optics.observable_layers(s.reflection, s.transmission, s.theta, s.n)
-        for name, array in (("R_obs", r_obs * self.gain), ("T_obs", t_obs * self.gain),
-                            ("theta_deg", np.degrees(s.theta)), ("phi_perp_deg", np.degrees(s.phi_perp))):
+        r_obs, t_obs = s.layers()
+        arrays = [("R_obs", r_obs * self.gain), ("T_obs", t_obs * self.gain)]
+        if isinstance(s, GlassScene):
+            arrays += [("theta_deg", np.degrees(s.theta)), ("phi_perp_deg", np.degrees(s.phi_perp))]
+        for name, array in arrays:
             array = np.asarray(array, np.float32)
             tifffile.imwrite(folder / f"{name}.tiff", array, photometric="rgb" if array.ndim == 3 else "minisblack")
-        (folder / "truth.json").write_text(json.dumps({"n": s.n, "gain": self.gain, "camera": self.describe()}, indent=2))
+        (folder / "truth.json").write_text(json.dumps({"gain": self.gain, "camera": self.describe()}, indent=2))
 
 
 def shot_truth(path: Path) -> dict | None:

@@ -165,17 +165,15 @@ def ingest(
     angles: str = typer.Option("0,45,90", help="Polarizer angles of consecutive shots (deg), for RAW folders without a capture manifest."),
     motion: str = typer.Option("euclidean", help="Alignment model: translation, euclidean or homography."),
     half_size: bool = typer.Option(False, help="Decode at half resolution (one pixel per 2x2 CFA tile; ~4x faster)."),
-    demosaic: str = typer.Option("linear", help="Demosaicing: linear (fast), ahd or dht."),
     gap: float = typer.Option(60.0, help="Seconds between shots that start a new scene when grouping by capture time."),
     redo: bool = typer.Option(False, help="Decode and align again scenes that are already ingested (replaces aligned/)."),
 ) -> None:
     """Decode RAW shots to linear images, group them into scenes and align each scene (ECC)."""
     from urd.align import Motion
     from urd.ingest import IngestOptions
-    from urd.raw import Demosaic
 
     try:
-        opts = IngestOptions(tuple(parse_angles(angles)), Motion(motion), half_size, Demosaic(demosaic), gap, redo)
+        opts = IngestOptions(tuple(parse_angles(angles)), Motion(motion), half_size, gap, redo)
     except ValueError as exc:
         raise typer.BadParameter(str(exc))
     outcomes = run_guarded(do_ingest, source, dataset, opts)

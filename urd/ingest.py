@@ -39,13 +39,12 @@ class IngestOptions:
     angles_deg: tuple[float, ...] = (0.0, 45.0, 90.0)
     motion: Motion = Motion.EUCLIDEAN
     half_size: bool = False
-    demosaic: rawio.Demosaic = rawio.Demosaic.LINEAR
     gap_s: float = 60.0
     redo: bool = False
 
     def record(self) -> dict:
         return {"angles_deg": list(self.angles_deg), "motion": self.motion.value, "half_size": self.half_size,
-                "demosaic": self.demosaic.value, "gap_s": self.gap_s}
+                "gap_s": self.gap_s}
 
 
 @dataclasses.dataclass
@@ -141,12 +140,12 @@ def process_scene(scene: Scene, record: dict, opts: IngestOptions, progress: Cal
         if not opts.redo:
             raise DatasetError(f"{scene.path} is already ingested; pass --redo to decode and align it again")
         shutil.rmtree(aligned_dir)
-    reference = rawio.decode(paths[0], opts.half_size, opts.demosaic)
+    reference = rawio.decode(paths[0], opts.half_size)
     results, images = [], {0: reference}
     for i, path in enumerate(paths[1:], start=1):
         if progress:
             progress(f"{scene.name}: aligning {path.name}")
-        image = rawio.decode(path, opts.half_size, opts.demosaic)
+        image = rawio.decode(path, opts.half_size)
         if image.shape != reference.shape:
             raise AlignmentError(f"{path}: size {image.shape[1]}×{image.shape[0]} differs from "
                                  f"{paths[0].name} ({reference.shape[1]}×{reference.shape[0]})")

@@ -54,8 +54,16 @@ def _check_raw(raw: np.ndarray, layout: MosaicLayout) -> None:
         raise ValueError(f"expected a 2-D mosaic with sides divisible by {tile}, got shape {raw.shape}")
 
 
-def _demosaic_bilinear(sub: np.ndarray, colours: tuple[str, str]) -> np.ndarray:
-    """Bilinear demosaic of a 2×2 colour mosaic (normalized convolution); H×W → H×W×3."""
+def demosaic_bilinear(sub: np.ndarray, colours: tuple[str, str]) -> np.ndarray:
+    """Bilinear demosaic of a 2×2 colour mosaic by normalized convolution; linear in the data.
+
+    Args:
+        sub: H×W float32 mosaic.
+        colours: the 2×2 tile as two rows of letters R, G, B (e.g. ("RG", "GB")).
+
+    Returns:
+        H×W×3 float32 RGB.
+    """
     h, w = sub.shape
     out = np.empty((h, w, 3), np.float32)
     kernel = np.array([[0.25, 0.5, 0.25], [0.5, 1.0, 0.5], [0.25, 0.5, 0.25]], np.float32)
@@ -89,7 +97,7 @@ def split_mosaic(raw: np.ndarray, layout: MosaicLayout) -> tuple[np.ndarray, lis
     for angle in ANGLES_DEG:
         (r, c), = [(r, c) for r in range(2) for c in range(2) if spec.angles[r][c] == angle]
         sub = data[r::2, c::2]
-        planes.append(sub[..., None] if spec.colours is None else _demosaic_bilinear(sub, spec.colours))
+        planes.append(sub[..., None] if spec.colours is None else demosaic_bilinear(sub, spec.colours))
     return np.stack(planes), list(ANGLES_DEG)
 
 

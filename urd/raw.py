@@ -1,33 +1,26 @@
 """RAW decoding with rawpy (LibRaw): linear images and capture metadata.
 
-Output is linear light: no gamma, no auto-brightness, the camera's as-shot white balance, the
-black and white levels applied, so 1.0 is the sensor's white level on the green channel. It
-works for every format LibRaw reads (DNG, ARW, CR2, NEF, ...). A RAW container that is not a
-Bayer (or other colour-filter-array) camera image, such as a film scanner's stack, is rejected.
+Output is linear light: black and white levels applied, the camera's as-shot white balance
+(green = 1), bilinear demosaicing and the camera → linear sRGB matrix, with no gamma, no
+brightening and no clipping, so 1.0 is the sensor's white level on the green channel. urd does
+these steps itself on rawpy's CFA data rather than calling LibRaw's ``postprocess``: every step
+is then exactly linear in the sensor values, which the polarization fits rely on (LibRaw's
+output is not: angle fits on it are biased by degrees). Formats: whatever LibRaw reads (DNG,
+ARW, CR2, NEF, ...). A RAW container that is not a colour-filter-array camera image, such as a
+film scanner's stack, is rejected.
 """
 
 from __future__ import annotations
 
-import enum
 from pathlib import Path
 
 import numpy as np
 import rawpy
 
 from urd.errors import RawFormatError
+from urd.mosaic import demosaic_bilinear
 
 RAW_SUFFIXES = (".dng", ".arw", ".cr2", ".cr3", ".nef", ".nrw", ".raf", ".orf", ".rw2", ".pef", ".srw", ".kdc", ".3fr", ".iiq", ".x3f")
-
-
-class Demosaic(enum.Enum):
-    """Demosaicing algorithm (LibRaw's names). LINEAR is fastest; AHD is LibRaw's default."""
-
-    LINEAR = "linear"
-    AHD = "ahd"
-    DHT = "dht"
-
-    def rawpy_value(self) -> rawpy.DemosaicAlgorithm:
-        return getattr(rawpy.DemosaicAlgorithm, self.name)
 
 
 def _open(path: Path) -> rawpy.RawPy:
@@ -49,24 +42,45 @@ def _open(path: Path) -> rawpy.RawPy:
     return raw
 
 
-def decode(path: Path, half_size: bool = False, demosaic: Demosaic = Demosaic.LINEAR) -> np.ndarray:
-    """Decode a RAW file to a linear float32 H×W×3 image (camera white balance, [0, ~1]).
+def decode(path: Path, half_size: bool = False) -> np.ndarray:
+    """Decode a RAW file to a linear float32 H×W×3 image (camera white balance, sRGB primaries).
 
-    ``half_size`` skips demosaicing and returns one pixel per 2×2 CFA tile (half width and
-    height, ~4× faster).
+    ``half_size`` averages each 2×2 CFA tile into one pixel instead of demosaicing (half the
+    width and height, several times faster).
     """
     with _open(path) as raw:
-        try:
-            rgb = raw.postprocess(
-                gamma=(1, 1), no_auto_bright=True, use_camera_wb=True, output_bps=16, user_flip=0,
-                half_size=half_size, demosaic_algorithm=demosaic.rawpy_value(),
-                output_color=rawpy.ColorSpace.sRGB,
-            )
-        except rawpy.LibRawError as exc:
-            raise RawFormatError(f"{path}: corrupt or truncated RAW data ({type(exc).__name__}: {exc})") from exc
-    image = rgb.astype(np.float32)
-    image *= 1.0 / 65535.0
-    return image
+        cfa = raw.raw_image_visible.astype(np.float32)
+        colours = raw.raw_colors_visible
+        desc = raw.color_desc.decode()
+        pattern = raw.raw_pattern
+        black = np.asarray(raw.black_level_per_channel, np.float32)
+        white = float(raw.white_level)
+        wb = np.asarray(raw.camera_whitebalance, np.float32)
+        if not np.all(wb[:3] > 0):
+            wb = np.asarray(raw.daylight_whitebalance, np.float32)
+        rgb_cam = np.asarray(raw.color_matrix, np.float32)[:, :3]
+    if len(desc) != 4 or set(desc) - set("RGB") or pattern is None or pattern.shape != (2, 2):
+        raise RawFormatError(f"{path}: unsupported colour filter array {desc!r} (urd decodes 2×2 RGB patterns)")
+    wb = np.where(wb > 0, wb, wb[1]) / wb[1]
+    gain = (wb / (white - black)).astype(np.float32)
+    linear = (cfa - black[colours]) * gain[colours]
+    letters = tuple("".join(desc[pattern[r, c]] for c in range(2)) for r in range(2))
+    h, w = linear.shape[0] // 2 * 2, linear.shape[1] // 2 * 2
+    linear = linear[:h, :w]
+    if half_size:
+        image = np.zeros((h // 2, w // 2, 3), np.float32)
+        counts = np.zeros(3, np.float32)
+        for r in range(2):
+            for c in range(2):
+                k = "RGB".index(letters[r][c])
+                image[..., k] += linear[r::2, c::2]
+                counts[k] += 1
+        image /= counts
+    else:
+        image = demosaic_bilinear(linear, letters)
+    if np.abs(rgb_cam).sum() > 0 and not np.allclose(rgb_cam, np.eye(3), atol=1e-3):
+        image = image @ rgb_cam.T
+    return np.ascontiguousarray(image, dtype=np.float32)
 
 
 def metadata(path: Path) -> dict:

@@ -1,0 +1,179 @@
+"""Polarizer calibration.
+
+Mounting offset
+    The polarizer's axis at stage zero. A sweep photographs a target whose light is linearly
+    polarized at a known angle ψ_t (a sheet polarizer on a light box, an LCD) at stage angles
+    a_k. Malus's law, I(a) = c0 + c1·cos 2a + c2·sin 2a, peaks at a = ψ_t − offset, so
+    offset = ψ_t − ½·atan2(c2, c1). The fit is linear least squares; its covariance gives
+    the uncertainty.
+
+Per-shot angle error
+    The actual angle of each shot of a scene, from the images alone. Each pixel's N shots
+    must be explained by 3 Stokes parameters; the angles φ_k that make that possible are
+    found by Levenberg–Marquardt on the residual of the per-pixel Stokes fit (variable
+    projection), from the nominal angles, on the stack averaged down to a few thousand pixels
+    (noise in the per-pixel Stokes nuisance parameters otherwise biases the angles). It needs shots registered much better than the ECC alignment
+    of hand-held shots gives: on weakly polarized scenes 0.05 px of misregistration disturbs
+    the pixels as much as a 2° angle error, so calibrate from a tripod. One common rotation of all angles never
+    shows in the images (the mounting offset fixes it), so errors are reported with zero
+    mean. With N ≥ 5 angles every other combination is determined. With N = 4 one more is
+    not: any affine map of the points (cos 2φ_k, sin 2φ_k) that keeps them on the unit
+    circle (a conic of the pencil through 4 points) explains the images equally well, so
+    the result is the smallest correction consistent with the images. The uncertainty is
+    the spread over a bootstrap of image tiles.
+
+Angles here are degrees at the interface, radians inside.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import cv2
+import numpy as np
+
+from separate import optics
+from urd.errors import CalibrationError
+
+
+@dataclasses.dataclass
+class OffsetFit:
+    """Result of a Malus-law sweep fit (degrees)."""
+
+    offset_deg: float
+    uncertainty_deg: float
+    modulation: float
+    residual_rms: float
+
+    def record(self) -> dict:
+        return {k: round(float(v), 5) for k, v in dataclasses.asdict(self).items()}
+
+
+def fit_offset(stage_angles_deg: np.ndarray, intensities: np.ndarray, target_angle_deg: float = 0.0) -> OffsetFit:
+    """Mounting offset from a sweep: mean intensities of the target at each stage angle."""
+    a = np.radians(np.asarray(stage_angles_deg, np.float64))
+    y = np.asarray(intensities, np.float64)
+    if a.size < 4 or a.size != y.size:
+        raise CalibrationError(f"expected at least 4 sweep angles with one intensity each, got {a.size} and {y.size}")
+    design = np.stack([np.ones_like(a), np.cos(2 * a), np.sin(2 * a)], axis=1)
+    coef, *_ = np.linalg.lstsq(design, y, rcond=None)
+    residual = y - design @ coef
+    dof = max(1, a.size - 3)
+    sigma2 = float(residual @ residual) / dof
+    cov = sigma2 * np.linalg.inv(design.T @ design)
+    c1, c2 = coef[1], coef[2]
+    amp2 = c1**2 + c2**2
+    modulation = float(np.sqrt(amp2) / coef[0]) if coef[0] > 0 else 0.0
+    if modulation < 0.05:
+        raise CalibrationError(f"the sweep shows almost no Malus modulation ({modulation:.3f}); is the target polarized?")
+    grad = np.array([0.0, -0.5 * c2 / amp2, 0.5 * c1 / amp2])
+    phase = 0.5 * np.arctan2(c2, c1)
+    offset = (target_angle_deg - np.degrees(phase)) % 180.0
+    return OffsetFit(float(offset), float(np.degrees(np.sqrt(grad @ cov @ grad))), modulation,
+                     float(np.sqrt(sigma2)))
+
+
+@dataclasses.dataclass
+class ShotErrors:
+    """Per-shot angle errors of a scene (degrees, zero mean) and their bootstrap spread.
+
+    With exactly 4 angles one combination of the errors besides the common rotation is not
+    observable (``unobservable`` gives its unit direction); the reported errors are then the
+    smallest correction that explains the images.
+    """
+
+    errors_deg: list[float]
+    uncertainty_deg: list[float]
+    pixels: int
+    iterations: int
+    unobservable: list[float] | None
+
+    def record(self) -> dict:
+        return {"errors_deg": [round(e, 4) for e in self.errors_deg],
+                "uncertainty_deg": [round(u, 4) for u in self.uncertainty_deg],
+                "unobservable_direction": None if self.unobservable is None else [round(u, 4) for u in self.unobservable],
+                "pixels": self.pixels, "iterations": self.iterations, "method": "stokes self-consistency, minimum-norm Gauss-Newton"}
+
+
+def _residual(phi: np.ndarray, data: np.ndarray) -> np.ndarray:
+    """What a Stokes fit at angles ``phi`` (rad) leaves unexplained of ``data`` (N, P), flattened."""
+    design = optics.stokes_matrix(phi)
+    return (data - design @ (np.linalg.pinv(design) @ data)).ravel()
+
+
+def _solve_angles(data: np.ndarray, nominal: np.ndarray, iterations: int = 100,
+                  tol: float = 1e-9) -> tuple[np.ndarray, int, np.ndarray | None]:
+    """Levenberg–Marquardt on the variable-projection residual, from the nominal angles.
+
+    The damped (ridge) steps never move along the residual's null space (the common rotation
+    and, for N = 4, the unobservable direction), so the result is the solution nearest the
+    nominal angles. Returns the angles (rad), the iterations, and the unobservable direction
+    (None when N ≥ 5).
+    """
+    phi, n = nominal.copy(), nominal.size
+    r = _residual(phi, data)
+    cost, lam, step = r @ r, None, 1e-6
+    for it in range(1, iterations + 1):
+        jac = np.stack([(_residual(phi + step * np.eye(n)[k], data) - r) / step for k in range(n)], axis=1)
+        lam = lam if lam is not None else 1e-6 * float(np.sum(jac**2))
+        for _ in range(20):
+            delta = -np.linalg.lstsq(np.vstack([jac, np.sqrt(lam) * np.eye(n)]), np.concatenate([r, np.zeros(n)]), rcond=None)[0]
+            trial = phi + delta
+            r_trial = _residual(trial, data)
+            if r_trial @ r_trial < cost:
+                phi, r, cost, lam = trial, r_trial, r_trial @ r_trial, lam / 3
+                break
+            lam *= 10
+        else:
+            break
+        if np.max(np.abs(delta)) < tol:
+            break
+    _, sv, vt = np.linalg.svd(jac, full_matrices=False)
+    gauge = np.ones(n) / np.sqrt(n)
+    extra = [v - (v @ gauge) * gauge for v in vt[sv < 1e-3 * sv[0]]]
+    extra = [v / np.linalg.norm(v) for v in extra if np.linalg.norm(v) > 0.5]
+    return phi - np.mean(phi - nominal), it, (extra[0] if extra else None)
+
+
+def estimate_shot_errors(stack: np.ndarray, nominal_deg: list[float], short_side: int = 32,
+                         bootstrap: int = 20, seed: int = 0) -> ShotErrors:
+    """Per-shot polarizer angle errors from an aligned stack.
+
+    Args:
+        stack: (N, H, W, C) aligned linear shots, N ≥ 4 (N ≥ 5 determines every error).
+        nominal_deg: the N angles the shots were taken at (deg).
+        short_side: size the stack is averaged down to (px) before fitting.
+        bootstrap: resamples of 8×8 image tiles for the uncertainty.
+    """
+    nominal = optics.check_angles(np.radians(nominal_deg))
+    if stack.shape[0] != nominal.size:
+        raise CalibrationError(f"expected {nominal.size} shots, got {stack.shape[0]}")
+    if nominal.size < 4:
+        raise CalibrationError(f"per-shot angle errors need at least 4 angles (the fit is exact with 3), got {nominal.size}")
+    # average down to a short side of `short_side` px: the model is linear, so block averages obey
+    # it exactly, and averaging cuts the noise that biases the angles (the per-pixel Stokes
+    # parameters are nuisance parameters estimated from the same noisy data: Neyman–Scott)
+    n, height, width = stack.shape[:3]
+    scale = min(1.0, short_side / min(height, width))
+    size = (max(4, round(width * scale)), max(4, round(height * scale)))
+    margin = (height // 20, width // 20)                           # aligned shots are padded at the border
+    flat = np.stack([cv2.resize(np.ascontiguousarray(img[margin[0]:height - margin[0], margin[1]:width - margin[1]]),
+                                size, interpolation=cv2.INTER_AREA).reshape(size[1], size[0], -1)
+                     for img in stack.reshape(n, height, width, -1)])
+    h, w = flat.shape[1:3]
+    chosen = (flat.max(axis=0) < 0.98) & (flat.min(axis=0) > 0.0)  # unsaturated in every shot
+    if chosen.sum() < 20:
+        raise CalibrationError(f"too few unsaturated pixels ({int(chosen.sum())}) to estimate angle errors")
+    data = flat[:, chosen].astype(np.float64)
+    phi, iterations, unobservable = _solve_angles(data, nominal)
+    tiles = np.arange(h)[:, None] * 8 // h * 8 + np.arange(w)[None, :] * 8 // w
+    tile_of = np.broadcast_to(tiles[..., None], chosen.shape)[chosen]
+    rng = np.random.default_rng(seed)
+    draws = []
+    for _ in range(bootstrap):
+        idx = np.concatenate([np.flatnonzero(tile_of == t) for t in rng.choice(64, 64)])
+        if idx.size >= 100:
+            draws.append(_solve_angles(data[:, idx], nominal)[0])
+    spread = np.degrees(np.std(draws, axis=0)) if draws else np.full(n, np.nan)
+    return ShotErrors(np.degrees(phi - nominal).tolist(), spread.tolist(), int(chosen.sum()), iterations,
+                      None if unobservable is None else unobservable.tolist())
