@@ -16,7 +16,7 @@ import serial
 from acquire.camera import CameraKind, Gphoto2Camera
 from acquire.ell14 import Ell14
 from acquire.sim_ell14 import SimulatedEll14
-from acquire.virtual_camera import VirtualCamera, make_glass_scene
+from acquire.virtual_camera import VirtualCamera, make_glass_scene, make_polarized_target
 from urd.errors import DeviceError
 
 SIM = "sim"
@@ -24,7 +24,9 @@ SIM = "sim"
 
 @dataclasses.dataclass
 class SimSettings:
-    """Knobs of the simulated stage and virtual camera (simulation only)."""
+    """Knobs of the simulated stage and virtual camera (simulation only). With
+    ``target_angle_deg`` set, the virtual camera sees a polarizer calibration target instead
+    of a glass scene."""
 
     offset_deg: float = 0.0
     jitter_deg: float = 0.0
@@ -36,6 +38,7 @@ class SimSettings:
     reflection: Path | None = None
     transmission: Path | None = None
     seed: int = 0
+    target_angle_deg: float | None = None
 
 
 @dataclasses.dataclass
@@ -78,7 +81,10 @@ def open_rig(stage: str, camera: str, address: str = "0", sim: SimSettings | Non
         if kind is CameraKind.VIRTUAL:
             if twin is None:
                 raise DeviceError("the virtual camera needs the simulated stage (--stage sim): it reads the true polarizer angle from it")
-            scene = make_glass_scene(sim.width, sim.height, sim.reflection, sim.transmission)
+            if sim.target_angle_deg is None:
+                scene = make_glass_scene(sim.width, sim.height, sim.reflection, sim.transmission)
+            else:
+                scene = make_polarized_target(sim.width, sim.height, sim.target_angle_deg)
             cam = VirtualCamera(scene, twin.true_angle_deg, sim.shake_px, sim.shake_deg, seed=sim.seed)
         else:
             cam = Gphoto2Camera()

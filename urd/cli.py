@@ -191,10 +191,79 @@ def ingest(
         fail(f"{failed} of {len(outcomes)} scenes failed or were flagged")
 
 
-@app.command()
-def calibrate() -> None:
-    """Measure the polarizer: mounting offset from a sweep, per-shot angle errors of a scene."""
-    not_built("calibrate")
+calibrate_app = typer.Typer(help="Measure the polarizer: mounting offset from a sweep, per-shot angle errors of a scene.",
+                            no_args_is_help=True)
+app.add_typer(calibrate_app, name="calibrate")
+
+
+def resolve_scene(scene: str, dataset: Path):
+    """A scene given by name in ``dataset`` or by folder path."""
+    from urd.dataset import Dataset, Scene
+
+    path = Path(scene)
+    if (path / "scene.json").is_file():
+        return Scene(path)
+    return Dataset.open(dataset).scene(scene)
+
+
+@calibrate_app.command("offset")
+def calibrate_offset_cmd(
+    dataset: Path = typer.Argument(..., help="Dataset whose polarizer to calibrate (calibration.json is written there)."),
+    stage: str = typer.Option(..., help="Serial port of the ELL14 stage, or 'sim'."),
+    camera: str = typer.Option("gphoto2", help="Camera driver: gphoto2 or virtual."),
+    step: float = typer.Option(10.0, help="Sweep step (deg) over 180 deg."),
+    target_angle: float = typer.Option(0.0, help="Polarization angle of the target's light (deg, image plane, CCW from x)."),
+    sim_offset: float = typer.Option(0.0, help="[sim] true mounting offset of the simulated polarizer (deg)."),
+    seed: int = typer.Option(0, help="[sim/virtual] random seed."),
+) -> None:
+    """Sweep the polarizer in front of a polarized target and fit Malus's law for the mounting offset."""
+    from acquire.plan import run_capture
+    from acquire.rig import SimSettings, open_rig
+    from calib.store import calibrate_offset
+    from urd.dataset import Dataset, Scene
+
+    def work():
+        ds = Dataset.open_or_create(dataset)
+        sweeps = ds.root / "calibration"
+        sweeps.mkdir(exist_ok=True)
+        n = 1
+        while (sweeps / f"sweep_{n:02d}").exists():
+            n += 1
+        (sweeps / f"sweep_{n:02d}").mkdir()
+        sweep = Scene(sweeps / f"sweep_{n:02d}")
+        angles = [float(a) for a in np.arange(0.0, 180.0, step)]
+        sim = SimSettings(offset_deg=sim_offset, width=256, height=192, shake_px=0, shake_deg=0, seed=seed,
+                          target_angle_deg=target_angle)
+        with open_rig(stage, camera, sim=sim) as rig:
+            with typer.progressbar(length=len(angles), label="sweep", file=sys.stderr) as bar:
+                run_capture(sweep, rig.stage, rig.camera, angles, 0.0, capture_info=rig.info,
+                            progress=lambda st: bar.update(1) if st.kind == "record" else None)
+        return calibrate_offset(ds, sweep, target_angle)
+
+    import numpy as np
+
+    record = run_guarded(work)
+    typer.echo(f"mounting offset {record['offset_deg']:.3f} ± {record['uncertainty_deg']:.3f} deg "
+               f"(modulation {record['modulation']:.2f}); written to {dataset / 'calibration.json'}")
+
+
+@calibrate_app.command("shots")
+def calibrate_shots_cmd(
+    scene: str = typer.Argument(..., help="Scene name (scene_12) or folder; must be ingested."),
+    dataset: Path = typer.Option(Path("."), help="Dataset folder holding the scene."),
+    apply: bool = typer.Option(True, help="Store the calibrated angles in the manifest (used by separation)."),
+) -> None:
+    """Estimate each shot's polarizer angle error from the images (needs 4+ angles; 5+ for all errors)."""
+    from calib.store import calibrate_shots
+
+    result = run_guarded(lambda: calibrate_shots(resolve_scene(scene, dataset), apply))
+    for i, (e, u) in enumerate(zip(result.errors_deg, result.uncertainty_deg)):
+        typer.echo(f"shot {i}: {e:+.3f} ± {u:.3f} deg")
+    if result.unobservable is not None:
+        typer.secho("warning: with 4 angles one combination of the errors cannot be seen in the images "
+                    f"(direction {[round(v, 2) for v in result.unobservable]}); the smallest consistent "
+                    "correction is reported. Capture 5 or more angles to determine every error.", err=True)
+    typer.echo("calibrated angles stored in the manifest" if apply else "manifest unchanged (--no-apply)")
 
 
 @app.command()
