@@ -1,0 +1,55 @@
+"""Separation methods by name: the network and the classical baselines share one interface.
+
+``get_method(name, **options)`` returns ``(run, info)``: ``run(images, angles_deg)`` maps an
+aligned stack (N, H, W, C) float32 linear and its polarizer angles (deg) to (R̂, T̂), each
+H×W×C float32 linear; ``info`` describes the method and parameters for the manifest.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+Run = Callable[[np.ndarray, list[float]], tuple[np.ndarray, np.ndarray]]
+
+
+def network(weights: Path | None = None, tile: int = 512, overlap: int = 128, bf16: bool = False,
+            colour_match: bool = False, progress=None) -> tuple[Run, dict]:
+    """The paper's network (`separate.model`) with shipped or given weights."""
+    from separate.infer import load_model, match_colours, separate_stack
+
+    model, weights_info = load_model(weights)
+
+    def run(images: np.ndarray, angles_deg: list[float]) -> tuple[np.ndarray, np.ndarray]:
+        r_hat, t_hat = separate_stack(model, images, angles_deg, tile, overlap, bf16, progress)
+        if colour_match:
+            t_hat = match_colours(t_hat, images.min(axis=0))
+        return r_hat, t_hat
+
+    info = {"weights": {"file": Path(weights_info["file"]).name, "sha256": weights_info["sha256"],
+                        "config": weights_info["config"]},
+            "parameters": {"tile": tile, "overlap": overlap, "bf16": bf16, "colour_match": colour_match}}
+    return run, info
+
+
+def no_separation() -> tuple[Run, dict]:
+    """The reference point: T̂ = S0 (the unpolarized image), R̂ = 0."""
+    from separate import optics
+
+    def run(images: np.ndarray, angles_deg: list[float]) -> tuple[np.ndarray, np.ndarray]:
+        s0 = optics.stokes_from_images(images, np.radians(angles_deg))[0]
+        return np.zeros_like(s0), s0
+
+    return run, {"parameters": {}}
+
+
+METHODS: dict[str, Callable[..., tuple[Run, dict]]] = {"network": network, "none": no_separation}
+
+
+def get_method(name: str, **options) -> tuple[Run, dict]:
+    """The method called ``name`` with its options; ValueError naming the known methods."""
+    if name not in METHODS:
+        raise ValueError(f"unknown method {name!r}; expected one of {sorted(METHODS)}")
+    return METHODS[name](**options)

@@ -1,0 +1,40 @@
+"""Export a training checkpoint as shipped weights plus a model card.
+
+    python tools/export_weights.py runs/cpu/best.pt separate/weights/urd-canonical.pt --device "..."
+
+The card (same name, .json) records the training config, steps, patches seen, wall time,
+device, and the validation figures logged at that checkpoint.
+"""
+
+import argparse
+import hashlib
+import json
+from pathlib import Path
+
+import torch
+
+parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+parser.add_argument("checkpoint", type=Path)
+parser.add_argument("output", type=Path)
+parser.add_argument("--device", default="2-core AMD EPYC CPU (bf16 autocast), 1 thread")
+parser.add_argument("--note", default="")
+args = parser.parse_args()
+
+state = torch.load(args.checkpoint, map_location="cpu", weights_only=False)
+args.output.parent.mkdir(parents=True, exist_ok=True)
+torch.save({"model": state["model"], "model_config": state["model_config"]}, args.output)
+cfg = state["train_config"]
+card = {
+    "weights": args.output.name,
+    "sha256": hashlib.sha256(args.output.read_bytes()).hexdigest(),
+    "model": state["model_config"],
+    "parameters": sum(v.numel() for v in state["model"].values()),
+    "training": {"config": cfg, "steps": state["step"], "patches_seen": state["step"] * cfg["batch"],
+                 "wall_time_s": round(state.get("wall_s", 0.0)), "device": args.device,
+                 "data": "synthesized from bsds500/train + sunhays80 (../shared/data/natural), pipeline "
+                         + cfg["pipeline"]},
+    "validation": state.get("val"),
+    "note": args.note,
+}
+args.output.with_suffix(".json").write_text(json.dumps(card, indent=2) + "\n")
+print(json.dumps(card, indent=2))
