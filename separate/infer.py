@@ -42,7 +42,7 @@ def load_model(path: Path | None = None) -> tuple[SeparationNet, dict]:
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
         model = SeparationNet(**state["model_config"])
-        model.load_state_dict(state["model"])
+        model.load_state_dict({k: v.float() for k, v in state["model"].items()})
     except Exception as exc:  # noqa: BLE001 - any failure to read means the file is unusable
         raise WeightsError(f"weights file {path} is corrupt or does not fit the model: {exc}") from exc
     model.eval()
@@ -55,7 +55,7 @@ def load_model(path: Path | None = None) -> tuple[SeparationNet, dict]:
 def check_inputs(images: np.ndarray, angles_deg: list[float]) -> np.ndarray:
     """Validate a stack (N, H, W, C) and its angles (deg); return it float32 with negatives clipped."""
     if images.ndim != 4 or images.shape[0] < 3 or images.shape[-1] not in (1, 3):
-        raise ValueError(f"expected a stack of shape (N>=3, H, W, C in 1,3), got {images.shape}")
+        raise ValueError(f"expected at least 3 shots stacked as (N>=3, H, W, C in 1,3), got {images.shape}")
     if len(angles_deg) != images.shape[0]:
         raise ValueError(f"expected {images.shape[0]} angles (one per image), got {len(angles_deg)}")
     optics.check_angles(np.radians(angles_deg), min_span=np.radians(90.0))

@@ -54,8 +54,7 @@ def canonical_inputs(obs: torch.Tensor, angles: Sequence[float] = NOMINAL_ANGLES
     _check_obs(obs)
     stokes = optics.stokes_from_images(obs.transpose(0, 1), angles)
     phi_ref = float(angles[0])
-    nominal = np.allclose(np.asarray(angles) - phi_ref, NOMINAL_ANGLES, atol=1e-9)
-    if obs.shape[1] == 3 and nominal:
+    if obs.shape[1] == 3 and np.allclose(np.asarray(angles) - phi_ref, NOMINAL_ANGLES, atol=1e-9):
         shots = obs
     else:
         shots = torch.stack([optics.intensity_from_stokes(stokes, phi_ref + a) for a in NOMINAL_ANGLES], dim=1)

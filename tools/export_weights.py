@@ -2,7 +2,7 @@
 
     python tools/export_weights.py runs/cpu/best.pt separate/weights/urd-canonical.pt --device "..."
 
-The card (same name, .json) records the training config, steps, patches seen, wall time,
+Weights are stored as float16 (half the size; loaded as float32). The card (same name, .json) records the training config, steps, patches seen, wall time,
 device, and the validation figures logged at that checkpoint.
 """
 
@@ -22,7 +22,7 @@ args = parser.parse_args()
 
 state = torch.load(args.checkpoint, map_location="cpu", weights_only=False)
 args.output.parent.mkdir(parents=True, exist_ok=True)
-torch.save({"model": state["model"], "model_config": state["model_config"]}, args.output)
+torch.save({"model": {k: v.half() for k, v in state["model"].items()}, "model_config": state["model_config"]}, args.output)
 cfg = state["train_config"]
 card = {
     "weights": args.output.name,

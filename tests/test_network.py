@@ -1,0 +1,157 @@
+"""Synthesis, model, training loop, inference and `urd separate`."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from rig import capture_virtual
+from separate import optics
+from separate.infer import DEFAULT_WEIGHTS, load_model, separate_stack
+from separate.model import NOMINAL_ANGLES, SeparationNet, canonical_inputs
+from separate.synthesis import SynthesisConfig, Synthesizer, load_image_pool, parabola_aoi
+from separate.train import TrainConfig, train
+from urd.dataset import Dataset
+from urd.errors import WeightsError
+from urd.ingest import IngestOptions, ingest_scene
+
+POOL = load_image_pool(None)
+
+
+def urd(*args):
+    return subprocess.run([sys.executable, "-m", "urd.cli", *map(str, args)], capture_output=True, text=True, timeout=900)
+
+
+def test_synthesis_is_deterministic_and_physically_consistent():
+    a = Synthesizer(POOL, SynthesisConfig(patch=64), seed=3).batch(4)
+    b = Synthesizer(POOL, SynthesisConfig(patch=64), seed=3).batch(4)
+    for key in a:
+        np.testing.assert_array_equal(a[key], b[key])
+    assert a["obs"].shape == (4, 3, 64, 64, 3) and a["r"].shape == (4, 64, 64, 3)
+    # without noise or deformation the shots are Eq. 1 of the layers: S0 of the shots = R_obs + T_obs
+    clean = Synthesizer(POOL, SynthesisConfig(patch=64, noise=False, nrd_prob=0.0, angle_noise_deg=0.0), seed=4).batch(4)
+    for obs, r, t, angles in zip(clean["obs"], clean["r"], clean["t"], clean["angles"]):
+        s0 = optics.stokes_from_images(obs, angles)[0]
+        np.testing.assert_allclose(s0, r + t, atol=2e-5)
+
+
+@pytest.mark.parametrize("name,deforms,curved", [("DR", False, False), ("DR+NRD", True, False), ("DR+NRD+LCG", True, True)])
+def test_ablation_switches(name, deforms, curved):
+    cfg = SynthesisConfig.ablation(name, patch=64)
+    assert (cfg.nrd_prob > 0) == deforms and cfg.curvature == curved
+    sample = Synthesizer(POOL, cfg, seed=0).sample()
+    assert (np.ptp(sample["theta"]) > 0) == curved or not curved
+
+
+def test_parabola_aoi_closed_form():
+    t = np.linspace(-0.5, 0.5, 11)
+    flat = parabola_aoi(np.radians(40), 2.0, 1.0, 0.0, 1, t)
+    assert flat[5] == pytest.approx(np.radians(40))
+    # a flat pane seen from a point: tan θ grows linearly along it
+    x = t * 1.0
+    expected = np.arctan((2.0 * np.sin(np.radians(40)) + x) / (2.0 * np.cos(np.radians(40))))
+    np.testing.assert_allclose(flat, expected, atol=1e-9)
+    bent = parabola_aoi(np.radians(40), 2.0, 1.0, 0.05, 1, t)
+    assert np.abs(bent - flat).max() > np.radians(1)
+
+
+def test_model_shapes_residual_and_canonical_layer():
+    model = SeparationNet(width=8)
+    obs = torch.rand(2, 3, 3, 40, 52)
+    r_hat, t_hat = model(obs)
+    assert r_hat.shape == t_hat.shape == (2, 3, 40, 52)
+    shots, i_perp, i_par = canonical_inputs(obs)
+    torch.testing.assert_close(shots, obs)
+    torch.testing.assert_close(i_perp + i_par, obs[:, 0] + obs[:, 2])
+    # four shots at 0/45/90/135 give the same canonical images as three
+    four = torch.cat([obs, (obs[:, 1] + (obs[:, 0] + obs[:, 2]) - 2 * obs[:, 1])[:, None]], dim=1)
+    _, p4, q4 = canonical_inputs(four, tuple(np.radians([0, 45, 90, 135])))
+    torch.testing.assert_close(p4, i_perp, atol=1e-5, rtol=1e-5)
+    assert sum(p.numel() for p in SeparationNet(16).parameters()) > 1_000_000
+    direct = SeparationNet(width=8, variant="direct")
+    assert direct.head.in_channels == 9 and model.head.in_channels == 15
+
+
+def test_training_runs_resumes_and_improves(tmp_path):
+    cfg = TrainConfig(width=8, patch=32, batch=8, micro_batch=4, lr=2e-3, steps=30, val_samples=16, val_every=15,
+                      ckpt_every=10, bf16=False, threads=1)
+    first = train(TrainConfig(**{**cfg.__dict__, "steps": 15}), tmp_path)
+    assert first["step"] == 15 and (tmp_path / "last.pt").is_file()
+    last = train(cfg, tmp_path)
+    assert last["step"] == 30
+    logged = [line for line in (tmp_path / "log.jsonl").read_text().splitlines() if "psnr_t" in line]
+    assert len(logged) == 2
+
+
+def test_ddp_with_two_gloo_processes(tmp_path):
+    cfg = tmp_path / "ddp.toml"
+    cfg.write_text('width = 8\npatch = 32\nbatch = 8\nmicro_batch = 4\nsteps = 4\nval_samples = 8\nval_every = 4\nbf16 = false\nthreads = 1\n')
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    out = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", "29533",
+                          "-m", "urd.cli", "train", str(cfg), str(tmp_path / "run")], capture_output=True, text=True,
+                         timeout=600, env=env)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert torch.load(tmp_path / "run" / "last.pt", weights_only=False)["step"] == 4
+
+
+def test_tiled_inference_matches_whole_image_on_one_megapixel():
+    model, _ = load_model()
+    rng = np.random.default_rng(0)
+    from acquire.virtual_camera import make_glass_scene
+    scene = make_glass_scene(1224, 816)
+    stack = np.stack([scene.render(np.radians(a)) * 0.6 for a in (0, 45, 90)]).astype(np.float32)
+    r1, t1 = separate_stack(model, stack, [0, 45, 90], tile=2048)
+    r2, t2 = separate_stack(model, stack, [0, 45, 90], tile=512, overlap=128)
+    assert max(np.abs(r1 - r2).max(), np.abs(t1 - t2).max()) < 1e-3
+
+
+@pytest.mark.parametrize("stack,angles,message", [
+    (np.zeros((2, 16, 16, 3)), [0, 45], "N>=3"),
+    (np.zeros((3, 16, 16, 3)), [0, 30, 60], "spanning at least 90"),
+    (np.full((3, 16, 16, 3), np.nan), [0, 45, 90], "NaN"),
+])
+def test_bad_inputs(stack, angles, message):
+    model, _ = load_model()
+    with pytest.raises(ValueError, match=message):
+        separate_stack(model, stack.astype(np.float32), angles)
+
+
+def test_negative_pixels_are_clipped_not_propagated():
+    model, _ = load_model()
+    stack = np.random.default_rng(0).random((3, 32, 32, 3)).astype(np.float32) * 0.5
+    stack[0, :4] = -0.01
+    r_hat, t_hat = separate_stack(model, stack, [0, 45, 90])
+    assert np.isfinite(r_hat).all() and np.isfinite(t_hat).all()
+
+
+def test_missing_and_corrupt_weights(tmp_path):
+    with pytest.raises(WeightsError, match="not found"):
+        load_model(tmp_path / "none.pt")
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(DEFAULT_WEIGHTS.read_bytes()[:1000])
+    with pytest.raises(WeightsError, match="corrupt"):
+        load_model(bad)
+
+
+def test_urd_separate_on_a_simulated_scene_beats_no_separation(tmp_path):
+    ds = Dataset.open_or_create(tmp_path / "ds")
+    scene, _ = capture_virtual(ds, size=(512, 384), shake_px=4, shake_deg=0.5, seed=7)
+    ingest_scene(scene, IngestOptions())
+    out = urd("separate", "scene_01", "--dataset", tmp_path / "ds")
+    assert out.returncode == 0, out.stderr
+    entry = scene.load()["results"]["network"]
+    assert entry["weights"]["sha256"] and len(entry["files"]) == 4
+    figures = entry["truth_metrics"]
+    assert figures["T"]["psnr_db"] > figures["T_no_separation"]["psnr_db"] + 3
+    out = urd("separate", "scene_01", "--dataset", tmp_path / "ds")
+    assert out.returncode == 1 and "--force" in out.stderr       # never overwrites silently
+    files = [scene.path / f"aligned/shot_0{i}.tiff" for i in range(3)]
+    args = [a for f in files for a in ("--images", f)]
+    out = urd("separate", *args, "--out", tmp_path / "files")
+    assert out.returncode == 0 and (tmp_path / "files" / "T.tiff").is_file()
+    out = urd("separate", *args[:4], "--out", tmp_path / "two")
+    assert out.returncode == 1 and "at least 3" in out.stderr
