@@ -45,7 +45,32 @@ def no_separation() -> tuple[Run, dict]:
     return run, {"parameters": {}}
 
 
-METHODS: dict[str, Callable[..., tuple[Run, dict]]] = {"network": network, "none": no_separation}
+def baseline(module_name: str) -> Callable[..., tuple[Run, dict]]:
+    """A factory for the baseline in ``separate.baselines.<module_name>``; options are its
+    keyword parameters (paper defaults when omitted)."""
+
+    def make(**params) -> tuple[Run, dict]:
+        import importlib
+
+        module = importlib.import_module(f"separate.baselines.{module_name}")
+
+        def run(images: np.ndarray, angles_deg: list[float]) -> tuple[np.ndarray, np.ndarray]:
+            return module.separate(images, angles_deg, **params)
+
+        return run, {"parameters": params, "reference": module.__doc__.strip().splitlines()[0]}
+
+    return make
+
+
+METHODS: dict[str, Callable[..., tuple[Run, dict]]] = {
+    "network": network,
+    "none": no_separation,
+    "schechner": baseline("schechner"),
+    "kong": baseline("kong"),
+    "farid": baseline("farid"),
+    "li-brown": baseline("li_brown"),
+    "arvanitopoulos": baseline("arvanitopoulos"),
+}
 
 
 def get_method(name: str, **options) -> tuple[Run, dict]:

@@ -1,0 +1,65 @@
+"""Helpers shared by the baselines: canonical images, Fresnel inversion, FFT operators."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from separate import optics
+
+
+def canonical(images: np.ndarray, angles_deg: list[float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """I⊥, I∥ (H×W×C) and φ⊥ (rad, H×W×C) of a stack, φ⊥ within ±45° of the first angle."""
+    stokes = optics.stokes_from_images(images, np.radians(angles_deg))
+    return optics.canonical_projection(stokes, np.radians(angles_deg[0]))
+
+
+def fresnel_inverse(i_perp: np.ndarray, i_par: np.ndarray, theta: np.ndarray | float,
+                    n: float = optics.N_GLASS) -> tuple[np.ndarray, np.ndarray]:
+    """Invert I⊥ = (R_s I_R + (1−R_s) I_T)/2, I∥ = (R_p I_R + (1−R_p) I_T)/2 (Eq. 1 at the canonical
+    angles) for the observable layers (R_obs, T_obs) at angle of incidence ``theta`` (rad)."""
+    r_s, r_p = optics.fresnel_reflectance(np.asarray(theta, np.float64), n)
+    r_s, r_p = optics._expand(r_s, i_perp), optics._expand(r_p, i_perp)
+    det = (r_s * (1 - r_p) - r_p * (1 - r_s)) / 4          # = (R_s − R_p)/4 > 0 for 0 < θ < 90°
+    i_r = ((1 - r_p) * i_perp - (1 - r_s) * i_par) / 2 / det
+    i_t = (r_s * i_par - r_p * i_perp) / 2 / det
+    rho = (r_s + r_p) / 2
+    return (rho * i_r).astype(np.float32), ((1 - rho) * i_t).astype(np.float32)
+
+
+def luminance(image: np.ndarray) -> np.ndarray:
+    return image.mean(axis=-1) if image.ndim == 3 else image
+
+
+def mutual_information(a: np.ndarray, b: np.ndarray, bins: int = 32) -> float:
+    """Mutual information (nats) of two images' values from a joint histogram (1–99% range)."""
+    lo_a, hi_a = np.percentile(a, [1, 99])
+    lo_b, hi_b = np.percentile(b, [1, 99])
+    joint, _, _ = np.histogram2d(a.ravel(), b.ravel(), bins=bins, range=[[lo_a, hi_a + 1e-9], [lo_b, hi_b + 1e-9]])
+    p = joint / max(joint.sum(), 1)
+    pa, pb = p.sum(axis=1, keepdims=True), p.sum(axis=0, keepdims=True)
+    nz = p > 0
+    return float((p[nz] * np.log(p[nz] / (pa @ pb)[nz])).sum())
+
+
+def psf2otf(kernel: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Optical transfer function of a small kernel for images of ``shape`` (circular)."""
+    padded = np.zeros(shape, np.float64)
+    kh, kw = kernel.shape
+    padded[:kh, :kw] = kernel
+    padded = np.roll(padded, (-(kh // 2), -(kw // 2)), axis=(0, 1))
+    return np.fft.fft2(padded)
+
+
+DX = np.array([[0, 0, 0], [0, -1, 1], [0, 0, 0]], np.float64)
+DY = DX.T
+LAPLACIAN = np.array([[0, 1, 0], [1, -4, 1], [0, 1, 0]], np.float64)
+
+
+def grad(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Forward differences (circular), per channel, of H×W(×C)."""
+    return np.roll(x, -1, axis=1) - x, np.roll(x, -1, axis=0) - x
+
+
+def grad_adjoint(gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
+    """Adjoint of `grad`."""
+    return (np.roll(gx, 1, axis=1) - gx) + (np.roll(gy, 1, axis=0) - gy)
