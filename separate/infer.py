@@ -89,7 +89,7 @@ def tile_origins(size: int, tile: int, overlap: int) -> list[int]:
 
 
 @torch.no_grad()
-def separate_stack(model: SeparationNet, images: np.ndarray, angles_deg: list[float], tile: int = 512,
+def separate_stack(model: SeparationNet, images: np.ndarray, angles_deg: list[float], tile: int = 1024,
                    overlap: int = 128, bf16: bool = False,
                    progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Separate an aligned stack into (R̂, T̂), each H×W×C float32 linear.

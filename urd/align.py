@@ -75,10 +75,29 @@ def _scale_warp(warp: np.ndarray, factor: float) -> np.ndarray:
     return out
 
 
+def finest_level_for(shape: tuple[int, ...], max_pixels: float = 8e6) -> int:
+    """The finest pyramid level with at most ``max_pixels`` (0 up to 8 MP, 1 for 24 MP)."""
+    level = 0
+    while shape[0] * shape[1] / 4**level > max_pixels:
+        level += 1
+    return level
+
+
+def _reduce(image: np.ndarray, level: int) -> np.ndarray:
+    """Luminance (float32) reduced by 2**level with a Gaussian pyramid."""
+    lum = (image.mean(axis=2) if image.ndim == 3 else image).astype(np.float32)
+    for _ in range(level):
+        lum = cv2.pyrDown(lum)
+    return lum
+
+
 def align(reference: np.ndarray, shot: np.ndarray, motion: Motion = Motion.EUCLIDEAN,
-          finest_level: int = 0, min_correlation: float = 0.6, max_shift_frac: float = 0.05,
+          finest_level: int | None = None, min_correlation: float = 0.6, max_shift_frac: float = 0.05,
           max_rotation_deg: float = 5.0) -> Alignment:
     """Estimate the warp of ``shot`` onto ``reference`` (both H×W×C linear float32).
+
+    ``finest_level`` is the last pyramid level refined (0 = full resolution); by default the
+    finest with at most 8 megapixels.
 
     A result is not ``ok`` when ECC fails to converge, its correlation on the finest level
     is below ``min_correlation``, or the warp is implausible for camera shake (shift above
@@ -86,11 +105,13 @@ def align(reference: np.ndarray, shot: np.ndarray, motion: Motion = Motion.EUCLI
     """
     if reference.shape != shot.shape:
         raise AlignmentError(f"expected shots of equal size, got {reference.shape} and {shot.shape}")
-    ref_rep, ref_mask = representation(reference)
-    shot_rep, _ = representation(shot)
+    if finest_level is None:
+        finest_level = finest_level_for(reference.shape)
+    ref_rep, ref_mask = representation(_reduce(reference, finest_level))
+    shot_rep, _ = representation(_reduce(shot, finest_level))
     levels = max(finest_level, int(np.floor(np.log2(min(reference.shape[:2]) / 256))))
-    pyramid = [(ref_rep, shot_rep, ref_mask)]
-    for _ in range(levels):
+    pyramid = [None] * finest_level + [(ref_rep, shot_rep, ref_mask)]
+    for _ in range(levels - finest_level):
         r, s, m = pyramid[-1]
         size = ((r.shape[1] + 1) // 2, (r.shape[0] + 1) // 2)
         pyramid.append((cv2.pyrDown(r), cv2.pyrDown(s), cv2.resize(m, size, interpolation=cv2.INTER_NEAREST)))
