@@ -55,3 +55,23 @@ def test_imx250mzr_polarizer_target_gives_four_filters_45_degrees_apart():
         assert abs((angles[dark] - aolps[-1] - 90 + 90) % 180 - 90) <= 22.5  # dark channel ⟂ AoLP
     steps = [((b - a + 90) % 180) - 90 for a, b in zip(aolps, aolps[1:])]
     assert all(abs(s + 45) < 7 for s in steps), (aolps, steps)               # −45° per filter, in order
+
+
+def test_urd_ingest_mosaic_frames_then_separate(tmp_path):
+    import subprocess
+    import sys
+
+    frame = shared_data("polarization", "imx250mzr-polanalyser", "carps_IMX250MZR.png")
+    out = subprocess.run([sys.executable, "-m", "urd.cli", "ingest", str(frame), str(tmp_path / "ds"), "--mosaic", "imx250mzr"],
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    from urd.dataset import Dataset
+    from urd.ingest import load_stack
+
+    stack, angles = load_stack(Dataset.open(tmp_path / "ds").scene("scene_01"))
+    assert stack.shape == (4, 1024, 1224, 3) and angles == [0.0, 45.0, 90.0, 135.0]
+    malus = float((stack[0] + stack[2] - stack[1] - stack[3]).mean() / (stack[0] + stack[2]).mean())
+    assert abs(malus) < 0.05                                 # I0 + I90 ≈ I45 + I135 within 5 %
+    out = subprocess.run([sys.executable, "-m", "urd.cli", "separate", "scene_01", "--dataset", str(tmp_path / "ds"),
+                          "--method", "schechner"], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr

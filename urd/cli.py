@@ -128,10 +128,11 @@ def capture(
     typer.echo(f"scene complete: {result.path}")
 
 
-def do_ingest(source: Path, dataset: Optional[Path], opts) -> list:
-    """Ingest a RAW folder into ``dataset``, or a captured scene / dataset in place."""
+def do_ingest(source: Path, dataset: Optional[Path], opts, mosaic=None) -> list:
+    """Ingest a RAW folder (or polarization mosaics) into ``dataset``, or a captured scene /
+    dataset in place."""
     from urd.dataset import Dataset, Scene
-    from urd.ingest import ingest_folder, ingest_scene
+    from urd.ingest import ingest_folder, ingest_mosaic, ingest_scene
 
     outcomes, ignored = [], []
     with typer.progressbar(length=1, label="ingest", file=sys.stderr, show_pos=False) as bar:
@@ -139,7 +140,11 @@ def do_ingest(source: Path, dataset: Optional[Path], opts) -> list:
             bar.label = message[:60]
             bar.render_progress()
 
-        if (source / "scene.json").is_file():
+        if mosaic is not None:
+            ds = Dataset.open_or_create(dataset or Path("dataset"))
+            files = [source] if source.is_file() else sorted(p for p in source.iterdir() if p.suffix.lower() in (".png", ".tif", ".tiff"))
+            outcomes = [ingest_mosaic(ds, f, mosaic) for f in files]
+        elif (source / "scene.json").is_file():
             outcomes = [ingest_scene(Scene(source), opts, progress)]
         elif (source / "dataset.json").is_file():
             ds = Dataset.open(source)
@@ -162,16 +167,20 @@ def ingest(
     half_size: bool = typer.Option(False, help="Decode at half resolution (one pixel per 2x2 CFA tile; ~4x faster)."),
     gap: float = typer.Option(60.0, help="Seconds between shots that start a new scene when grouping by capture time."),
     redo: bool = typer.Option(False, help="Decode and align again scenes that are already ingested (replaces aligned/)."),
+    mosaic: Optional[str] = typer.Option(None, help="SOURCE holds polarization-camera frames (PNG/TIFF) with this layout: imx250mzr, imx250myr or wen2019; one scene per frame."),
 ) -> None:
     """Decode RAW shots to linear images, group them into scenes and align each scene (ECC)."""
     from urd.align import Motion
     from urd.ingest import IngestOptions
 
+    from urd.mosaic import MosaicLayout
+
     try:
         opts = IngestOptions(tuple(parse_angles(angles)), Motion(motion), half_size, gap, redo)
+        layout = MosaicLayout(mosaic) if mosaic else None
     except ValueError as exc:
         raise typer.BadParameter(str(exc))
-    outcomes = run_guarded(do_ingest, source, dataset, opts)
+    outcomes = run_guarded(do_ingest, source, dataset, opts, layout)
     failed = 0
     for outcome in outcomes:
         if outcome.error:

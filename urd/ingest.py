@@ -233,6 +233,58 @@ def ingest_folder(raw_dir: Path, dataset: Path, opts: IngestOptions, progress=No
     return outcomes, ignored
 
 
+def ingest_mosaic(ds: Dataset, path: Path, layout) -> SceneOutcome:
+    """Make a new scene from one division-of-focal-plane frame (8/16-bit PNG or TIFF).
+
+    The frame is split into its 0/45/90/135 channels (`urd.mosaic`), which are simultaneous
+    and need no alignment; mono sensors give grey RGB. Values are scaled by the file's bit
+    depth (1.0 = its maximum code).
+    """
+    import cv2
+
+    from urd.mosaic import split_mosaic
+
+    tmp = Path(tempfile.mkdtemp(prefix=".ingest-", dir=ds.root))
+    try:
+        data = tifffile.imread(path) if path.suffix.lower() in (".tif", ".tiff") else cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if data is None or data.ndim != 2 or data.dtype not in (np.uint8, np.uint16):
+            raise RawFormatError(f"{path}: expected a single-channel 8- or 16-bit mosaic image")
+        stack, angles = split_mosaic(data, layout)
+        stack = stack / float(np.iinfo(data.dtype).max)
+        if stack.shape[-1] == 1:
+            stack = np.repeat(stack, 3, axis=-1)
+        (tmp / "raw").mkdir()
+        (tmp / "aligned").mkdir()
+        dst = tmp / "raw" / path.name
+        with atomic_path(dst) as part:
+            shutil.copyfile(path, part)
+        record = new_scene_manifest("pending", "ingest", {"source_files": [str(path)], "angles_deg": angles,
+                                                          "mosaic": layout.value, "complete": True})
+        raw_rec = file_record(tmp, dst)
+        aligned = []
+        for i, angle in enumerate(angles):
+            record["shots"].append({"index": i, "angle_commanded_deg": angle, "angle_measured_deg": None,
+                                    "angle_calibrated_deg": None, "time": now_iso(), **raw_rec})
+            out = tmp / "aligned" / f"shot_{i:02d}.tiff"
+            write_aligned(out, stack[i])
+            aligned.append(file_record(tmp, out))
+        record["ingest"] = {"time": now_iso(), "ok": True, "options": {"mosaic": layout.value}, "angles_deg": angles,
+                            "alignment": "none: the channels of a division-of-focal-plane sensor are simultaneous",
+                            "aligned": aligned}
+        record["provenance"].append(provenance("ingest", {"mosaic": layout.value}))
+        name = ds.next_scene_name()
+        record["name"] = name
+        Scene(tmp).save(record)
+        os.rename(tmp, ds.root / name)
+        return SceneOutcome(name, [path])
+    except (UrdError, ValueError) as exc:
+        shutil.rmtree(tmp, ignore_errors=True)
+        return SceneOutcome(None, [path], str(exc))
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
 def load_stack(scene: Scene) -> tuple[np.ndarray, list[float]]:
     """The aligned stack (N, H, W, 3) float32 linear and its polarizer angles (deg)."""
     record = scene.load(verify=False)
