@@ -12,31 +12,19 @@ from __future__ import annotations
 import numpy as np
 
 from separate import optics
-from separate.baselines.common import DX, DY, LAPLACIAN, psf2otf
+from separate.baselines.common import half_quadratic
 
 GAMMA = 2.2
 
 
-def suppress(image: np.ndarray, lam: float = 0.002, eps: float = 1e-8, beta_max: float = 1e5) -> np.ndarray:
-    """T of a single H×W×C image."""
-    h, w = image.shape[:2]
-    lap, dx, dy = psf2otf(LAPLACIAN, (h, w)), psf2otf(DX, (h, w)), psf2otf(DY, (h, w))
-    lap2, d2 = np.abs(lap) ** 2, np.abs(dx) ** 2 + np.abs(dy) ** 2
-    out = np.empty_like(image)
-    for c in range(image.shape[2]):
-        i_hat = np.fft.fft2(image[..., c])
-        t = image[..., c].astype(np.float64)
-        beta = 2 * lam
-        while beta < beta_max:
-            t_hat = np.fft.fft2(t)
-            gx, gy = np.real(np.fft.ifft2(dx * t_hat)), np.real(np.fft.ifft2(dy * t_hat))
-            keep = gx**2 + gy**2 >= lam / beta
-            gx, gy = gx * keep, gy * keep
-            num = (lap2 + eps) * i_hat + beta * (np.conj(dx) * np.fft.fft2(gx) + np.conj(dy) * np.fft.fft2(gy))
-            t = np.real(np.fft.ifft2(num / (lap2 + eps + beta * d2)))
-            beta *= 2
-        out[..., c] = t
-    return out
+def suppress(image: np.ndarray, lam: float = 0.002, eps: float = 1e-8) -> np.ndarray:
+    """T of a single H×W×C image (ℓ0 prior: hard thresholding of T's gradients)."""
+
+    def hard(gx: np.ndarray, gy: np.ndarray, beta: float) -> tuple[np.ndarray, np.ndarray]:
+        keep = gx**2 + gy**2 >= lam / beta
+        return gx * keep, gy * keep
+
+    return half_quadratic(image, hard, 2 * lam, eps)
 
 
 def separate(images: np.ndarray, angles_deg: list[float], lam: float = 0.002) -> tuple[np.ndarray, np.ndarray]:
