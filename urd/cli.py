@@ -272,7 +272,7 @@ def calibrate_shots_cmd(
 def separate(
     scene: Optional[str] = typer.Argument(None, help="Scene name (scene_12) in --dataset, or a scene folder. Omit with --images."),
     dataset: Path = typer.Option(Path("."), help="Dataset folder holding the scene."),
-    method: str = typer.Option("network", help="network (the paper's, shipped weights) or a baseline; see 'urd separate --help'."),
+    method: str = typer.Option("network", help="network (the paper's, shipped weights); baselines: schechner, kong, farid (polarization), li-brown, arvanitopoulos (single image); none (T = S0)."),
     images: Optional[list[Path]] = typer.Option(None, "--images", help="Separate image files instead of a scene (repeat: 3 or 4 files, linear TIFF or sRGB PNG/JPEG)."),
     angles: str = typer.Option("0,45,90", help="Polarizer angles of --images (deg)."),
     out: Path = typer.Option(Path("separated"), help="Output folder for --images."),
