@@ -87,6 +87,7 @@ def run_capture(
             **(capture_info or {}), "angles_deg": list(angles_deg), "offset_deg": offset_deg,
             "tolerance_deg": tolerance_deg, "started": now_iso(), "complete": False,
         })
+        scene.save(record)                        # resumable from the first step on
     done = {shot["index"] for shot in record["shots"]}
     measured = pending = meta = None
     for step in plan_capture(angles_deg, done):

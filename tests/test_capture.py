@@ -94,6 +94,16 @@ def test_fault_injection_never_loses_duplicates_or_mislabels_shots(tmp_path, kin
         assert sum(e["fault"] == kind for e in sim.log) >= 20
 
 
+def test_cli_reports_a_device_fault_and_resumes(tmp_path):
+    out = urd("capture", tmp_path / "ds", "--stage", "sim", "--camera", "virtual", "--sim-size", "64x48",
+              "--sim-faults", "mech_timeout=1.0")
+    assert out.returncode == 1 and "status 2: mechanical time-out" in out.stderr
+    assert "--scene scene_01" in out.stderr
+    out = urd("capture", tmp_path / "ds", "--stage", "sim", "--camera", "virtual", "--sim-size", "64x48", "--scene", "scene_01")
+    assert out.returncode == 0, out.stderr
+    assert Dataset.open(tmp_path / "ds").scene("scene_01").load()["capture"]["complete"]
+
+
 def test_interrupted_capture_resumes_without_retaking_done_shots(tmp_path):
     ds = Dataset.open_or_create(tmp_path / "ds")
     with SimulatedEll14() as sim:

@@ -92,8 +92,8 @@ def do_capture(dataset: Path, stage: str, camera: str, angles: list[float], scen
                 run_capture(scene, rig.stage, rig.camera, angles, offset, tolerance,
                             capture_info=rig.info, progress=lambda step: bar.update(1))
             except (UrdError, OSError) as exc:
-                raise type(exc)(f"{exc}\ncapture of {scene.name} stopped; completed shots are kept. "
-                                f"Resume with: urd capture {dataset} --scene {scene.name} ...") from exc
+                raise UrdError(f"{exc}\ncapture of {scene.name} stopped; completed shots are kept. "
+                               f"Resume with: urd capture {dataset} --scene {scene.name} ...") from exc
         if isinstance(rig.camera, VirtualCamera) and not (scene.path / "truth").exists():
             rig.camera.write_truth(scene.path / "truth")
     return scene
