@@ -155,3 +155,10 @@ def test_urd_separate_on_a_simulated_scene_beats_no_separation(tmp_path):
     assert out.returncode == 0 and (tmp_path / "files" / "T.tiff").is_file()
     out = urd("separate", *args[:4], "--out", tmp_path / "two")
     assert out.returncode == 1 and "at least 3" in out.stderr
+
+
+def test_training_continues_from_the_shipped_weights(tmp_path):
+    cfg = TrainConfig(width=16, patch=32, batch=4, micro_batch=4, steps=1, val_samples=8, val_every=1, threads=1)
+    scratch = train(cfg, tmp_path / "scratch")
+    tuned = train(cfg, tmp_path / "tuned", init=DEFAULT_WEIGHTS)
+    assert tuned["psnr_t"] > scratch["psnr_t"] + 3
