@@ -132,7 +132,13 @@ def do_ingest(source: Path, dataset: Optional[Path], opts, mosaic=None) -> list:
     """Ingest a RAW folder (or polarization mosaics) into ``dataset``, or a captured scene /
     dataset in place."""
     from urd.dataset import Dataset, Scene
-    from urd.ingest import ingest_folder, ingest_mosaic, ingest_scene
+    from urd.ingest import SceneOutcome, ingest_folder, ingest_mosaic, ingest_scene
+
+    def one_scene(scene: Scene) -> SceneOutcome:
+        try:
+            return ingest_scene(scene, opts, progress)
+        except UrdError as exc:
+            return SceneOutcome(scene.name, [], str(exc))
 
     outcomes, ignored = [], []
     with typer.progressbar(length=1, label="ingest", file=sys.stderr, show_pos=False) as bar:
@@ -145,11 +151,11 @@ def do_ingest(source: Path, dataset: Optional[Path], opts, mosaic=None) -> list:
             files = [source] if source.is_file() else sorted(p for p in source.iterdir() if p.suffix.lower() in (".png", ".tif", ".tiff"))
             outcomes = [ingest_mosaic(ds, f, mosaic) for f in files]
         elif (source / "scene.json").is_file():
-            outcomes = [ingest_scene(Scene(source), opts, progress)]
+            outcomes = [one_scene(Scene(source))]
         elif (source / "dataset.json").is_file():
             ds = Dataset.open(source)
-            todo = [ds.scene(n) for n in ds.scene_names() if opts.redo or "ingest" not in ds.scene(n).load(verify=False)]
-            outcomes = [ingest_scene(scene, opts, progress) for scene in todo]
+            scenes = [ds.scene(n) for n in ds.scene_names()]
+            outcomes = [one_scene(s) for s in scenes if opts.redo or "ingest" not in s.load(verify=False)]
         else:
             outcomes, ignored = ingest_folder(source, dataset or Path("dataset"), opts, progress)
         bar.update(1)
@@ -172,7 +178,6 @@ def ingest(
     """Decode RAW shots to linear images, group them into scenes and align each scene (ECC)."""
     from urd.align import Motion
     from urd.ingest import IngestOptions
-
     from urd.mosaic import MosaicLayout
 
     try:
@@ -188,7 +193,7 @@ def ingest(
             where = outcome.name or ", ".join(p.name for p in outcome.files)
             typer.secho(f"FAILED {where}: {outcome.error}", fg=typer.colors.RED, err=True)
         else:
-            typer.echo(f"ingested {outcome.name} ({len(outcome.files)} shots)")
+            typer.echo(f"ingested {outcome.name} (from {len(outcome.files)} files)")
     if not outcomes:
         typer.echo("nothing to ingest")
     if failed:
