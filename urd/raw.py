@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 import rawpy
 
@@ -49,7 +50,8 @@ def decode(path: Path, half_size: bool = False) -> np.ndarray:
     width and height, several times faster).
     """
     with _open(path) as raw:
-        cfa = raw.raw_image_visible.astype(np.float32)
+        raw_codes = raw.raw_image_visible.copy()
+        cfa = raw_codes.astype(np.float32)
         colours = raw.raw_colors_visible
         desc = raw.color_desc.decode()
         pattern = raw.raw_pattern
@@ -63,24 +65,33 @@ def decode(path: Path, half_size: bool = False) -> np.ndarray:
         raise RawFormatError(f"{path}: unsupported colour filter array {desc!r} (urd decodes 2×2 RGB patterns)")
     wb = np.where(wb > 0, wb, wb[1]) / wb[1]
     gain = (wb / (white - black)).astype(np.float32)
-    linear = (cfa - black[colours]) * gain[colours]
     letters = tuple("".join(desc[pattern[r, c]] for c in range(2)) for r in range(2))
-    h, w = linear.shape[0] // 2 * 2, linear.shape[1] // 2 * 2
-    linear = linear[:h, :w]
-    if half_size:
-        image = np.zeros((h // 2, w // 2, 3), np.float32)
-        counts = np.zeros(3, np.float32)
-        for r in range(2):
-            for c in range(2):
-                k = "RGB".index(letters[r][c])
-                image[..., k] += linear[r::2, c::2]
-                counts[k] += 1
-        image /= counts
+    h, w = cfa.shape[0] // 2 * 2, cfa.shape[1] // 2 * 2
+    uniform_black = np.unique(black[np.unique(colours)]).size == 1
+    if half_size or not uniform_black:
+        linear = (cfa[:h, :w] - black[colours[:h, :w]]) * gain[colours[:h, :w]]
+        image = _half_size(linear, letters) if half_size else demosaic_bilinear(linear, letters)
     else:
-        image = demosaic_bilinear(linear, letters)
+        # OpenCV's bilinear Bayer interpolation is linear and per channel, so it may run on the
+        # raw codes with their (uniform) black pedestal, which passes through unchanged
+        rgb = cv2.cvtColor(raw_codes[:h, :w], getattr(cv2, f"COLOR_Bayer{letters[0]}{letters[1]}2RGB"))
+        image = (rgb.astype(np.float32) - black[0]) * np.array([gain[0], gain[1], gain[2]], np.float32)
     if np.abs(rgb_cam).sum() > 0 and not np.allclose(rgb_cam, np.eye(3), atol=1e-3):
         image = image @ rgb_cam.T
     return np.ascontiguousarray(image, dtype=np.float32)
+
+
+def _half_size(linear: np.ndarray, letters: tuple[str, str]) -> np.ndarray:
+    """One RGB pixel per 2×2 CFA tile (greens averaged)."""
+    h, w = linear.shape
+    image = np.zeros((h // 2, w // 2, 3), np.float32)
+    counts = np.zeros(3, np.float32)
+    for r in range(2):
+        for c in range(2):
+            k = "RGB".index(letters[r][c])
+            image[..., k] += linear[r::2, c::2]
+            counts[k] += 1
+    return image / counts
 
 
 def metadata(path: Path) -> dict:
