@@ -52,17 +52,16 @@ def load_model(path: Path | None = None) -> tuple[SeparationNet, dict]:
     return model, info
 
 
-def check_inputs(images: np.ndarray, angles_deg: list[float]) -> np.ndarray:
-    """Validate a stack (N, H, W, C) and its angles (deg); return it float32 with negatives clipped."""
+def check_inputs(images: np.ndarray, angles_deg: list[float]) -> None:
+    """Validate a stack (N, H, W, C) and its angles (deg) without copying the stack."""
     if images.ndim != 4 or images.shape[0] < 3 or images.shape[-1] not in (1, 3):
         raise ValueError(f"expected at least 3 shots stacked as (N>=3, H, W, C in 1,3), got {images.shape}")
     if len(angles_deg) != images.shape[0]:
         raise ValueError(f"expected {images.shape[0]} angles (one per image), got {len(angles_deg)}")
     optics.check_angles(np.radians(angles_deg), min_span=np.radians(90.0))
-    bad = ~np.isfinite(images)
-    if bad.any():
-        raise ValueError(f"expected finite pixel values, got {int(bad.sum())} NaN or infinite values")
-    return np.clip(images, 0.0, None).astype(np.float32, copy=False)
+    if not np.isfinite(images.sum(dtype=np.float64)):                  # NaN and inf propagate to the sum
+        bad = sum(int((~np.isfinite(shot)).sum()) for shot in images)
+        raise ValueError(f"expected finite pixel values, got {bad} NaN or infinite values")
 
 
 def _ramp(length: int, overlap: int, at_start: bool, at_end: bool) -> np.ndarray:
@@ -89,7 +88,7 @@ def tile_origins(size: int, tile: int, overlap: int) -> list[int]:
 
 
 @torch.no_grad()
-def separate_stack(model: SeparationNet, images: np.ndarray, angles_deg: list[float], tile: int = 1024,
+def separate_stack(model: SeparationNet, images: np.ndarray, angles_deg: list[float], tile: int = 768,
                    overlap: int = 128, bf16: bool = False,
                    progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Separate an aligned stack into (R̂, T̂), each H×W×C float32 linear.
@@ -102,13 +101,14 @@ def separate_stack(model: SeparationNet, images: np.ndarray, angles_deg: list[fl
         bf16: bfloat16 autocast (about 3× faster on CPUs with AVX-512 BF16).
         progress: called with (tiles done, tiles total).
     """
-    images = check_inputs(images, angles_deg)
+    check_inputs(images, angles_deg)
     n, h, w, c = images.shape
     tile = max(64, tile // 8 * 8)
     overlap = min(overlap, tile // 2)
     angles = [float(a) for a in np.radians(angles_deg)]
-    stokes0 = optics.stokes_from_images(images.reshape(n, -1), angles)[0]
-    scale = torch.tensor([max(float(stokes0.mean()), 1e-6)])
+    shot_means = np.array([np.clip(shot, 0.0, None).mean(dtype=np.float64) for shot in images])  # mean(S0) is linear in them
+    s0_mean = float(np.linalg.pinv(optics.stokes_matrix(angles))[0] @ shot_means)
+    scale = torch.tensor([max(s0_mean, 1e-6)])
     r_sum = np.zeros((h, w, c), np.float32)
     t_sum = np.zeros((h, w, c), np.float32)
     weight = np.zeros((h, w, 1), np.float32)
@@ -117,7 +117,8 @@ def separate_stack(model: SeparationNet, images: np.ndarray, angles_deg: list[fl
     for y in ys:
         for x in xs:
             y1, x1 = min(h, y + tile), min(w, x + tile)
-            patch = torch.from_numpy(np.ascontiguousarray(images[:, y:y1, x:x1].transpose(0, 3, 1, 2)))[None]
+            patch = np.clip(images[:, y:y1, x:x1], 0.0, None, dtype=np.float32).transpose(0, 3, 1, 2)
+            patch = torch.from_numpy(np.ascontiguousarray(patch))[None]
             with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
                 r_hat, t_hat = model(patch, angles, scale)
             wy = _ramp(y1 - y, overlap, y == 0, y1 == h)
@@ -129,7 +130,9 @@ def separate_stack(model: SeparationNet, images: np.ndarray, angles_deg: list[fl
             done += 1
             if progress:
                 progress(done, total)
-    return r_sum / weight, t_sum / weight
+    r_sum /= weight
+    t_sum /= weight
+    return r_sum, t_sum
 
 
 def match_colours(estimate: np.ndarray, reference: np.ndarray) -> np.ndarray:

@@ -14,7 +14,8 @@ MSE_FLOOR = 1e-6
 
 def mse(estimate: np.ndarray, truth: np.ndarray, axis=None) -> np.ndarray:
     """Mean squared error over ``axis`` (all axes by default)."""
-    return np.mean((np.asarray(estimate, np.float64) - np.asarray(truth, np.float64)) ** 2, axis=axis)
+    diff = np.asarray(estimate, np.float32) - np.asarray(truth, np.float32)
+    return np.mean(np.square(diff), axis=axis, dtype=np.float64)
 
 
 def rmse(estimate: np.ndarray, truth: np.ndarray, axis=None) -> np.ndarray:

@@ -9,23 +9,27 @@ its own process, timing the wall clock and reading the process's peak resident m
 
 import argparse
 import os
-import resource
 import shutil
 import subprocess
 import sys
 import time
 
 
+# A wrapper process runs one command and reports its own children's peak RSS (KiB): the
+# peak of RUSAGE_CHILDREN in this process would be the maximum over every command run so far.
+WRAPPER = ("import resource, subprocess, sys; done = subprocess.run(sys.argv[1:]); "
+           "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss, file=sys.stderr); sys.exit(done.returncode)")
+
+
 def run(args: list[str]) -> tuple[float, float]:
     """Run ``python -m urd.cli ARGS`` in a child; return (seconds, peak RSS in GB)."""
-    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     started = time.perf_counter()
-    done = subprocess.run([sys.executable, "-m", "urd.cli", *args], capture_output=True, text=True)
+    done = subprocess.run([sys.executable, "-c", WRAPPER, sys.executable, "-m", "urd.cli", *args],
+                          capture_output=True, text=True)
     elapsed = time.perf_counter() - started
     if done.returncode:
         sys.exit(f"urd {' '.join(args)} failed:\n{done.stderr}")
-    peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    return elapsed, max(peak, before) / 1024**2
+    return elapsed, int(done.stderr.strip().splitlines()[-1]) / 1024**2
 
 
 parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -282,7 +282,7 @@ def separate(
     angles: str = typer.Option("0,45,90", help="Polarizer angles of --images (deg)."),
     out: Path = typer.Option(Path("separated"), help="Output folder for --images."),
     weights: Optional[Path] = typer.Option(None, help="Network weights file (default: shipped weights)."),
-    tile: int = typer.Option(1024, help="Network tile size (px); memory grows with it, not with the image."),
+    tile: int = typer.Option(768, help="Network tile size (px); memory grows with it, not with the image."),
     bf16: bool = typer.Option(True, help="bfloat16 inference (about 3x faster on CPUs with AVX-512 BF16)."),
     colour_match: bool = typer.Option(False, help="Match T's colour balance to the darkest observation (paper §3.4)."),
     force: bool = typer.Option(False, help="Replace existing results of this method."),

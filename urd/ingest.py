@@ -293,5 +293,10 @@ def load_stack(scene: Scene) -> tuple[np.ndarray, list[float]]:
         raise DatasetError(f"{scene.name} is not ingested yet; run: urd ingest {scene.path}")
     if not ingest["ok"]:
         raise AlignmentError(f"{scene.name}: {ingest['error']}")
-    images = np.stack([read_aligned(scene.path / f["file"]) for f in ingest["aligned"]])
+    first = read_aligned(scene.path / ingest["aligned"][0]["file"])
+    images = np.empty((len(ingest["aligned"]),) + first.shape, np.float32)   # filled in place: no 2x peak
+    images[0] = first
+    del first
+    for i, f in enumerate(ingest["aligned"][1:], start=1):
+        images[i] = read_aligned(scene.path / f["file"])
     return images, shot_angles(record)

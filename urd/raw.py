@@ -51,7 +51,6 @@ def decode(path: Path, half_size: bool = False) -> np.ndarray:
     """
     with _open(path) as raw:
         raw_codes = raw.raw_image_visible.copy()
-        cfa = raw_codes.astype(np.float32)
         colours = raw.raw_colors_visible
         desc = raw.color_desc.decode()
         pattern = raw.raw_pattern
@@ -66,16 +65,18 @@ def decode(path: Path, half_size: bool = False) -> np.ndarray:
     wb = np.where(wb > 0, wb, wb[1]) / wb[1]
     gain = (wb / (white - black)).astype(np.float32)
     letters = tuple("".join(desc[pattern[r, c]] for c in range(2)) for r in range(2))
-    h, w = cfa.shape[0] // 2 * 2, cfa.shape[1] // 2 * 2
+    h, w = raw_codes.shape[0] // 2 * 2, raw_codes.shape[1] // 2 * 2
     uniform_black = np.unique(black[np.unique(colours)]).size == 1
     if half_size or not uniform_black:
-        linear = (cfa[:h, :w] - black[colours[:h, :w]]) * gain[colours[:h, :w]]
+        linear = (raw_codes[:h, :w].astype(np.float32) - black[colours[:h, :w]]) * gain[colours[:h, :w]]
         image = _half_size(linear, letters) if half_size else demosaic_bilinear(linear, letters)
     else:
         # OpenCV's bilinear Bayer interpolation is linear and per channel, so it may run on the
         # raw codes with their (uniform) black pedestal, which passes through unchanged
         rgb = cv2.cvtColor(raw_codes[:h, :w], getattr(cv2, f"COLOR_Bayer{letters[0]}{letters[1]}2RGB"))
-        image = (rgb.astype(np.float32) - black[0]) * np.array([gain[0], gain[1], gain[2]], np.float32)
+        image = rgb.astype(np.float32)
+        image -= black[0]
+        image *= np.array([gain[0], gain[1], gain[2]], np.float32)
     if np.abs(rgb_cam).sum() > 0 and not np.allclose(rgb_cam, np.eye(3), atol=1e-3):
         image = image @ rgb_cam.T
     return np.ascontiguousarray(image, dtype=np.float32)
