@@ -90,8 +90,13 @@ def test_training_runs_resumes_and_improves(tmp_path):
 def test_ddp_with_two_gloo_processes(tmp_path):
     cfg = tmp_path / "ddp.toml"
     cfg.write_text('width = 8\npatch = 32\nbatch = 8\nmicro_batch = 4\nsteps = 4\nval_samples = 8\nval_every = 4\nbf16 = false\nthreads = 1\n')
+    import socket
+
+    with socket.socket() as sock:                      # a free port for the rendezvous
+        sock.bind(("127.0.0.1", 0))
+        port = str(sock.getsockname()[1])
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    out = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", "29533",
+    out = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", port,
                           "-m", "urd.cli", "train", str(cfg), str(tmp_path / "run")], capture_output=True, text=True,
                          timeout=600, env=env)
     assert out.returncode == 0, out.stderr[-2000:]
