@@ -65,10 +65,10 @@ def check_inputs(images: np.ndarray, angles_deg: list[float]) -> None:
 
 
 def _ramp(length: int, overlap: int, at_start: bool, at_end: bool) -> np.ndarray:
-    """1-D blending weight at a border shared with another tile: ~0 over the first quarter of
+    """1-D blending weight at a border shared with another tile: ~0 over the first half of
     ``overlap`` (pixels whose receptive field is cut by the tile border), then a linear rise."""
     w = np.ones(length, np.float32)
-    margin = overlap // 4
+    margin = overlap // 2
     ramp = np.clip((np.arange(overlap, dtype=np.float32) + 0.5 - margin) / (overlap - margin), 1e-6, 1.0)
     if not at_start:
         w[:overlap] = ramp
