@@ -95,7 +95,7 @@ def mixing_alpha(theta: Array, phi_perp: Array, phi: Array, n: float = N_GLASS) 
     return r_s * c2 + r_p * (1.0 - c2)
 
 
-def _expand(angle_map: Array, image: Array) -> Array:
+def expand_map(angle_map: Array, image: Array) -> Array:
     """Give an H×W map a trailing channel axis when ``image`` is H×W×C."""
     ndim = getattr(angle_map, "ndim", 0)
     if ndim and ndim == image.ndim - 1:
@@ -120,7 +120,7 @@ def render(
     Returns:
         The observation, same shape as ``i_r``.
     """
-    alpha = _expand(mixing_alpha(theta, phi_perp, phi, n), i_r)
+    alpha = expand_map(mixing_alpha(theta, phi_perp, phi, n), i_r)
     return alpha * i_r / 2 + (1.0 - alpha) * i_t / 2
 
 
@@ -139,7 +139,7 @@ def observable_layers(
     Returns:
         (R_obs, T_obs), each the shape of ``i_r``.
     """
-    rho = _expand(reflectance(theta, n), i_r)
+    rho = expand_map(reflectance(theta, n), i_r)
     return rho * i_r, (1.0 - rho) * i_t
 
 

@@ -18,7 +18,7 @@ def fresnel_inverse(i_perp: np.ndarray, i_par: np.ndarray, theta: np.ndarray | f
     """Invert I⊥ = (R_s I_R + (1−R_s) I_T)/2, I∥ = (R_p I_R + (1−R_p) I_T)/2 (Eq. 1 at the canonical
     angles) for the observable layers (R_obs, T_obs) at angle of incidence ``theta`` (rad)."""
     r_s, r_p = optics.fresnel_reflectance(np.asarray(theta, np.float64), n)
-    r_s, r_p = optics._expand(r_s, i_perp), optics._expand(r_p, i_perp)
+    r_s, r_p = optics.expand_map(r_s, i_perp), optics.expand_map(r_p, i_perp)
     det = (r_s * (1 - r_p) - r_p * (1 - r_s)) / 4          # = (R_s − R_p)/4 > 0 for 0 < θ < 90°
     i_r = ((1 - r_p) * i_perp - (1 - r_s) * i_par) / 2 / det
     i_t = (r_s * i_par - r_p * i_perp) / 2 / det
