@@ -26,13 +26,20 @@ def benchmark_set(count: int, size: int) -> dict[str, np.ndarray]:
 
 
 def run_benchmark(methods: list[str], count: int = 64, size: int = 256, direct_weights: Path | None = None) -> list[dict]:
-    """Score each method on the benchmark set; one row of figures per method."""
+    """Score each method on the benchmark set; one row of figures per method.
+
+    A method is a name of `separate.methods.METHODS`, "direct" (the network with the direct
+    variant's weights), or "LABEL=PATH": the network with the weights or checkpoint at PATH.
+    """
     from separate.methods import get_method
 
     data = benchmark_set(count, size)
     rows = []
     for name in methods:
-        if name == "direct":
+        if "=" in name:
+            run, _ = get_method("network", weights=Path(name.split("=", 1)[1]))
+            name = name.split("=", 1)[0]
+        elif name == "direct":
             run, _ = get_method("network", weights=direct_weights or DIRECT_WEIGHTS)
         else:
             run, _ = get_method(name)

@@ -22,14 +22,14 @@ import numpy as np
 import torch
 
 from separate import optics
-from separate.model import SeparationNet
+from separate.model import build_model
 from urd.errors import WeightsError
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "urd-canonical.pt"
 
 
-def load_model(path: Path | None = None) -> tuple[SeparationNet, dict]:
+def load_model(path: Path | None = None) -> tuple[torch.nn.Module, dict]:
     """Load shipped or trained weights; WeightsError if missing, corrupt or mismatched.
 
     Accepts a weights file (``{"model", "model_config"}``) or a training checkpoint.
@@ -41,7 +41,7 @@ def load_model(path: Path | None = None) -> tuple[SeparationNet, dict]:
     digest = hashlib.sha256(path.read_bytes()).hexdigest()
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
-        model = SeparationNet(**state["model_config"])
+        model = build_model(state["model_config"])
         model.load_state_dict({k: v.float() for k, v in state["model"].items()})
     except Exception as exc:  # noqa: BLE001 - any failure to read means the file is unusable
         raise WeightsError(f"weights file {path} is corrupt or does not fit the model: {exc}") from exc
@@ -88,7 +88,7 @@ def tile_origins(size: int, tile: int, overlap: int) -> list[int]:
 
 
 @torch.no_grad()
-def separate_stack(model: SeparationNet, images: np.ndarray, angles_deg: list[float], tile: int = 768,
+def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[float], tile: int = 768,
                    overlap: int = 128, bf16: bool = False,
                    progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Separate an aligned stack into (R̂, T̂), each H×W×C float32 linear.
@@ -135,12 +135,17 @@ def separate_stack(model: SeparationNet, images: np.ndarray, angles_deg: list[fl
     return r_sum, t_sum
 
 
-def match_colours(estimate: np.ndarray, reference: np.ndarray) -> np.ndarray:
-    """Parameter-free colour correction (paper §3.4, simplified): give ``estimate`` the channel
-    balance of ``reference`` (ratios of channel means), keeping its mean luminance."""
-    est_mean = estimate.reshape(-1, estimate.shape[-1]).mean(axis=0)
-    ref_mean = reference.reshape(-1, reference.shape[-1]).mean(axis=0)
-    if np.any(est_mean <= 0) or np.any(ref_mean <= 0):
-        return estimate
-    gains = (ref_mean / ref_mean.mean()) / (est_mean / est_mean.mean())
-    return estimate * gains.astype(np.float32)
+def match_histograms(estimate: np.ndarray, reference: np.ndarray, quantiles: int = 1024) -> np.ndarray:
+    """Parameter-free colour correction (paper §3.4): each channel of ``estimate`` (H×W×C) gets
+    the value distribution of the same channel of ``reference`` by a monotone quantile mapping
+    (``quantiles`` points, linear between; quantiles from at most ~1 M pixels of each image)."""
+    if estimate.ndim != 3 or reference.ndim != 3 or estimate.shape[-1] != reference.shape[-1]:
+        raise ValueError(f"expected two H×W×C images with equal C, got {estimate.shape} and {reference.shape}")
+    q = np.linspace(0.0, 1.0, quantiles)
+    out = np.empty_like(estimate)
+    for c in range(estimate.shape[-1]):
+        src, ref = estimate[..., c], reference[..., c]
+        src_q = np.quantile(src.ravel()[:: max(1, src.size // 1_000_000)], q)
+        ref_q = np.quantile(ref.ravel()[:: max(1, ref.size // 1_000_000)], q)
+        out[..., c] = np.interp(src, src_q, ref_q)
+    return out

@@ -18,20 +18,32 @@ Run = Callable[[np.ndarray, list[float]], tuple[np.ndarray, np.ndarray]]
 def network(weights: Path | None = None, tile: int = 768, overlap: int = 128, bf16: bool = False,
             colour_match: bool = False, progress=None) -> tuple[Run, dict]:
     """The paper's network (`separate.model`) with shipped or given weights."""
-    from separate.infer import load_model, match_colours, separate_stack
+    from separate.infer import load_model, match_histograms, separate_stack
 
     model, weights_info = load_model(weights)
 
     def run(images: np.ndarray, angles_deg: list[float]) -> tuple[np.ndarray, np.ndarray]:
         r_hat, t_hat = separate_stack(model, images, angles_deg, tile, overlap, bf16, progress)
         if colour_match:
-            t_hat = match_colours(t_hat, images.min(axis=0))
+            darkest = int(np.argmin([shot.mean(dtype=np.float64) for shot in images]))
+            t_hat = match_histograms(t_hat, images[darkest])
         return r_hat, t_hat
 
     info = {"weights": {"file": Path(weights_info["file"]).name, "sha256": weights_info["sha256"],
                         "config": weights_info["config"]},
             "parameters": {"tile": tile, "overlap": overlap, "bf16": bf16, "colour_match": colour_match}}
     return run, info
+
+
+def ceilnet(weights: Path | None = None, **options) -> tuple[Run, dict]:
+    """The CEILNet baseline (`separate.baselines.ceilnet`), run like the network: tiled, with
+    the same options, its weights hash in the manifest."""
+    from separate.baselines import ceilnet as module
+
+    run, info = network(weights or module.WEIGHTS, **options)
+    if info["weights"]["config"].get("variant") != "ceilnet":
+        raise ValueError(f"weights {weights} hold a {info['weights']['config'].get('variant')} network, not CEILNet")
+    return run, {**info, "reference": module.__doc__.strip().splitlines()[0]}
 
 
 def no_separation() -> tuple[Run, dict]:
@@ -70,6 +82,7 @@ METHODS: dict[str, Callable[..., tuple[Run, dict]]] = {
     "farid": baseline("farid"),
     "li-brown": baseline("li_brown"),
     "arvanitopoulos": baseline("arvanitopoulos"),
+    "ceilnet": ceilnet,
 }
 
 

@@ -148,3 +148,19 @@ class SeparationNet(nn.Module):
         r_hat = xi_perp * r_res + (1 - xi_perp) * base_r
         t_hat = xi_par * t_res + (1 - xi_par) * base_t
         return r_hat / gain, t_hat / gain
+
+    @staticmethod
+    def loss(outputs: tuple[torch.Tensor, torch.Tensor], r: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """The paper's ℓ2 loss on R̂ and T̂ (``outputs`` of ``forward``) against R and T."""
+        r_hat, t_hat = outputs
+        return torch.mean((r_hat - r) ** 2) + torch.mean((t_hat - t) ** 2)
+
+
+def build_model(config: dict) -> nn.Module:
+    """A network from its ``config()``: SeparationNet, or the CEILNet baseline for variant
+    "ceilnet" (`separate.baselines.ceilnet`)."""
+    if config.get("variant") == "ceilnet":
+        from separate.baselines.ceilnet import CEILNet
+
+        return CEILNet(**{k: v for k, v in config.items() if k != "variant"})
+    return SeparationNet(**config)

@@ -22,17 +22,22 @@ import torch
 import torch.distributed as dist
 
 from separate import metrics
-from separate.model import SeparationNet
+from separate.model import build_model
 from separate.synthesis import SynthesisConfig, Synthesizer, default_pool
 from urd.dataset import atomic_path
 
 
 @dataclasses.dataclass
 class TrainConfig:
-    """A training run. Defaults are the paper's (Adam, lr 5e-3, batch 32, 128² patches)."""
+    """A training run. Defaults are the paper's (Adam, lr 5e-3, batch 32, 128² patches).
+
+    ``variant`` is "canonical" (the paper's network), "direct", or "ceilnet" (the CEILNet
+    baseline, with ``blocks`` residual blocks per stage).
+    """
 
     variant: str = "canonical"
     width: int = 16
+    blocks: int = 6
     patch: int = 128
     batch: int = 32
     micro_batch: int = 8
@@ -107,6 +112,13 @@ def save_checkpoint(path: Path, model: torch.nn.Module, optim, step: int, cfg: T
         torch.save(state, tmp)
 
 
+def model_config(cfg: TrainConfig) -> dict:
+    """The network's config for a training config."""
+    if cfg.variant == "ceilnet":
+        return {"variant": "ceilnet", "width": cfg.width, "blocks": cfg.blocks}
+    return {"variant": cfg.variant, "width": cfg.width}
+
+
 def lr_at(cfg: TrainConfig, step: int) -> float:
     """Cosine decay from lr to lr_min over ``steps``, after a 200-step warm-up."""
     warm = min(1.0, (step + 1) / 200)
@@ -130,7 +142,7 @@ def train(cfg: TrainConfig, run_dir: Path, init: Path | None = None, progress=No
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
-    model = SeparationNet(cfg.width, cfg.variant).to(device)
+    model = build_model(model_config(cfg)).to(device)
     optim = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     step, best, started = 0, -math.inf, time.time()
     elapsed_before = 0.0
@@ -160,8 +172,8 @@ def train(cfg: TrainConfig, run_dir: Path, init: Path | None = None, progress=No
         for _ in range(0, per_rank, micro):
             obs, r, t = to_tensors(synth.batch(micro), device)
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16):
-                r_hat, t_hat = ddp(obs)
-            loss = (torch.mean((r_hat - r) ** 2) + torch.mean((t_hat - t) ** 2)) * micro / per_rank
+                outputs = ddp(obs)
+            loss = model.loss(outputs, r, t) * micro / per_rank
             loss.backward()
             loss_sum += loss.item()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)

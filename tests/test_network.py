@@ -11,7 +11,7 @@ import torch
 
 from rig import capture_virtual
 from separate import optics
-from separate.infer import DEFAULT_WEIGHTS, load_model, separate_stack
+from separate.infer import DEFAULT_WEIGHTS, load_model, match_histograms, separate_stack
 from separate.model import NOMINAL_ANGLES, SeparationNet, canonical_inputs
 from separate.synthesis import SynthesisConfig, Synthesizer, load_image_pool, parabola_aoi
 from separate.train import TrainConfig, train
@@ -167,3 +167,22 @@ def test_training_continues_from_the_shipped_weights(tmp_path):
     scratch = train(cfg, tmp_path / "scratch")
     tuned = train(cfg, tmp_path / "tuned", init=DEFAULT_WEIGHTS)
     assert tuned["psnr_t"] > scratch["psnr_t"] + 3
+
+
+def test_histogram_matching_undoes_a_monotone_per_channel_change():
+    rng = np.random.default_rng(3)
+    reference = rng.gamma(2.0, 0.1, size=(120, 90, 3)).astype(np.float32)
+    washed = np.stack([0.5 * reference[..., 0] + 0.1, np.sqrt(reference[..., 1]), reference[..., 2] ** 2], axis=-1)
+    matched = match_histograms(washed, reference)
+    assert np.abs(matched - reference).max() < 0.02 * reference.max()
+    assert np.abs(washed - reference).max() > 0.2 * reference.max()
+    with pytest.raises(ValueError, match="equal C"):
+        match_histograms(washed, reference[..., :1])
+
+
+def test_benchmark_scores_methods_and_weights_given_by_path():
+    from separate.bench import run_benchmark
+
+    rows = run_benchmark(["none", f"shipped={DEFAULT_WEIGHTS}"], count=4, size=64)
+    assert [r["method"] for r in rows] == ["none", "shipped"]
+    assert rows[1]["psnr_t"] > rows[0]["psnr_t"] + 3 and 0 < rows[1]["ssim_t"] <= 1

@@ -277,14 +277,14 @@ def calibrate_shots_cmd(
 def separate(
     scene: Optional[str] = typer.Argument(None, help="Scene name (scene_12) in --dataset, or a scene folder. Omit with --images."),
     dataset: Path = typer.Option(Path("."), help="Dataset folder holding the scene."),
-    method: str = typer.Option("network", help="network (the paper's, shipped weights); baselines: schechner, kong, farid (polarization), li-brown, arvanitopoulos (single image); none (T = S0)."),
+    method: str = typer.Option("network", help="network (the paper's, shipped weights); baselines: schechner, kong, farid (polarization), li-brown, arvanitopoulos, ceilnet (single image: they see S0 only); none (T = S0)."),
     images: Optional[list[Path]] = typer.Option(None, "--images", help="Separate image files instead of a scene (repeat: 3 or 4 files, linear TIFF or sRGB PNG/JPEG)."),
     angles: str = typer.Option("0,45,90", help="Polarizer angles of --images (deg)."),
     out: Path = typer.Option(Path("separated"), help="Output folder for --images."),
-    weights: Optional[Path] = typer.Option(None, help="Network weights file (default: shipped weights)."),
+    weights: Optional[Path] = typer.Option(None, help="Weights file of the network or ceilnet (default: the shipped ones)."),
     tile: int = typer.Option(768, help="Network tile size (px); memory grows with it, not with the image."),
     bf16: bool = typer.Option(True, help="bfloat16 inference (about 3x faster on CPUs with AVX-512 BF16)."),
-    colour_match: bool = typer.Option(False, help="Match T's colour balance to the darkest observation (paper §3.4)."),
+    colour_match: bool = typer.Option(False, help="Match each colour channel's histogram of T to the darkest observation's (paper §3.4)."),
     force: bool = typer.Option(False, help="Replace existing results of this method."),
 ) -> None:
     """Separate a scene into reflection R and transmission T (linear 16-bit TIFF + sRGB previews)."""
@@ -293,11 +293,12 @@ def separate(
 
     if method not in METHODS:
         raise typer.BadParameter(f"unknown method {method!r}; expected one of {sorted(METHODS)}")
-    options = {"weights": weights, "tile": tile, "bf16": bf16, "colour_match": colour_match} if method == "network" else {}
+    networks = ("network", "ceilnet")
+    options = {"weights": weights, "tile": tile, "bf16": bf16, "colour_match": colour_match} if method in networks else {}
 
     def work():
         with typer.progressbar(length=100, label=f"separate ({method})", file=sys.stderr) as bar:
-            if method == "network":
+            if method in networks:
                 options["progress"] = lambda done, total: bar.update(round(100 * done / total) - bar.pos)
             run, info = get_method(method, **options)
             if images:
@@ -331,7 +332,7 @@ def train(
     run_dir: Path = typer.Argument(..., help="Run folder: checkpoints, log.jsonl; an existing run resumes."),
     init: Optional[Path] = typer.Option(None, help="Start from these weights (e.g. the shipped ones) instead of scratch."),
 ) -> None:
-    """Train the separation network on synthesized data (config file, checkpoints, resume; torchrun for DDP)."""
+    """Train the separation network (or the CEILNet baseline: configs/ceilnet.toml) on synthesized data (config file, checkpoints, resume; torchrun for DDP)."""
     from separate.train import TrainConfig, train as train_run
 
     cfg = run_guarded(TrainConfig.from_toml, config)
@@ -348,7 +349,7 @@ def train(
 def bench(
     count: int = typer.Option(64, help="Benchmark patches (seeded, from bsds500/test or bundled photos)."),
     size: int = typer.Option(256, help="Patch size (px)."),
-    methods: str = typer.Option("none,network", help="Comma-separated methods, plus 'direct' for the direct variant (runs/cpu-direct/best.pt or --direct-weights)."),
+    methods: str = typer.Option("none,network", help="Comma-separated methods, plus 'direct' for the direct variant (shipped urd-direct.pt or --direct-weights), and LABEL=PATH for the network with other weights."),
     direct_weights: Optional[Path] = typer.Option(None, help="Weights of the direct variant."),
 ) -> None:
     """Run the fixed synthetic benchmark and print RMSE / PSNR / SSIM of R and T per method."""

@@ -19,11 +19,18 @@ def fresnel_inverse(i_perp: np.ndarray, i_par: np.ndarray, theta: np.ndarray | f
     angles) for the observable layers (R_obs, T_obs) at angle of incidence ``theta`` (rad)."""
     r_s, r_p = optics.fresnel_reflectance(np.asarray(theta, np.float64), n)
     r_s, r_p = optics.expand_map(r_s, i_perp), optics.expand_map(r_p, i_perp)
-    det = (r_s * (1 - r_p) - r_p * (1 - r_s)) / 4          # = (R_s − R_p)/4 > 0 for 0 < θ < 90°
+    r_obs, t_obs = mixture_inverse(i_perp, i_par, r_s, r_p)
+    return r_obs.astype(np.float32), t_obs.astype(np.float32)
+
+
+def mixture_inverse(i_perp, i_par, r_s, r_p):
+    """The arithmetic of `fresnel_inverse` for given reflectances R_s > R_p (numpy or torch,
+    broadcasting)."""
+    det = (r_s - r_p) / 4                                   # = (R_s(1−R_p) − R_p(1−R_s))/4 > 0
     i_r = ((1 - r_p) * i_perp - (1 - r_s) * i_par) / 2 / det
     i_t = (r_s * i_par - r_p * i_perp) / 2 / det
     rho = (r_s + r_p) / 2
-    return (rho * i_r).astype(np.float32), ((1 - rho) * i_t).astype(np.float32)
+    return rho * i_r, (1 - rho) * i_t
 
 
 def luminance(image: np.ndarray) -> np.ndarray:
