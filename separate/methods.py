@@ -63,8 +63,13 @@ def baseline(module_name: str) -> Callable[..., tuple[Run, dict]]:
 
     def make(**params) -> tuple[Run, dict]:
         import importlib
+        import inspect
 
         module = importlib.import_module(f"separate.baselines.{module_name}")
+        accepted = list(inspect.signature(module.separate).parameters)[2:]
+        unknown = sorted(set(params) - set(accepted))
+        if unknown:
+            raise ValueError(f"unknown parameters {unknown} for {module_name}; expected some of {accepted}")
 
         def run(images: np.ndarray, angles_deg: list[float]) -> tuple[np.ndarray, np.ndarray]:
             return module.separate(images, angles_deg, **params)

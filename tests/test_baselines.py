@@ -84,3 +84,15 @@ def test_each_method_runs_through_urd_separate(tmp_path, method):
     assert out.returncode == 0, out.stderr
     entry = scene.load()["results"][method]
     assert len(entry["files"]) == 4 and entry["truth_metrics"]["T"]["psnr_db"] > 10
+
+
+def test_baseline_parameters_from_the_command_line(tmp_path):
+    ds = Dataset.open_or_create(tmp_path / "ds")
+    scene, _ = capture_virtual(ds, size=(128, 96), shake_px=1, shake_deg=0.1, seed=2)
+    ingest_scene(scene, IngestOptions())
+    base = [sys.executable, "-m", "urd.cli", "separate", "scene_01", "--dataset", str(tmp_path / "ds"), "--method", "kong"]
+    out = subprocess.run(base + ["--param", "smoothness=0.5", "--param", "steps=10"], capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr
+    assert scene.load()["results"]["kong"]["parameters"] == {"smoothness": 0.5, "steps": 10}
+    out = subprocess.run(base + ["--force", "--param", "lambda=3"], capture_output=True, text=True, timeout=600)
+    assert out.returncode == 1 and "unknown parameters ['lambda']" in out.stderr and "smoothness" in out.stderr

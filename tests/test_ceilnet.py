@@ -2,10 +2,13 @@
 
 import hashlib
 
+import cv2
 import numpy as np
 import pytest
 import torch
+from test_baselines import ANGLES, layers
 
+from separate import metrics
 from separate.baselines.ceilnet import WEIGHTS, CEILNet, edge_map
 from separate.infer import DEFAULT_WEIGHTS, load_model
 from separate.methods import get_method
@@ -51,3 +54,11 @@ def test_shipped_ceilnet_weights_separate_a_stack():
     assert info["weights"]["sha256"] == hashlib.sha256(WEIGHTS.read_bytes()).hexdigest()
     with pytest.raises(ValueError, match="not CEILNet"):
         get_method("ceilnet", weights=DEFAULT_WEIGHTS)
+
+
+def test_shipped_ceilnet_removes_a_strong_blurred_reflection():
+    refl, trans = layers()
+    image = (0.7 * trans + 0.5 * cv2.GaussianBlur(refl, (0, 0), 4)).astype(np.float32)
+    run, _ = get_method("ceilnet")
+    _, t_hat = run(np.stack([image / 2] * 3), ANGLES)               # unpolarized: every shot is S0/2
+    assert metrics.psnr(t_hat, 0.7 * trans) > metrics.psnr(image, 0.7 * trans) + 1.0

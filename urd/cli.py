@@ -6,6 +6,7 @@ bad arguments exit with status 2.
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 from typing import Optional
@@ -60,6 +61,20 @@ def parse_faults(text: str) -> dict[str, float]:
         except ValueError:
             raise typer.BadParameter(f"expected KIND=PROBABILITY items like drop=0.1, got {item!r}")
     return faults
+
+
+def parse_params(items: list[str]) -> dict:
+    """['smoothness=0.5', 'theta_deg=35'] → {'smoothness': 0.5, 'theta_deg': 35} (JSON values, else text)."""
+    params = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep or not name:
+            raise typer.BadParameter(f"expected NAME=VALUE, got {item!r}")
+        try:
+            params[name] = json.loads(value)
+        except json.JSONDecodeError:
+            params[name] = value
+    return params
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -285,6 +300,7 @@ def separate(
     tile: int = typer.Option(768, help="Network tile size (px); memory grows with it, not with the image."),
     bf16: bool = typer.Option(True, help="bfloat16 inference (about 3x faster on CPUs with AVX-512 BF16)."),
     colour_match: bool = typer.Option(False, help="Match each colour channel's histogram of T to the darkest observation's (paper §3.4)."),
+    param: Optional[list[str]] = typer.Option(None, "--param", help="A baseline's parameter as NAME=VALUE (repeat), e.g. --method kong --param smoothness=0.5; names and paper defaults in each baseline's docstring (separate/baselines/)."),
     force: bool = typer.Option(False, help="Replace existing results of this method."),
 ) -> None:
     """Separate a scene into reflection R and transmission T (linear 16-bit TIFF + sRGB previews)."""
@@ -295,6 +311,9 @@ def separate(
         raise typer.BadParameter(f"unknown method {method!r}; expected one of {sorted(METHODS)}")
     networks = ("network", "ceilnet")
     options = {"weights": weights, "tile": tile, "bf16": bf16, "colour_match": colour_match} if method in networks else {}
+    if param and method in networks + ("none",):
+        raise typer.BadParameter(f"--param is for the baselines; {method} takes its own options")
+    options.update(parse_params(param or []))
 
     def work():
         with typer.progressbar(length=100, label=f"separate ({method})", file=sys.stderr) as bar:
