@@ -36,9 +36,10 @@ def run_benchmark(methods: list[str], count: int = 64, size: int = 256, direct_w
     data = benchmark_set(count, size)
     rows = []
     for name in methods:
-        if "=" in name:
-            run, _ = get_method("network", weights=Path(name.split("=", 1)[1]))
-            name = name.split("=", 1)[0]
+        label, _, weights = name.partition("=")
+        if weights:
+            run, _ = get_method("network", weights=Path(weights))
+            name = label
         elif name == "direct":
             run, _ = get_method("network", weights=direct_weights or DIRECT_WEIGHTS)
         else:

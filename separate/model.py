@@ -32,7 +32,7 @@ VARIANTS = ("canonical", "direct")
 TARGET_MEAN = 0.25
 
 
-def _check_obs(obs: torch.Tensor) -> None:
+def check_obs(obs: torch.Tensor) -> None:
     if not isinstance(obs, torch.Tensor):
         raise TypeError(f"expected a torch.Tensor, got {type(obs).__name__}")
     if obs.ndim != 5 or obs.shape[1] < 3:
@@ -51,7 +51,7 @@ def canonical_inputs(obs: torch.Tensor, angles: Sequence[float] = NOMINAL_ANGLES
         the input already is exactly that), I⊥ and I∥ (B, C, H, W) with φ⊥ within ±45° of
         angles[0].
     """
-    _check_obs(obs)
+    check_obs(obs)
     stokes = optics.stokes_from_images(obs.transpose(0, 1), angles)
     phi_ref = float(angles[0])
     if obs.shape[1] == 3 and np.allclose(np.asarray(angles) - phi_ref, NOMINAL_ANGLES, atol=1e-9):

@@ -30,7 +30,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from separate import optics
-from separate.model import NOMINAL_ANGLES, TARGET_MEAN, ResBlock, _check_obs
+from separate.model import NOMINAL_ANGLES, TARGET_MEAN, ResBlock, check_obs
 
 WEIGHTS = Path(__file__).resolve().parent.parent / "weights" / "ceilnet.pt"
 
@@ -91,7 +91,7 @@ class CEILNet(nn.Module):
             (R̂, T̂) in the units of ``obs``; in training mode also Ê (B, 1, H, W), the predicted
             edge map of the transmission, for `loss`.
         """
-        _check_obs(obs)
+        check_obs(obs)
         s0 = optics.stokes_from_images(obs.transpose(0, 1), angles)[0]
         if scale is None:
             scale = s0.mean(dim=(1, 2, 3)).clamp_min(1e-6)

@@ -35,18 +35,27 @@ from separate.baselines.common import canonical, fresnel_inverse, luminance, mix
 PENALTY = 1e3
 
 
+def _gradient_magnitude(image: torch.Tensor) -> torch.Tensor:
+    """|∇image| by forward differences, (H−1)×(W−1)."""
+    return torch.sqrt(image.diff(dim=1)[:-1] ** 2 + image.diff(dim=0)[:, :-1] ** 2 + 1e-12)
+
+
 def _energy(theta: torch.Tensor, i_perp: torch.Tensor, i_par: torch.Tensor, smoothness: float) -> torch.Tensor:
     """The penalized energy of a θ map (rad, H×W) for luminance canonical images (H×W)."""
     side = max(theta.shape)
     r_s, r_p = optics.fresnel_reflectance(theta)
     r_hat, t_hat = mixture_inverse(i_perp, i_par, r_s, r_p)
-    gr = torch.sqrt(r_hat.diff(dim=1)[:-1] ** 2 + r_hat.diff(dim=0)[:, :-1] ** 2 + 1e-12)
-    gt = torch.sqrt(t_hat.diff(dim=1)[:-1] ** 2 + t_hat.diff(dim=0)[:, :-1] ** 2 + 1e-12)
+    gr, gt = _gradient_magnitude(r_hat), _gradient_magnitude(t_hat)
     exclusion = (gr * gt).sum() / torch.sqrt((gr**2).sum() * (gt**2).sum())
     scale = (i_perp + i_par).mean()
     violation = (torch.relu(-r_hat) ** 2 + torch.relu(-t_hat) ** 2).mean() / scale**2
     rough = (theta.diff(dim=1) ** 2).mean() + (theta.diff(dim=0) ** 2).mean()
     return exclusion + PENALTY * violation + smoothness * side**2 * rough
+
+
+def _bounded(logit: torch.Tensor, lo: float, hi: float) -> torch.Tensor:
+    """θ = lo + (hi − lo)·sigmoid(logit): the bounds held by the parametrization."""
+    return lo + (hi - lo) * torch.sigmoid(logit)
 
 
 def _pyramid(image: np.ndarray, min_side: int) -> list[np.ndarray]:
@@ -71,15 +80,15 @@ def theta_map(i_perp: np.ndarray, i_par: np.ndarray, smoothness: float = 1.0, st
     theta = np.full(perp_levels[-1].shape, grid[int(np.argmin(scores))], np.float32)
     for perp, par in zip(reversed(perp_levels), reversed(par_levels)):
         theta = cv2.resize(theta, (perp.shape[1], perp.shape[0]), interpolation=cv2.INTER_LINEAR)
-        u = (theta - lo) / (hi - lo)
-        logit = torch.tensor(np.log(np.clip(u, 1e-4, 1 - 1e-4) / np.clip(1 - u, 1e-4, 1)), requires_grad=True)
+        u = np.clip((theta - lo) / (hi - lo), 1e-4, 1 - 1e-4)
+        logit = torch.tensor(np.log(u / (1 - u)), requires_grad=True)
         perp_t, par_t = torch.from_numpy(perp), torch.from_numpy(par)
         optim = torch.optim.Adam([logit], lr=0.05)
         for _ in range(steps):
             optim.zero_grad()
-            _energy(lo + (hi - lo) * torch.sigmoid(logit), perp_t, par_t, smoothness).backward()
+            _energy(_bounded(logit, lo, hi), perp_t, par_t, smoothness).backward()
             optim.step()
-        theta = (lo + (hi - lo) * torch.sigmoid(logit)).detach().numpy()
+        theta = _bounded(logit, lo, hi).detach().numpy()
     return theta
 
 
