@@ -1,10 +1,11 @@
 """Full-resolution inference with the separation network.
 
-Images of any size are processed in overlapping tiles whose origins lie on the network's
-8-pixel grid (so strided convolutions see the same pixels as on the whole image); each tile's
-output is weighted by a ramp that is ~0 near its borders (where the receptive field is cut)
-and the weighted sum is normalized, which leaves no seams: tiled and whole-image results agree
-to float precision. Memory is bounded by the tile size, not the image size.
+Images of any size are processed in overlapping tiles of equal size whose origins lie on the
+network's 8-pixel grid (so strided convolutions see the same pixels as on the whole image);
+each tile's output is weighted by a ramp that is ~0 near its borders (where the receptive field
+is cut) and the weighted sum is normalized, which leaves no seams: with the default 160 px
+overlap, tiled and whole-image results agree within 1e-4 (1 MP test image; 1.2e-3 with 128 px).
+Memory is bounded by the tile size, not the image size.
 One exposure scale, mean(S0) of the whole image, is used for every tile.
 
 Input handling: NaN or infinite pixels are an error; negative pixels (linear decoding noise
@@ -77,19 +78,22 @@ def _ramp(length: int, overlap: int, at_start: bool, at_end: bool) -> np.ndarray
     return w
 
 
-def tile_origins(size: int, tile: int, overlap: int) -> list[int]:
-    """Tile starts along one axis: multiples of 8, overlapping by at least ``overlap``; the last
-    tile may be shorter than ``tile``."""
+def tile_spans(size: int, tile: int, overlap: int) -> list[tuple[int, int]]:
+    """Tiles along one axis as (start, end) px: as few as tiles of at most ``tile`` px allow,
+    all of one length and evenly spread (no thin last tile), starts on the 8-px grid of the
+    network's down-sampling, neighbours overlapping by at least ``overlap``."""
     if size <= tile:
-        return [0]
-    stride = max(8, (tile - overlap) // 8 * 8)
-    last = -(-(size - tile) // 8) * 8           # the last tile runs to the edge, on the 8-px grid
-    return sorted(set(range(0, size - tile, stride)) | {last})
+        return [(0, size)]
+    reach = overlap + 16                       # rounding both starts to the 8-px grid costs ≤ 15 px
+    n = -(-(size - reach) // (tile - reach))
+    length = min(tile, -(-(size + (n - 1) * reach) // (8 * n)) * 8)
+    starts = [i * (size - length) // (n - 1) // 8 * 8 for i in range(n - 1)] + [-(-(size - length) // 8) * 8]
+    return [(start, min(size, start + length)) for start in starts]
 
 
 @torch.no_grad()
 def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[float], tile: int = 768,
-                   overlap: int = 128, bf16: bool = False,
+                   overlap: int = 160, bf16: bool = False,
                    progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Separate an aligned stack into (R̂, T̂), each H×W×C float32 linear.
 
@@ -112,11 +116,10 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
     r_sum = np.zeros((h, w, c), np.float32)
     t_sum = np.zeros((h, w, c), np.float32)
     weight = np.zeros((h, w, 1), np.float32)
-    ys, xs = tile_origins(h, tile, overlap), tile_origins(w, tile, overlap)
-    done, total = 0, len(ys) * len(xs)
-    for y in ys:
-        for x in xs:
-            y1, x1 = min(h, y + tile), min(w, x + tile)
+    rows, cols = tile_spans(h, tile, overlap), tile_spans(w, tile, overlap)
+    done, total = 0, len(rows) * len(cols)
+    for y, y1 in rows:
+        for x, x1 in cols:
             patch = np.clip(images[:, y:y1, x:x1], 0.0, None, dtype=np.float32).transpose(0, 3, 1, 2)
             patch = torch.from_numpy(np.ascontiguousarray(patch))[None]
             with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):

@@ -15,7 +15,7 @@ import numpy as np
 Run = Callable[[np.ndarray, list[float]], tuple[np.ndarray, np.ndarray]]
 
 
-def network(weights: Path | None = None, tile: int = 768, overlap: int = 128, bf16: bool = False,
+def network(weights: Path | None = None, tile: int = 768, overlap: int = 160, bf16: bool = False,
             colour_match: bool = False, progress=None) -> tuple[Run, dict]:
     """The paper's network (`separate.model`) with shipped or given weights."""
     from separate.infer import load_model, match_histograms, separate_stack

@@ -10,6 +10,7 @@ each rank drawing its own synthetic stream.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import math
 import os
@@ -146,6 +147,7 @@ def train(cfg: TrainConfig, run_dir: Path, init: Path | None = None, progress=No
     optim = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     step, best, started = 0, -math.inf, time.time()
     elapsed_before = 0.0
+    origin = None
     last = run_dir / "last.pt"
     if last.exists() or init is not None:
         state = torch.load(last if last.exists() else init, map_location=device, weights_only=False)
@@ -154,6 +156,9 @@ def train(cfg: TrainConfig, run_dir: Path, init: Path | None = None, progress=No
             optim.load_state_dict(state["optim"])
             step, best = state["step"], state.get("best_psnr_t", -math.inf)
             elapsed_before = state.get("wall_s", 0.0)
+            origin = state.get("init")
+        else:
+            origin = {"path": str(init), "sha256": hashlib.sha256(Path(init).read_bytes()).hexdigest()}
     if rank == 0:
         (run_dir / "config.toml").write_text(cfg.to_toml())
     ddp = torch.nn.parallel.DistributedDataParallel(model) if distributed else model
@@ -192,9 +197,9 @@ def train(cfg: TrainConfig, run_dir: Path, init: Path | None = None, progress=No
                 record.update(evaluate(model, val, device))
                 if record["psnr_t"] > best:
                     best = record["psnr_t"]
-                    save_checkpoint(run_dir / "best.pt", model, None, step, cfg, {"best_psnr_t": best, "val": record, "wall_s": wall})
+                    save_checkpoint(run_dir / "best.pt", model, None, step, cfg, {"best_psnr_t": best, "val": record, "wall_s": wall, "init": origin})
             if step % cfg.ckpt_every == 0 or step == cfg.steps or out_of_time or "psnr_t" in record:
-                save_checkpoint(last, model, optim, step, cfg, {"best_psnr_t": best, "wall_s": wall})
+                save_checkpoint(last, model, optim, step, cfg, {"best_psnr_t": best, "wall_s": wall, "init": origin})
             if step % 10 == 0 or "psnr_t" in record:
                 log.write(json.dumps(record) + "\n")
                 log.flush()

@@ -1,6 +1,9 @@
 """Synthesis, model, training loop, inference and `urd separate`."""
 
+import hashlib
+import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -11,7 +14,7 @@ import torch
 
 from rig import capture_virtual
 from separate import optics
-from separate.infer import DEFAULT_WEIGHTS, load_model, match_histograms, separate_stack
+from separate.infer import DEFAULT_WEIGHTS, load_model, match_histograms, separate_stack, tile_spans
 from separate.model import NOMINAL_ANGLES, SeparationNet, canonical_inputs
 from separate.synthesis import SynthesisConfig, Synthesizer, load_image_pool, parabola_aoi
 from separate.train import TrainConfig, train
@@ -110,8 +113,19 @@ def test_tiled_inference_matches_whole_image_on_one_megapixel():
     scene = make_glass_scene(1224, 816)
     stack = np.stack([scene.render(np.radians(a)) * 0.6 for a in (0, 45, 90)]).astype(np.float32)
     r1, t1 = separate_stack(model, stack, [0, 45, 90], tile=2048)
-    r2, t2 = separate_stack(model, stack, [0, 45, 90], tile=512, overlap=128)
+    r2, t2 = separate_stack(model, stack, [0, 45, 90])             # the defaults: 2 × 2 tiles here
+    assert len(tile_spans(1224, 768, 160)) == len(tile_spans(816, 768, 160)) == 2
     assert max(np.abs(r1 - r2).max(), np.abs(t1 - t2).max()) < 1e-3
+
+
+@pytest.mark.parametrize("tile,overlap", [(64, 32), (512, 128), (768, 160), (1024, 0)])
+def test_tiles_cover_the_axis_on_the_8_px_grid_with_the_overlap(tile, overlap):
+    for size in range(1, 7000, 13):
+        spans = tile_spans(size, tile, overlap)
+        assert spans[0][0] == 0 and spans[-1][1] == size
+        assert all(start % 8 == 0 and 0 < end - start <= tile for start, end in spans)
+        assert all(a[1] - b[0] >= overlap and b[0] > a[0] for a, b in zip(spans, spans[1:]))
+    assert len(tile_spans(6000, 768, 160)) == 10 and tile_spans(700, 768, 160) == [(0, 700)]
 
 
 @pytest.mark.parametrize("stack,angles,message", [
@@ -167,6 +181,20 @@ def test_training_continues_from_the_shipped_weights(tmp_path):
     scratch = train(cfg, tmp_path / "scratch")
     tuned = train(cfg, tmp_path / "tuned", init=DEFAULT_WEIGHTS)
     assert tuned["psnr_t"] > scratch["psnr_t"] + 3
+    origin = torch.load(tmp_path / "tuned" / "last.pt", weights_only=False)["init"]
+    assert origin["sha256"] == hashlib.sha256(DEFAULT_WEIGHTS.read_bytes()).hexdigest()
+    assert torch.load(tmp_path / "scratch" / "last.pt", weights_only=False)["init"] is None
+
+    export = [sys.executable, "tools/export_weights.py", tmp_path / "tuned" / "last.pt", tmp_path / "w.pt"]
+    root = Path(__file__).resolve().parents[1]
+    out = subprocess.run([*export, "--parent", DEFAULT_WEIGHTS.with_suffix(".json")], capture_output=True, text=True, cwd=root)
+    assert out.returncode == 0, out.stderr
+    card = json.loads((tmp_path / "w.json").read_text())
+    shipped = json.loads(DEFAULT_WEIGHTS.with_suffix(".json").read_text())
+    assert len(card["stages"]) == len(shipped.get("stages", [None])) + 1
+    assert card["total"]["steps"] == shipped.get("total", shipped["training"])["steps"] + 1
+    wrong = subprocess.run([*export, "--parent", root / "separate/weights/ceilnet.json"], capture_output=True, text=True, cwd=root)
+    assert wrong.returncode != 0 and "does not describe" in wrong.stderr
 
 
 def test_histogram_matching_undoes_a_monotone_per_channel_change():
@@ -181,8 +209,13 @@ def test_histogram_matching_undoes_a_monotone_per_channel_change():
 
 
 def test_benchmark_scores_methods_and_weights_given_by_path():
-    from separate.bench import run_benchmark
+    from separate.bench import format_aoi_table, run_benchmark
 
     rows = run_benchmark(["none", f"shipped={DEFAULT_WEIGHTS}"], count=4, size=64)
     assert [r["method"] for r in rows] == ["none", "shipped"]
     assert rows[1]["psnr_t"] > rows[0]["psnr_t"] + 3 and 0 < rows[1]["ssim_t"] <= 1
+    table = format_aoi_table(rows, count=4, size=64).splitlines()
+    counts = [int(c) for c in re.findall(r"\((\d+)\)", table[0])]
+    assert sum(counts) == 4 and [line.split(" | ")[0] for line in table[2:]] == ["| none", "| shipped"]
+    by_band = [float(v) for v in table[3].strip("| ").split(" | ")[1:] if v != "–"]
+    assert min(by_band) <= rows[1]["psnr_t"] <= max(by_band)

@@ -1,21 +1,26 @@
 """Print the synthetic benchmark table (README's "Results"): every method on the same seeded
 bsds500/test patches through the full synthesis pipeline.
 
-    python tools/bench_synthetic.py [--count 64] [--size 256] [--methods none,direct,network,...]
+    python tools/bench_synthetic.py [--count 64] [--size 256] [--methods none,direct,network,...] [--by-aoi]
+
+--by-aoi adds T̂ PSNR per band of the patches' mean angle of incidence (patch count in brackets).
 """
 
 import argparse
 import time
 
-from separate.bench import format_table, run_benchmark
+from separate.bench import format_aoi_table, format_table, run_benchmark
 from separate.methods import METHODS
 
 parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
 parser.add_argument("--count", type=int, default=64)
 parser.add_argument("--size", type=int, default=256)
+parser.add_argument("--by-aoi", action="store_true", help="also T PSNR per angle-of-incidence band")
 parser.add_argument("--methods", default=",".join(["none", "direct", "network"] + [m for m in METHODS if m not in ("none", "network")]))
 args = parser.parse_args()
 started = time.perf_counter()
 rows = run_benchmark(args.methods.split(","), args.count, args.size)
 print(format_table(rows))
+if args.by_aoi:
+    print("\nT PSNR (dB) by mean angle of incidence\n" + format_aoi_table(rows, args.count, args.size))
 print(f"\n{args.count} patches of {args.size}x{args.size}, seed 2018; {time.perf_counter() - started:.0f} s")
