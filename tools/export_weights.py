@@ -41,7 +41,7 @@ card = {
                  "data": "synthesized from bsds500/train + sunhays80 (../shared/data/natural), pipeline "
                          + cfg["pipeline"]},
     "validation": state.get("val"),
-    "initialized_from": state.get("init"),
+    "initialized_from": state.get("init") or (parent and {"path": parent["weights"], "sha256": parent["sha256"]}),
     "note": args.note,
 }
 if parent is not None:
