@@ -34,6 +34,7 @@ def run_benchmark(methods: list[str], count: int = 64, size: int = 256, direct_w
     from separate.methods import get_method
 
     data = benchmark_set(count, size)
+    aoi_deg = np.degrees(data["theta"].mean(axis=(1, 2)))
     rows = []
     for name in methods:
         label, _, weights = name.partition("=")
@@ -54,16 +55,16 @@ def run_benchmark(methods: list[str], count: int = 64, size: int = 256, direct_w
                 scores[f"ssim_{layer}"].append(metrics.ssim(np.clip(est, 0, 1), np.clip(ref, 0, 1)))
         elapsed = time.perf_counter() - started
         rows.append({"method": name, **{k: float(np.mean(v)) for k, v in scores.items()},
-                     "seconds_per_patch": elapsed / count, "psnr_t_per_patch": scores["psnr_t"]})
+                     "seconds_per_patch": elapsed / count, "psnr_t_per_patch": scores["psnr_t"], "aoi_deg_per_patch": aoi_deg})
     return rows
 
 
 AOI_BANDS = ((10, 30), (30, 45), (45, 65), (65, 85))
 
 
-def format_aoi_table(rows: list[dict], count: int, size: int) -> str:
+def format_aoi_table(rows: list[dict]) -> str:
     """A Markdown table of mean T̂ PSNR (dB) per band of the patches' mean angle of incidence."""
-    theta = np.degrees(benchmark_set(count, size)["theta"].mean(axis=(1, 2)))
+    theta = rows[0]["aoi_deg_per_patch"]
     bands = [(lo, hi, (theta >= lo) & (theta < hi)) for lo, hi in AOI_BANDS]
     lines = ["| method | " + " | ".join(f"θ {lo}–{hi}° ({m.sum()})" for lo, hi, m in bands) + " |",
              "|---|" + "---|" * len(bands)]

@@ -214,7 +214,7 @@ def test_benchmark_scores_methods_and_weights_given_by_path():
     rows = run_benchmark(["none", f"shipped={DEFAULT_WEIGHTS}"], count=4, size=64)
     assert [r["method"] for r in rows] == ["none", "shipped"]
     assert rows[1]["psnr_t"] > rows[0]["psnr_t"] + 3 and 0 < rows[1]["ssim_t"] <= 1
-    table = format_aoi_table(rows, count=4, size=64).splitlines()
+    table = format_aoi_table(rows).splitlines()
     counts = [int(c) for c in re.findall(r"\((\d+)\)", table[0])]
     assert sum(counts) == 4 and [line.split(" | ")[0] for line in table[2:]] == ["| none", "| shipped"]
     by_band = [float(v) for v in table[3].strip("| ").split(" | ")[1:] if v != "–"]

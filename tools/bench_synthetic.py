@@ -22,5 +22,5 @@ started = time.perf_counter()
 rows = run_benchmark(args.methods.split(","), args.count, args.size)
 print(format_table(rows))
 if args.by_aoi:
-    print("\nT PSNR (dB) by mean angle of incidence\n" + format_aoi_table(rows, args.count, args.size))
+    print("\nT PSNR (dB) by mean angle of incidence\n" + format_aoi_table(rows))
 print(f"\n{args.count} patches of {args.size}x{args.size}, seed 2018; {time.perf_counter() - started:.0f} s")
