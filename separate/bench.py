@@ -75,6 +75,26 @@ def format_aoi_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def paired_gain(rows: list[dict], a: str, b: str, resamples: int = 10000) -> dict:
+    """Per-patch T̂ PSNR of method ``a`` minus method ``b`` (dB): mean, a 95% bootstrap
+    interval of the mean (seeded), and the patches where ``a`` scores higher."""
+    by_name = {r["method"]: np.asarray(r["psnr_t_per_patch"]) for r in rows}
+    for name in (a, b):
+        if name not in by_name:
+            raise ValueError(f"expected a row for method {name!r}, got {sorted(by_name)}")
+    diff = by_name[a] - by_name[b]
+    means = diff[np.random.default_rng(SEED).integers(0, diff.size, (resamples, diff.size))].mean(axis=1)
+    lo, hi = np.quantile(means, [0.025, 0.975])
+    return {"mean": float(diff.mean()), "ci95": (float(lo), float(hi)), "wins": int((diff > 0).sum()), "count": int(diff.size)}
+
+
+def format_paired(rows: list[dict], a: str, b: str) -> str:
+    """One line: the paired T̂ PSNR gain of ``a`` over ``b``."""
+    g = paired_gain(rows, a, b)
+    return (f"T PSNR {a} - {b}: {g['mean']:+.2f} dB (95% bootstrap interval {g['ci95'][0]:+.2f} to "
+            f"{g['ci95'][1]:+.2f}), higher on {g['wins']} of {g['count']} patches")
+
+
 def format_table(rows: list[dict]) -> str:
     """A Markdown table of benchmark rows."""
     lines = ["| method | T RMSE | T PSNR (dB) | T SSIM | R RMSE | R PSNR (dB) | R SSIM | s/patch |",

@@ -208,6 +208,22 @@ def test_histogram_matching_undoes_a_monotone_per_channel_change():
         match_histograms(washed, reference[..., :1])
 
 
+def test_paired_gain_is_the_mean_per_patch_difference_with_an_interval_around_it():
+    from separate.bench import format_paired, paired_gain
+
+    rng = np.random.default_rng(0)
+    base = rng.uniform(20, 35, 200)
+    rows = [{"method": "a", "psnr_t_per_patch": base + 0.5 + rng.normal(0, 0.3, 200)},
+            {"method": "b", "psnr_t_per_patch": base}]
+    g = paired_gain(rows, "a", "b")
+    assert abs(g["mean"] - 0.5) < 0.1 and g["ci95"][0] < g["mean"] < g["ci95"][1]
+    assert 0.3 < g["ci95"][0] and g["ci95"][1] < 0.7 and g["wins"] > 180 and g["count"] == 200
+    assert paired_gain(rows, "b", "a")["mean"] == -g["mean"]
+    assert "+0.5" in format_paired(rows, "a", "b")
+    with pytest.raises(ValueError, match="'c'"):
+        paired_gain(rows, "a", "c")
+
+
 def test_benchmark_scores_methods_and_weights_given_by_path():
     from separate.bench import format_aoi_table, run_benchmark
 

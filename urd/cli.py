@@ -371,11 +371,14 @@ def bench(
     methods: str = typer.Option("none,network", help="Comma-separated methods, plus 'direct' for the direct variant (shipped urd-direct.pt or --direct-weights), and LABEL=PATH for the network with other weights."),
     direct_weights: Optional[Path] = typer.Option(None, help="Weights of the direct variant."),
 ) -> None:
-    """Run the fixed synthetic benchmark and print RMSE / PSNR / SSIM of R and T per method."""
-    from separate.bench import format_table, run_benchmark
+    """Run the fixed synthetic benchmark and print RMSE / PSNR / SSIM of R and T per method
+    (with network and direct: their paired T PSNR difference and its 95% bootstrap interval)."""
+    from separate.bench import format_paired, format_table, run_benchmark
 
     rows = run_guarded(run_benchmark, [m for m in methods.split(",") if m], count, size, direct_weights)
     typer.echo(format_table(rows))
+    if {"network", "direct"} <= {r["method"] for r in rows}:
+        typer.echo(format_paired(rows, "network", "direct"))
 
 
 @app.command()
