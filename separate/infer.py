@@ -9,7 +9,10 @@ Memory is bounded by the tile size, not the image size.
 One exposure scale, mean(S0) of the whole image, is used for every tile.
 
 Input handling: NaN or infinite pixels are an error; negative pixels (linear decoding noise
-below black) are clipped to 0; the angles must span at least 90°.
+below black) are clipped to 0; the angles must span at least 90°. Monochrome shots (one
+channel, or colour channels that are all equal, as urd stores a mono sensor's frames) carry no
+colour: the network sees the grey image in each of its colour channels and its outputs are
+averaged over them, so R̂ and T̂ are grey too (an RGB-trained network otherwise invents tints).
 """
 
 from __future__ import annotations
@@ -99,8 +102,9 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
     """Separate an aligned stack into (R̂, T̂), each H×W×C float32 linear.
 
     Args:
-        model: the network.
-        images: (N, H, W, C) linear shots, N ≥ 3.
+        model: the network (``model.channels`` colour channels).
+        images: (N, H, W, C) linear shots, N ≥ 3, C = ``model.channels`` or 1; monochrome
+            stacks give monochrome results (module docstring).
         angles_deg: polarizer angles of the shots (deg), spanning at least 90°.
         tile, overlap: tile size and overlap (px); tile is rounded to a multiple of 8.
         bf16: bfloat16 autocast (about 3× faster on CPUs with AVX-512 BF16).
@@ -108,6 +112,9 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
     """
     check_inputs(images, angles_deg)
     n, h, w, c = images.shape
+    if c not in (1, model.channels):
+        raise ValueError(f"expected shots with 1 or {model.channels} channels for this network, got {c}")
+    mono = all(np.array_equal(shot[..., 0], shot[..., k]) for shot in images for k in range(1, c))
     tile = max(64, tile // 8 * 8)
     overlap = min(overlap, tile // 2)
     angles = [float(a) for a in np.radians(angles_deg)]
@@ -123,8 +130,12 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
         for x, x1 in cols:
             patch = np.clip(images[:, y:y1, x:x1], 0.0, None, dtype=np.float32).transpose(0, 3, 1, 2)
             patch = torch.from_numpy(np.ascontiguousarray(patch))[None]
+            if c == 1:
+                patch = patch.expand(-1, -1, model.channels, -1, -1)
             with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
                 r_hat, t_hat = model(patch, angles, scale)
+            if mono:
+                r_hat, t_hat = (o.float().mean(dim=1, keepdim=True).expand(-1, c, -1, -1) for o in (r_hat, t_hat))
             wy = _ramp(y1 - y, overlap, y == 0, y1 == h)
             wx = _ramp(x1 - x, overlap, x == 0, x1 == w)
             wt = (wy[:, None] * wx[None, :])[..., None]

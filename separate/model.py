@@ -79,7 +79,7 @@ class SeparationNet(nn.Module):
 
     Args:
         width: channels at full resolution (doubling at each of the 3 down-sampling stages;
-            16 gives the paper's size, ~1.7 M parameters).
+            16 gives 1.12 M parameters for RGB, the shipped size).
         variant: "canonical" (paper) or "direct" (no projection layer, no residual).
         channels: colour channels per shot.
     """

@@ -147,6 +147,23 @@ def test_negative_pixels_are_clipped_not_propagated():
     assert np.isfinite(r_hat).all() and np.isfinite(t_hat).all()
 
 
+def test_monochrome_shots_give_grey_layers_for_one_or_three_equal_channels():
+    model, _ = load_model()
+    rng = np.random.default_rng(1)
+    r, t = rng.random((2, 48, 64)).astype(np.float32)
+    grey = np.stack([0.3 * r * (1 + 0.8 * np.cos(2 * (phi - 0.2))) + 0.5 * t for phi in NOMINAL_ANGLES])[..., None].astype(np.float32)
+    r1, t1 = separate_stack(model, grey, [0, 45, 90])
+    r3, t3 = separate_stack(model, np.repeat(grey, 3, axis=-1), [0, 45, 90])
+    assert r1.shape == t1.shape == (48, 64, 1) and r3.shape == t3.shape == (48, 64, 3)
+    assert all(np.array_equal(x[..., 0], x[..., k]) for x in (r3, t3) for k in (1, 2))
+    np.testing.assert_allclose(t1[..., 0], t3[..., 0], atol=1e-6)
+    with torch.no_grad():
+        raw_r, raw_t = model(torch.from_numpy(np.repeat(grey, 3, axis=-1).transpose(0, 3, 1, 2))[None], NOMINAL_ANGLES)
+    assert raw_t[0].std(dim=0).max() > 1e-4             # the RGB network alone tints a grey input
+    np.testing.assert_allclose(t3[..., 0], raw_t[0].mean(dim=0).numpy(), atol=1e-4)
+    np.testing.assert_allclose(r3[..., 0], raw_r[0].mean(dim=0).numpy(), atol=1e-4)
+
+
 def test_missing_and_corrupt_weights(tmp_path):
     with pytest.raises(WeightsError, match="not found"):
         load_model(tmp_path / "none.pt")
