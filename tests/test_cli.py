@@ -8,9 +8,10 @@ import sys
 COMMANDS = ("capture", "ingest", "calibrate", "separate", "train", "bench", "report", "demo")
 
 
-def urd(*args):
+def urd(*args, cwd=None):
     env = {**os.environ, "COLUMNS": "200", "NO_COLOR": "1"}
-    return subprocess.run([sys.executable, "-m", "urd.cli", *args], capture_output=True, text=True, timeout=300, env=env)
+    return subprocess.run([sys.executable, "-m", "urd.cli", *args], capture_output=True, text=True, timeout=300,
+                          env=env, cwd=cwd)
 
 
 def test_help_lists_every_command_with_a_line_of_help():
@@ -29,3 +30,19 @@ def test_bench_prints_the_table_and_the_paired_gain_of_the_network_over_direct()
     assert re.search(r"T PSNR network - direct: [+-]\d+\.\d\d dB \(95% bootstrap interval .*\), higher on \d of 3 patches", out.stdout)
     bad = urd("bench", "--count", "2", "--size", "64", "--methods", "none,nonsense")
     assert bad.returncode != 0 and "nonsense" in bad.stderr + bad.stdout
+
+
+def test_commands_without_a_dataset_use_the_current_dataset_or_dataset_folder(tmp_path):
+    """The design card's `urd capture --stage ...`, `urd ingest raw/`, `urd separate scene_12`
+    name no dataset: ./dataset from outside a dataset, the current folder inside one."""
+    out = urd("capture", "--stage", "sim", "--camera", "virtual", "--sim-size", "256x192", cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    assert (tmp_path / "dataset" / "scene_01" / "scene.json").is_file()
+    assert urd("ingest", "dataset", cwd=tmp_path).returncode == 0
+    out = urd("separate", "scene_01", "--method", "none", cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    assert (tmp_path / "dataset" / "scene_01" / "results" / "none" / "T.tiff").is_file()
+    inside = urd("report", cwd=tmp_path / "dataset")
+    assert inside.returncode == 0 and re.search(r"scene_01: 3 shots .* aligned, .* none", inside.stdout)
+    lost = urd("separate", "scene_01", cwd=tmp_path / "dataset" / "scene_01")
+    assert lost.returncode == 1 and "not an urd dataset" in lost.stderr

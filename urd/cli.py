@@ -14,7 +14,10 @@ from typing import Optional
 import numpy as np
 import typer
 
+from urd.dataset import default_root
 from urd.errors import UrdError
+
+DATASET_HELP = "Dataset folder (default: the current folder if it holds dataset.json, else ./dataset)."
 
 app = typer.Typer(
     help="urd: photograph scenes through glass with a rotating polarizer and separate reflection from transmission.",
@@ -116,7 +119,7 @@ def do_capture(dataset: Path, stage: str, camera: str, angles: list[float], scen
 
 @app.command()
 def capture(
-    dataset: Path = typer.Argument(..., help="Dataset folder; created when new."),
+    dataset: Optional[Path] = typer.Argument(None, help=DATASET_HELP + " Created when new.", show_default=False),
     stage: str = typer.Option(..., help="Serial port of the ELL14 stage (e.g. /dev/ttyUSB0), or 'sim' for the simulated stage."),
     camera: str = typer.Option("gphoto2", help="Camera driver: 'gphoto2' (real camera over USB) or 'virtual' (needs --stage sim)."),
     angles: str = typer.Option("0,45,90", help="Polarizer angles in degrees, comma-separated (at least 3 distinct)."),
@@ -139,7 +142,7 @@ def capture(
     width, height = parse_size(sim_size)
     sim = SimSettings(sim_offset, sim_jitter, parse_faults(sim_faults), width, height, sim_shake, 0.5,
                       reflection, transmission, seed)
-    result = run_guarded(do_capture, dataset, stage, camera, angle_list, scene, tolerance, address, sim)
+    result = run_guarded(do_capture, dataset or default_root(), stage, camera, angle_list, scene, tolerance, address, sim)
     typer.echo(f"scene complete: {result.path}")
 
 
@@ -162,7 +165,7 @@ def do_ingest(source: Path, dataset: Optional[Path], opts, mosaic=None) -> list:
             bar.render_progress()
 
         if mosaic is not None:
-            ds = Dataset.open_or_create(dataset or Path("dataset"))
+            ds = Dataset.open_or_create(dataset or default_root())
             files = [source] if source.is_file() else sorted(p for p in source.iterdir() if p.suffix.lower() in (".png", ".tif", ".tiff"))
             outcomes = [ingest_mosaic(ds, f, mosaic) for f in files]
         elif (source / "scene.json").is_file():
@@ -172,7 +175,7 @@ def do_ingest(source: Path, dataset: Optional[Path], opts, mosaic=None) -> list:
             scenes = [ds.scene(n) for n in ds.scene_names()]
             outcomes = [one_scene(s) for s in scenes if opts.redo or "ingest" not in s.load(verify=False)]
         else:
-            outcomes, ignored = ingest_folder(source, dataset or Path("dataset"), opts, progress)
+            outcomes, ignored = ingest_folder(source, dataset or default_root(), opts, progress)
         bar.update(1)
     for path in ignored:
         typer.echo(f"ignored (not a RAW file name): {path}", err=True)
@@ -182,7 +185,7 @@ def do_ingest(source: Path, dataset: Optional[Path], opts, mosaic=None) -> list:
 @app.command()
 def ingest(
     source: Path = typer.Argument(..., help="A folder of RAW shots, a captured scene folder, or a dataset folder."),
-    dataset: Optional[Path] = typer.Argument(None, help="Dataset to add scenes to when SOURCE is a RAW folder (default: ./dataset)."),
+    dataset: Optional[Path] = typer.Argument(None, help="Dataset to add scenes to when SOURCE is a RAW folder or mosaics (default: the current folder if it holds dataset.json, else ./dataset).", show_default=False),
     angles: str = typer.Option("0,45,90", help="Polarizer angles of consecutive shots (deg), for RAW folders without a capture manifest."),
     motion: str = typer.Option("euclidean", help="Alignment model: translation, euclidean or homography."),
     half_size: bool = typer.Option(False, help="Decode at half resolution (one pixel per 2x2 CFA tile; ~4x faster)."),
@@ -220,19 +223,19 @@ calibrate_app = typer.Typer(help="Measure the polarizer: mounting offset from a 
 app.add_typer(calibrate_app, name="calibrate")
 
 
-def resolve_scene(scene: str, dataset: Path):
-    """A scene given by name in ``dataset`` or by folder path."""
+def resolve_scene(scene: str, dataset: Optional[Path]):
+    """A scene given by folder path, or by name in ``dataset`` (default: ``default_root()``)."""
     from urd.dataset import Dataset, Scene
 
     path = Path(scene)
     if (path / "scene.json").is_file():
         return Scene(path)
-    return Dataset.open(dataset).scene(scene)
+    return Dataset.open(dataset or default_root()).scene(scene)
 
 
 @calibrate_app.command("offset")
 def calibrate_offset_cmd(
-    dataset: Path = typer.Argument(..., help="Dataset whose polarizer to calibrate (calibration.json is written there)."),
+    dataset: Optional[Path] = typer.Argument(None, help="Dataset whose polarizer to calibrate (calibration.json is written there); " + DATASET_HELP, show_default=False),
     stage: str = typer.Option(..., help="Serial port of the ELL14 stage, or 'sim'."),
     camera: str = typer.Option("gphoto2", help="Camera driver: gphoto2 or virtual."),
     step: float = typer.Option(10.0, help="Sweep step (deg) over 180 deg."),
@@ -246,8 +249,10 @@ def calibrate_offset_cmd(
     from calib.store import calibrate_offset
     from urd.dataset import Dataset, Scene
 
+    root = dataset or default_root()
+
     def work():
-        ds = Dataset.open_or_create(dataset)
+        ds = Dataset.open_or_create(root)
         sweeps = ds.root / "calibration"
         sweeps.mkdir(exist_ok=True)
         n = 1
@@ -266,13 +271,13 @@ def calibrate_offset_cmd(
 
     record = run_guarded(work)
     typer.echo(f"mounting offset {record['offset_deg']:.3f} ± {record['uncertainty_deg']:.3f} deg "
-               f"(modulation {record['modulation']:.2f}); written to {dataset / 'calibration.json'}")
+               f"(modulation {record['modulation']:.2f}); written to {root / 'calibration.json'}")
 
 
 @calibrate_app.command("shots")
 def calibrate_shots_cmd(
     scene: str = typer.Argument(..., help="Scene name (scene_12) or folder; must be ingested."),
-    dataset: Path = typer.Option(Path("."), help="Dataset folder holding the scene."),
+    dataset: Optional[Path] = typer.Option(None, help=DATASET_HELP, show_default=False),
     apply: bool = typer.Option(True, help="Store the calibrated angles in the manifest (used by separation)."),
 ) -> None:
     """Estimate each shot's polarizer angle error from the images (needs 4+ angles; 5+ for all errors)."""
@@ -291,7 +296,7 @@ def calibrate_shots_cmd(
 @app.command()
 def separate(
     scene: Optional[str] = typer.Argument(None, help="Scene name (scene_12) in --dataset, or a scene folder. Omit with --images."),
-    dataset: Path = typer.Option(Path("."), help="Dataset folder holding the scene."),
+    dataset: Optional[Path] = typer.Option(None, help=DATASET_HELP, show_default=False),
     method: str = typer.Option("network", help="network (the paper's, shipped weights); baselines: schechner, kong, farid (polarization), li-brown, arvanitopoulos, ceilnet (single image: they see S0 only); none (T = S0)."),
     images: Optional[list[Path]] = typer.Option(None, "--images", help="Separate image files instead of a scene (repeat: 3 or 4 files, linear TIFF or sRGB PNG/JPEG)."),
     angles: str = typer.Option("0,45,90", help="Polarizer angles of --images (deg)."),
@@ -382,12 +387,12 @@ def bench(
 
 
 @app.command()
-def report(dataset: Path = typer.Argument(..., help="Dataset folder.")) -> None:
+def report(dataset: Optional[Path] = typer.Argument(None, help=DATASET_HELP, show_default=False)) -> None:
     """Summarize a dataset: scenes, angles, ingest and calibration status, results."""
     from urd.dataset import Dataset
 
     def work():
-        ds = Dataset.open(dataset)
+        ds = Dataset.open(dataset or default_root())
         cal = ds.read_calibration()
         lines = [f"dataset {ds.root}: {len(ds.scene_names())} scenes; polarizer offset "
                  + (f"{cal['offset_deg']:.3f} ± {cal['uncertainty_deg']:.3f} deg" if cal else "not calibrated")]

@@ -232,6 +232,13 @@ class Scene:
         return [self.path / s["file"] for s in sorted(record["shots"], key=lambda s: s["index"])]
 
 
+def default_root(cwd: Path = Path(".")) -> Path:
+    """The dataset a command uses when none is named: ``cwd`` if it holds a dataset manifest,
+    else ``cwd/dataset`` (where ``urd capture`` and ``urd ingest`` put scenes by default)."""
+    cwd = Path(cwd)
+    return cwd if (cwd / DATASET_MANIFEST).is_file() else cwd / "dataset"
+
+
 class Dataset:
     """A dataset root: ``dataset.json`` plus scene folders."""
 
