@@ -27,6 +27,7 @@ import torch
 
 from separate import optics
 from separate.model import build_model
+from separate.precision import Precision, resolve
 from urd.errors import WeightsError
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
@@ -97,7 +98,7 @@ def tile_spans(size: int, tile: int, overlap: int) -> list[tuple[int, int]]:
 
 @torch.no_grad()
 def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[float], tile: int = 768,
-                   overlap: int = OVERLAP, bf16: bool = False,
+                   overlap: int = OVERLAP, precision: str = "auto",
                    progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Separate an aligned stack into (R̂, T̂), each H×W×C float32 linear.
 
@@ -107,10 +108,12 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
             stacks give monochrome results (module docstring).
         angles_deg: polarizer angles of the shots (deg), spanning at least 90°.
         tile, overlap: tile size and overlap (px); tile is rounded to a multiple of 8.
-        bf16: bfloat16 autocast (about 3× faster on CPUs with AVX-512 BF16).
+        precision: "auto", "fp32" or "bf16" (`separate.precision.resolve`: auto takes bf16
+            only where the CPU runs it natively).
         progress: called with (tiles done, tiles total).
     """
     check_inputs(images, angles_deg)
+    bf16 = resolve(precision) is Precision.BF16
     n, h, w, c = images.shape
     if c not in (1, model.channels):
         raise ValueError(f"expected shots with 1 or {model.channels} channels for this network, got {c}")

@@ -15,15 +15,18 @@ import numpy as np
 Run = Callable[[np.ndarray, list[float]], tuple[np.ndarray, np.ndarray]]
 
 
-def network(weights: Path | None = None, tile: int = 768, bf16: bool = False,
+def network(weights: Path | None = None, tile: int = 768, precision: str = "auto",
             colour_match: bool = False, progress=None) -> tuple[Run, dict]:
     """The paper's network (`separate.model`) with shipped or given weights."""
     from separate.infer import OVERLAP, load_model, match_histograms, separate_stack
 
+    from separate.precision import resolve
+
     model, weights_info = load_model(weights)
+    chosen = resolve(precision).value
 
     def run(images: np.ndarray, angles_deg: list[float]) -> tuple[np.ndarray, np.ndarray]:
-        r_hat, t_hat = separate_stack(model, images, angles_deg, tile, OVERLAP, bf16, progress)
+        r_hat, t_hat = separate_stack(model, images, angles_deg, tile, OVERLAP, chosen, progress)
         if colour_match:
             darkest = int(np.argmin([shot.mean(dtype=np.float64) for shot in images]))
             t_hat = match_histograms(t_hat, images[darkest])
@@ -31,7 +34,7 @@ def network(weights: Path | None = None, tile: int = 768, bf16: bool = False,
 
     info = {"weights": {"file": Path(weights_info["file"]).name, "sha256": weights_info["sha256"],
                         "config": weights_info["config"]},
-            "parameters": {"tile": tile, "overlap": OVERLAP, "bf16": bf16, "colour_match": colour_match}}
+            "parameters": {"tile": tile, "overlap": OVERLAP, "precision": chosen, "colour_match": colour_match}}
     return run, info
 
 

@@ -129,7 +129,8 @@ class SeparationNet(nn.Module):
         Returns:
             (R̂, T̂), each (B, C, H, W), linear, in the units of ``obs``.
         """
-        shots, i_perp, i_par = canonical_inputs(obs, angles)
+        with torch.autocast(obs.device.type, enabled=False):      # the optics stay float32 under bf16
+            shots, i_perp, i_par = canonical_inputs(obs.float(), angles)
         if scale is None:
             scale = (i_perp + i_par).mean(dim=(1, 2, 3)).clamp_min(1e-6)
         gain = (TARGET_MEAN / scale).view(-1, 1, 1, 1).to(obs.dtype)

@@ -24,8 +24,10 @@ import torch.distributed as dist
 
 from separate import metrics
 from separate.model import build_model
+from separate.precision import Precision, resolve
 from separate.synthesis import SynthesisConfig, Synthesizer, default_pool
 from urd.dataset import atomic_path
+from urd.errors import WeightsError
 
 
 @dataclasses.dataclass
@@ -51,7 +53,7 @@ class TrainConfig:
     val_samples: int = 256
     val_every: int = 500
     ckpt_every: int = 100
-    bf16: bool = True
+    precision: str = "auto"
     threads: int = 0
 
     @classmethod
@@ -113,6 +115,15 @@ def save_checkpoint(path: Path, model: torch.nn.Module, optim, step: int, cfg: T
         torch.save(state, tmp)
 
 
+def load_checkpoint(path: Path, device: torch.device | str = "cpu") -> dict:
+    """Read a checkpoint or weights file with tensors and plain data only (no code runs on
+    loading); WeightsError naming the file if it cannot be read that way."""
+    try:
+        return torch.load(path, map_location=device, weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - any failure to read means the file is unusable
+        raise WeightsError(f"checkpoint {path} cannot be loaded safely (tensors and plain data only): {exc}") from exc
+
+
 def model_config(cfg: TrainConfig) -> dict:
     """The network's config for a training config."""
     if cfg.variant == "ceilnet":
@@ -150,7 +161,7 @@ def train(cfg: TrainConfig, run_dir: Path, init: Path | None = None, progress=No
     origin = None
     last = run_dir / "last.pt"
     if last.exists() or init is not None:
-        state = torch.load(last if last.exists() else init, map_location=device, weights_only=False)
+        state = load_checkpoint(last if last.exists() else init, device)
         model.load_state_dict(state["model"])
         if last.exists():
             optim.load_state_dict(state["optim"])
@@ -166,7 +177,7 @@ def train(cfg: TrainConfig, run_dir: Path, init: Path | None = None, progress=No
     val = validation_set(cfg) if rank == 0 else None
     per_rank = cfg.batch // world
     micro = max(1, min(cfg.micro_batch, per_rank))
-    use_bf16 = cfg.bf16 and (device.type == "cpu" or torch.cuda.is_bf16_supported())
+    use_bf16 = resolve(cfg.precision, device) is Precision.BF16
     record: dict = {}
     log = open(run_dir / "log.jsonl", "a") if rank == 0 else None
     while step < cfg.steps:

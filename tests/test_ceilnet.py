@@ -37,7 +37,7 @@ def test_ceilnet_sees_only_the_unpolarized_image():
 
 def test_ceilnet_trains_and_resumes(tmp_path):
     cfg = TrainConfig(variant="ceilnet", width=8, blocks=1, patch=32, batch=8, micro_batch=8, lr=2e-3, steps=6,
-                      val_samples=8, val_every=3, ckpt_every=3, bf16=False, threads=1)
+                      val_samples=8, val_every=3, ckpt_every=3, precision="fp32", threads=1)
     record = train(cfg, tmp_path)
     assert record["step"] == 6 and np.isfinite(record["psnr_t"])
     model, info = load_model(tmp_path / "best.pt")

@@ -81,7 +81,7 @@ def test_model_shapes_residual_and_canonical_layer():
 
 def test_training_runs_resumes_and_improves(tmp_path):
     cfg = TrainConfig(width=8, patch=32, batch=8, micro_batch=4, lr=2e-3, steps=30, val_samples=16, val_every=15,
-                      ckpt_every=10, bf16=False, threads=1)
+                      ckpt_every=10, precision="fp32", threads=1)
     first = train(TrainConfig(**{**cfg.__dict__, "steps": 15}), tmp_path)
     assert first["step"] == 15 and (tmp_path / "last.pt").is_file()
     last = train(cfg, tmp_path)
@@ -92,7 +92,7 @@ def test_training_runs_resumes_and_improves(tmp_path):
 
 def test_ddp_with_two_gloo_processes(tmp_path):
     cfg = tmp_path / "ddp.toml"
-    cfg.write_text('width = 8\npatch = 32\nbatch = 8\nmicro_batch = 4\nsteps = 4\nval_samples = 8\nval_every = 4\nbf16 = false\nthreads = 1\n')
+    cfg.write_text('width = 8\npatch = 32\nbatch = 8\nmicro_batch = 4\nsteps = 4\nval_samples = 8\nval_every = 4\nprecision = "fp32"\nthreads = 1\n')
     import socket
 
     with socket.socket() as sock:                      # a free port for the rendezvous
@@ -103,7 +103,7 @@ def test_ddp_with_two_gloo_processes(tmp_path):
                           "-m", "urd.cli", "train", str(cfg), str(tmp_path / "run")], capture_output=True, text=True,
                          timeout=600, env=env)
     assert out.returncode == 0, out.stderr[-2000:]
-    assert torch.load(tmp_path / "run" / "last.pt", weights_only=False)["step"] == 4
+    assert torch.load(tmp_path / "run" / "last.pt", weights_only=True)["step"] == 4
 
 
 def test_tiled_inference_matches_whole_image_on_one_megapixel():
@@ -112,8 +112,8 @@ def test_tiled_inference_matches_whole_image_on_one_megapixel():
     from acquire.virtual_camera import make_glass_scene
     scene = make_glass_scene(1224, 816)
     stack = np.stack([scene.render(np.radians(a)) * 0.6 for a in (0, 45, 90)]).astype(np.float32)
-    r1, t1 = separate_stack(model, stack, [0, 45, 90], tile=2048)
-    r2, t2 = separate_stack(model, stack, [0, 45, 90])             # the defaults: 2 × 2 tiles here
+    r1, t1 = separate_stack(model, stack, [0, 45, 90], tile=2048, precision="fp32")
+    r2, t2 = separate_stack(model, stack, [0, 45, 90], precision="fp32")  # default tiles: 2 × 2 here
     assert len(tile_spans(1224, 768, 160)) == len(tile_spans(816, 768, 160)) == 2
     assert max(np.abs(r1 - r2).max(), np.abs(t1 - t2).max()) < 1e-3
 
@@ -152,8 +152,8 @@ def test_monochrome_shots_give_grey_layers_for_one_or_three_equal_channels():
     rng = np.random.default_rng(1)
     r, t = rng.random((2, 48, 64)).astype(np.float32)
     grey = np.stack([0.3 * r * (1 + 0.8 * np.cos(2 * (phi - 0.2))) + 0.5 * t for phi in NOMINAL_ANGLES])[..., None].astype(np.float32)
-    r1, t1 = separate_stack(model, grey, [0, 45, 90])
-    r3, t3 = separate_stack(model, np.repeat(grey, 3, axis=-1), [0, 45, 90])
+    r1, t1 = separate_stack(model, grey, [0, 45, 90], precision="fp32")
+    r3, t3 = separate_stack(model, np.repeat(grey, 3, axis=-1), [0, 45, 90], precision="fp32")
     assert r1.shape == t1.shape == (48, 64, 1) and r3.shape == t3.shape == (48, 64, 3)
     assert all(np.array_equal(x[..., 0], x[..., k]) for x in (r3, t3) for k in (1, 2))
     np.testing.assert_allclose(t1[..., 0], t3[..., 0], atol=1e-6)
@@ -198,9 +198,9 @@ def test_training_continues_from_the_shipped_weights(tmp_path):
     scratch = train(cfg, tmp_path / "scratch")
     tuned = train(cfg, tmp_path / "tuned", init=DEFAULT_WEIGHTS)
     assert tuned["psnr_t"] > scratch["psnr_t"] + 3
-    origin = torch.load(tmp_path / "tuned" / "last.pt", weights_only=False)["init"]
+    origin = torch.load(tmp_path / "tuned" / "last.pt", weights_only=True)["init"]
     assert origin["sha256"] == hashlib.sha256(DEFAULT_WEIGHTS.read_bytes()).hexdigest()
-    assert torch.load(tmp_path / "scratch" / "last.pt", weights_only=False)["init"] is None
+    assert torch.load(tmp_path / "scratch" / "last.pt", weights_only=True)["init"] is None
 
     export = [sys.executable, "tools/export_weights.py", tmp_path / "tuned" / "last.pt", tmp_path / "w.pt"]
     root = Path(__file__).resolve().parents[1]

@@ -16,6 +16,8 @@ from pathlib import Path
 
 import torch
 
+from separate.train import load_checkpoint
+
 parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
 parser.add_argument("checkpoint", type=Path)
 parser.add_argument("output", type=Path)
@@ -25,7 +27,7 @@ parser.add_argument("--parent", type=Path, help="card of the weights this run wa
 args = parser.parse_args()
 parent = json.loads(args.parent.read_text()) if args.parent else None
 
-state = torch.load(args.checkpoint, map_location="cpu", weights_only=False)
+state = load_checkpoint(args.checkpoint)
 if parent is not None and state.get("init") and state["init"]["sha256"] != parent["sha256"]:
     raise SystemExit(f"--parent {args.parent} does not describe the weights the run started from ({state['init']['path']})")
 args.output.parent.mkdir(parents=True, exist_ok=True)

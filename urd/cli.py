@@ -303,7 +303,7 @@ def separate(
     out: Path = typer.Option(Path("separated"), help="Output folder for --images."),
     weights: Optional[Path] = typer.Option(None, help="Weights file of the network or ceilnet (default: the shipped ones)."),
     tile: int = typer.Option(768, help="Network tile size (px); memory grows with it, not with the image."),
-    bf16: bool = typer.Option(True, help="bfloat16 inference (about 3x faster on CPUs with AVX-512 BF16)."),
+    precision: str = typer.Option("auto", help="Network arithmetic: auto (bf16 where the CPU or GPU runs it natively, else fp32), fp32 or bf16."),
     colour_match: bool = typer.Option(False, help="Match each colour channel's histogram of T to the darkest observation's (paper §3.4)."),
     param: Optional[list[str]] = typer.Option(None, "--param", help="A baseline's parameter as NAME=VALUE (repeat), e.g. --method kong --param smoothness=0.5; names and paper defaults in each baseline's docstring (separate/baselines/)."),
     force: bool = typer.Option(False, help="Replace existing results of this method."),
@@ -315,7 +315,7 @@ def separate(
     if method not in METHODS:
         raise typer.BadParameter(f"unknown method {method!r}; expected one of {sorted(METHODS)}")
     networks = ("network", "ceilnet")
-    options = {"weights": weights, "tile": tile, "bf16": bf16, "colour_match": colour_match} if method in networks else {}
+    options = {"weights": weights, "tile": tile, "precision": precision, "colour_match": colour_match} if method in networks else {}
     if param and method in networks + ("none",):
         raise typer.BadParameter(f"--param is for the baselines; {method} takes its own options")
     options.update(parse_params(param or []))
@@ -432,7 +432,7 @@ def demo(
         if outcome.error:
             raise UrdError(outcome.error)
         typer.echo(f"2/3 ingested: decoded to linear RGB and aligned (ECC) in {scene.path / 'aligned'}")
-        run, info = get_method("network", bf16=True)
+        run, info = get_method("network", precision="auto")
         entry = separate_scene(scene, "network", run, info)
         typer.echo(f"3/3 separated: {scene.path / 'results' / 'network'}")
         return entry

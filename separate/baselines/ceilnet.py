@@ -92,7 +92,8 @@ class CEILNet(nn.Module):
             edge map of the transmission, for `loss`.
         """
         check_obs(obs)
-        s0 = optics.stokes_from_images(obs.transpose(0, 1), angles)[0]
+        with torch.autocast(obs.device.type, enabled=False):      # the optics stay float32 under bf16
+            s0 = optics.stokes_from_images(obs.float().transpose(0, 1), angles)[0]
         if scale is None:
             scale = s0.mean(dim=(1, 2, 3)).clamp_min(1e-6)
         gain = (TARGET_MEAN / scale).view(-1, 1, 1, 1).to(obs.dtype)
