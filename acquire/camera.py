@@ -36,6 +36,10 @@ class Camera(Protocol):
         """Trigger shot ``index`` of the scene and download its RAW into ``folder`` under a
         temporary name; return (file path, metadata)."""
 
+    def write_truth(self, folder: Path) -> None:
+        """Write the scene's ground truth into ``folder`` where the camera knows it (the
+        virtual camera); a real camera writes nothing."""
+
 
 class Gphoto2Camera:
     """A DSLR or mirrorless camera driven by the ``gphoto2`` command-line tool.
@@ -71,6 +75,9 @@ class Gphoto2Camera:
         fields = dict(line.split(":", 1) for line in lines)
         return {"kind": CameraKind.GPHOTO2.value, "model": fields.get("Model", "").strip(),
                 "serial": fields.get("Serial Number", "").strip()}
+
+    def write_truth(self, folder: Path) -> None:
+        """A real scene has no ground truth: nothing is written."""
 
     def capture(self, folder: Path, index: int) -> tuple[Path, dict]:
         with tempfile.TemporaryDirectory(dir=folder, prefix=".gphoto2-") as tmp:

@@ -172,7 +172,7 @@ class Ell14:
                     if code in expect:
                         return code, data
                     raise ProtocolError(f"unexpected reply {code}{data} to command {command!r}")
-            except (DeviceTimeoutError, ProtocolError) as exc:
+            except (DeviceTimeoutError, ProtocolError):
                 if attempt >= self.retries:
                     raise
                 attempt += 1

@@ -3,7 +3,9 @@
 `plan_capture` lists the steps (home; then per angle move, verify, trigger, store, record;
 finish) without touching hardware, skipping shots already recorded, so a resumed capture
 continues where it stopped. `run_capture` executes the steps against a stage and a camera,
-writing each RAW file and the scene manifest atomically after every shot.
+writing each RAW file and the scene manifest atomically after every shot. `capture_scene` is
+the workflow behind ``urd capture``: it opens the rig, picks or resumes the scene, runs the
+plan under the dataset's lock, and leaves no empty scene behind.
 
 Angles: the plan works in polarizer angles (degrees, image-plane convention). The stage is
 commanded ``polarizer angle − mounting offset`` when a calibration is known.
@@ -18,8 +20,9 @@ from typing import Callable
 
 from acquire.camera import Camera
 from acquire.ell14 import Ell14
-from urd.dataset import Scene, atomic_path, file_record, new_scene_manifest, now_iso, provenance, sha256_file
-from urd.errors import DatasetError, DeviceError, ManifestError
+from urd.dataset import Dataset, Scene, atomic_path, sha256_file
+from urd.errors import CaptureInterrupted, DatasetError, DeviceError, ManifestError, UrdError
+from urd.progress import Progress
 
 
 @dataclasses.dataclass(frozen=True)
@@ -50,45 +53,48 @@ def _angle_error(a_deg: float, b_deg: float) -> float:
     return abs((a_deg - b_deg + 180.0) % 360.0 - 180.0)
 
 
+def capture_plan_record(angles_deg: list[float], offset_deg: float = 0.0, tolerance_deg: float = 0.5,
+                        info: dict | None = None) -> dict:
+    """The capture record of a new scene: the plan's angles, mounting offset and read-back
+    tolerance (deg), the devices (``info``), not yet complete."""
+    return {**(info or {}), "angles_deg": [float(a) for a in angles_deg], "offset_deg": float(offset_deg),
+            "tolerance_deg": float(tolerance_deg), "complete": False}
+
+
+def new_capture_scene(ds: Dataset, angles_deg: list[float], offset_deg: float = 0.0, tolerance_deg: float = 0.5,
+                      info: dict | None = None, name: str | None = None) -> Scene:
+    """A new scene whose manifest records the capture plan (resumable from its first step)."""
+    return ds.new_scene("capture", capture_plan_record(angles_deg, offset_deg, tolerance_deg, info), name)
+
+
 def run_capture(
     scene: Scene,
     stage: Ell14,
     camera: Camera,
     angles_deg: list[float],
-    offset_deg: float = 0.0,
-    tolerance_deg: float = 0.5,
     move_attempts: int = 3,
-    capture_info: dict | None = None,
     progress: Callable[[Step], None] | None = None,
-) -> dict:
-    """Capture (or resume) a scene and return its manifest.
+) -> Scene:
+    """Capture the shots of ``scene`` (made by `new_capture_scene`) not yet recorded.
 
     Args:
-        scene: the scene folder (new or partly captured).
+        scene: the scene (new or partly captured); its manifest holds the plan's angles,
+            mounting offset (polarizer angle at stage zero) and read-back tolerance (deg).
         stage, camera: the devices.
-        angles_deg: polarizer angles (deg).
-        offset_deg: mounting offset: polarizer angle at stage zero (deg).
-        tolerance_deg: largest accepted difference of read-back and commanded stage angle.
+        angles_deg: polarizer angles (deg); must be the scene's planned angles.
         move_attempts: moves tried before a position outside the tolerance is an error.
-        capture_info: extra capture metadata for the manifest (stage, camera, ...).
         progress: called after every step.
     """
+    planned = scene.capture_angles_deg()
+    if planned != [float(a) for a in angles_deg]:
+        raise ManifestError(f"{scene.manifest_path}: scene was captured with angles {planned}, "
+                            f"not {list(angles_deg)}; use a new scene")
+    settings = scene.capture_settings()
+    offset_deg, tolerance_deg = settings["offset_deg"], settings["tolerance_deg"]
     raw_dir = scene.path / "raw"
-    raw_dir.mkdir(parents=True, exist_ok=True)
-    if scene.exists():
-        record = scene.load(verify=True)
-        if record["capture"].get("angles_deg") != list(angles_deg):
-            raise ManifestError(
-                f"{scene.manifest_path}: scene was captured with angles {record['capture'].get('angles_deg')}, "
-                f"not {list(angles_deg)}; use a new scene"
-            )
-    else:
-        record = new_scene_manifest(scene.name, "capture", {
-            **(capture_info or {}), "angles_deg": list(angles_deg), "offset_deg": offset_deg,
-            "tolerance_deg": tolerance_deg, "started": now_iso(), "complete": False,
-        })
-        scene.save(record)                        # resumable from the first step on
-    done = {shot["index"] for shot in record["shots"]}
+    raw_dir.mkdir(exist_ok=True)
+    scene.remove_stale()
+    done = {shot.index for shot in scene.shots()}
     measured = pending = meta = None
     for step in plan_capture(angles_deg, done):
         if step.kind == "home":
@@ -119,30 +125,74 @@ def run_capture(
             digest = sha256_file(pending)
             with atomic_path(target) as tmp:
                 shutil.move(pending, tmp)
+                tmp.chmod(0o644)                       # like every other output (the camera's file may be private)
             if sha256_file(target) != digest:
                 raise DeviceError(f"{target}: contents changed while storing")
             pending = target
         elif step.kind == "record":
-            record["shots"].append({
-                "index": step.index,
-                "angle_commanded_deg": step.angle_deg,
-                "angle_measured_deg": round((measured + offset_deg) % 360.0, 4),
-                "angle_calibrated_deg": None,
-                "stage_position_deg": round(measured, 4),
-                "time": now_iso(),
-                **file_record(scene.path, pending),
-                "camera": meta,
-            })
-            record["shots"].sort(key=lambda s: s["index"])
-            scene.save(record)
+            scene.add_shot(step.index, pending, step.angle_deg, angle_measured_deg=round((measured + offset_deg) % 360.0, 4),
+                           stage_position_deg=round(measured, 4), camera=meta)
         elif step.kind == "finish":
-            record["capture"].update(complete=True, finished=now_iso())
-            record["provenance"].append(provenance("capture", {"angles_deg": list(angles_deg), "offset_deg": offset_deg,
-                                                               "tolerance_deg": tolerance_deg}))
-            scene.save(record)
+            scene.mark_complete({"angles_deg": list(angles_deg), "offset_deg": offset_deg, "tolerance_deg": tolerance_deg})
         if progress is not None:
             progress(step)
-    return record
+    return scene
+
+
+def resume_command(root: Path, stage: str, camera: str, angles_deg: list[float], scene: Scene) -> str:
+    """The command line that resumes ``scene``."""
+    angles = ",".join(f"{a:g}" for a in angles_deg)
+    return f"urd capture {root} --stage {stage} --camera {camera} --angles {angles} --scene {scene.name}"
+
+
+def capture_scene(root: Path, stage: str, camera: str, angles_deg: list[float], scene_name: str | None = None,
+                  new: bool = False, tolerance_deg: float = 0.5, address: str = "0", sim=None,
+                  announce: Callable[[str], None] = print, progress: Progress | None = None) -> Scene:
+    """Capture one scene into the dataset at ``root`` (created when new): the workflow of
+    ``urd capture``.
+
+    Without ``scene_name`` the newest incomplete scene is resumed (unless ``new``), else a new
+    scene is made; with it, that scene is resumed or created. The rig is opened before any
+    scene is made, and a scene that got no shot is removed, so a failing start leaves nothing.
+    Errors and Ctrl-C are re-raised with the command that resumes the capture.
+    """
+    from acquire.rig import open_rig
+
+    ds = Dataset.open_or_create(root)
+    with ds.lock(), open_rig(stage, camera, address, sim) as rig:
+        ds.remove_stale()
+        scene = None
+        if scene_name and (ds.root / scene_name).is_dir():
+            scene = ds.scene(scene_name)
+        elif scene_name is None and not new:
+            scene = ds.latest_incomplete()
+            if scene is not None:
+                announce(f"resuming the incomplete capture {scene.path.resolve()} ({len(scene.shots())} of "
+                         f"{len(scene.capture_angles_deg() or [])} shots; --new-scene starts another)")
+        if scene is None:
+            scene = new_capture_scene(ds, angles_deg, ds.offset_deg(), tolerance_deg, rig.info, scene_name)
+        elif scene.capture_angles_deg() != [float(a) for a in angles_deg]:
+            raise ManifestError(f"{scene.name} was captured with angles {scene.capture_angles_deg()} deg, not "
+                                f"{list(angles_deg)}; pass those angles to resume it, or --new-scene")
+        done = {shot.index for shot in scene.shots()}
+        steps = len(plan_capture(angles_deg, done))
+        announce(f"capturing {scene.path.resolve()} at {list(angles_deg)} deg ({len(angles_deg) - len(done)} shots to take)")
+        counter = iter(range(1, steps + 1))
+        resume = resume_command(ds.root, stage, camera, angles_deg, scene)
+        try:
+            run_capture(scene, rig.stage, rig.camera, angles_deg,
+                        progress=lambda step: progress and progress(next(counter), steps, f"capture {scene.name}"))
+            if not scene.truth_dir().exists():
+                rig.camera.write_truth(scene.truth_dir())
+        except KeyboardInterrupt:
+            kept = scene.discard_if_empty()
+            raise CaptureInterrupted("capture interrupted; " + ("no shot was taken, nothing kept" if kept else
+                                     f"completed shots are kept. Resume with: {resume}")) from None
+        except (UrdError, OSError) as exc:
+            if scene.discard_if_empty():
+                raise UrdError(f"{exc}\ncapture stopped before its first shot; no scene was kept") from exc
+            raise UrdError(f"{exc}\ncapture of {scene.name} stopped; completed shots are kept. Resume with: {resume}") from exc
+    return scene
 
 
 def _set_aside(path: Path) -> None:

@@ -26,7 +26,7 @@ import tifffile
 from acquire.camera import CameraKind
 from acquire.dng import write_dng
 from separate import optics
-from separate.synthesis import parabola_aoi, to_linear
+from separate.optics import parabola_aoi, to_linear
 from urd import raw as rawio
 
 

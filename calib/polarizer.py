@@ -113,7 +113,7 @@ def _solve_angles(data: np.ndarray, nominal: np.ndarray, iterations: int = 100,
     phi, n = nominal.copy(), nominal.size
     r = _residual(phi, data)
     cost, lam, step = r @ r, None, 1e-6
-    for it in range(1, iterations + 1):
+    for it in range(1, iterations + 1):  # noqa: B007 - the count of iterations is returned
         jac = np.stack([(_residual(phi + step * np.eye(n)[k], data) - r) / step for k in range(n)], axis=1)
         lam = lam if lam is not None else 1e-6 * float(np.sum(jac**2))
         for _ in range(20):

@@ -3,7 +3,7 @@
 import serial
 
 from acquire.ell14 import Ell14
-from acquire.plan import run_capture
+from acquire.plan import new_capture_scene, run_capture
 from acquire.sim_ell14 import SimulatedEll14
 from acquire.virtual_camera import VirtualCamera, make_glass_scene
 
@@ -12,7 +12,7 @@ def capture_virtual(ds, angles=(0.0, 45.0, 90.0), size=(768, 512), shake_px=8.0,
                     offset_deg=0.0, jitter_deg=0.0, scene=None, glass=None):
     """Capture one scene with the simulated stage and the virtual camera; return (scene, camera)."""
     glass = glass or make_glass_scene(*size)
-    target = ds.new_scene()
+    target = new_capture_scene(ds, angles, offset_deg=0.0)
     with SimulatedEll14(sim_offset_deg=offset_deg, sim_jitter_deg=jitter_deg, seed=seed) as sim, \
             serial.Serial(sim.port_name, 9600, timeout=0.05) as port:
         cam = VirtualCamera(glass, sim.true_angle_deg, shake_px, shake_deg, seed=seed)

@@ -16,7 +16,7 @@ from rig import capture_virtual
 from separate import optics
 from urd.dataset import Dataset
 from urd.errors import CalibrationError
-from urd.ingest import IngestOptions, ingest_scene, load_stack
+from urd.ingest import IngestOptions, ingest_scene
 
 
 def urd(*args):
@@ -81,7 +81,7 @@ def test_per_shot_errors_on_the_virtual_rig_and_their_effect_on_the_stokes_fit(t
     assert np.abs(np.array(result.errors_deg) - (true_err - true_err.mean())).max() < 0.5
     # Stokes with the calibrated angles is closer to the truth (the same stack fitted with the true
     # angles, so that only the angles differ) than with the nominal ones
-    stack, calibrated = load_stack(scene)
+    stack, calibrated = scene.reload().load_stack()
     truth = optics.stokes_from_images(stack, np.radians(true))
     rows = {}
     for name, used in (("nominal", np.array(angles, float)), ("calibrated", np.array(calibrated))):

@@ -1,19 +1,17 @@
 """Capture on the simulated rig: end to end, resume after faults, bad input."""
 
-import json
 import os
 import resource
 import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 import rawpy
 import serial
 
 from acquire.ell14 import Ell14
-from acquire.plan import Step, plan_capture, run_capture
+from acquire.plan import Step, new_capture_scene, plan_capture, run_capture
 from acquire.sim_ell14 import FAULTS, SimulatedEll14
 from acquire.virtual_camera import VirtualCamera, make_glass_scene, shot_truth
 from urd.dataset import Dataset
@@ -48,6 +46,7 @@ def test_cli_capture_on_the_simulated_rig(tmp_path, angles, count):
     for shot, path in zip(record["shots"], files):
         with rawpy.imread(str(path)) as raw:
             assert raw.raw_image.shape == (64, 96)
+        assert path.stat().st_mode & 0o777 == 0o644                 # like every other output
         truth = shot_truth(path)
         assert truth["shot"] == shot["index"]
         assert truth["true_angle_deg"] == pytest.approx(shot["angle_commanded_deg"] + 2.0, abs=0.01)
@@ -56,7 +55,7 @@ def test_cli_capture_on_the_simulated_rig(tmp_path, angles, count):
 
 def capture_until_complete(ds, name, sim, angles, attempts=40):
     """Run (and resume) one capture until it completes; return the error messages seen."""
-    scene = ds.new_scene(name)
+    scene = new_capture_scene(ds, angles, name=name)
     cam = VirtualCamera(make_glass_scene(64, 48), sim.true_angle_deg, shake_px=0, seed=1)
     errors = []
     for _ in range(attempts):
@@ -64,7 +63,7 @@ def capture_until_complete(ds, name, sim, angles, attempts=40):
         with serial.Serial(sim.port_name, 9600, timeout=0.05) as port:
             stage = Ell14(port, timeout_s=0.15, move_timeout_s=0.4, retries=2)
             try:
-                return scene, run_capture(scene, stage, cam, angles), errors
+                return scene, run_capture(scene, stage, cam, angles).load(), errors
             except UrdError as exc:
                 errors.append(str(exc))
     raise AssertionError(f"capture never completed: {errors[-3:]}")
@@ -107,7 +106,7 @@ def test_cli_reports_a_device_fault_and_resumes(tmp_path):
 def test_interrupted_capture_resumes_without_retaking_done_shots(tmp_path):
     ds = Dataset.open_or_create(tmp_path / "ds")
     with SimulatedEll14() as sim:
-        scene = ds.new_scene()
+        scene = new_capture_scene(ds, [0, 45, 90])
         cam = VirtualCamera(make_glass_scene(64, 48), sim.true_angle_deg, seed=2)
         with serial.Serial(sim.port_name, 9600, timeout=0.05) as port:
             stage = Ell14(port, timeout_s=0.15, move_timeout_s=0.4, retries=0)
@@ -124,7 +123,7 @@ def test_interrupted_capture_resumes_without_retaking_done_shots(tmp_path):
             first = scene.load()
             assert [s["index"] for s in first["shots"]] == [0, 1] and not first["capture"]["complete"]
             sim.sim_revive()
-            record = run_capture(scene, stage, cam, [0, 45, 90])
+            record = run_capture(scene, stage, cam, [0, 45, 90]).load()
         assert [s["sha256"] for s in record["shots"][:2]] == [s["sha256"] for s in first["shots"]]
         assert len(cam.triggers) == 3 and record["capture"]["complete"]
 
@@ -150,10 +149,7 @@ def test_full_disk_leaves_no_shot_that_looks_complete(tmp_path):
 
     out = urd("capture", tmp_path / "ds", "--stage", "sim", "--camera", "virtual", "--sim-size", "256x192", preexec=limit)
     assert out.returncode == 1 and "cannot write shot 0" in out.stderr and "disk full" in out.stderr
-    raw = tmp_path / "ds" / "scene_01" / "raw"
-    assert not list(raw.iterdir())                  # no half-written shot, not even a temporary one
-    manifest = tmp_path / "ds" / "scene_01" / "scene.json"
-    assert not manifest.exists() or json.loads(manifest.read_text())["capture"]["complete"] is False
+    assert not (tmp_path / "ds" / "scene_01").exists()    # no half-written shot, no empty scene
 
 
 def test_read_only_dataset_folder(tmp_path):

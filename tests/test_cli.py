@@ -5,7 +5,7 @@ import re
 import subprocess
 import sys
 
-COMMANDS = ("capture", "ingest", "calibrate", "separate", "train", "bench", "report", "demo")
+COMMANDS = ("capture", "sim-stage", "ingest", "calibrate", "separate", "train", "bench", "report", "verify", "demo")
 
 
 def urd(*args, cwd=None):
@@ -46,3 +46,19 @@ def test_commands_without_a_dataset_use_the_current_dataset_or_dataset_folder(tm
     assert inside.returncode == 0 and re.search(r"scene_01: 3 shots .* aligned, .* none", inside.stdout)
     lost = urd("separate", "scene_01", cwd=tmp_path / "dataset" / "scene_01")
     assert lost.returncode == 1 and "not an urd dataset" in lost.stderr
+
+
+def test_version_and_help_show_the_sim_and_virtual_prefixes():
+    out = urd("--version")
+    assert out.returncode == 0 and re.fullmatch(r"urd \d+\.\d+\.\d+\n", out.stdout)
+    out = urd("capture", "--help")
+    assert "[sim] polarizer mounting offset" in out.stdout and "[virtual] sensor size" in out.stdout
+
+
+def test_bad_parameters_exit_2_with_the_reason(tmp_path):
+    for args, reason in ((("separate", "--images", "a.tif", "--angles", "0,45,nan"), "finite"),
+                         (("separate", "--images", "a.tif", "--angles", "0,45,180"), "same mod 180"),
+                         (("capture", "--stage", "sim", "--sim-size", "0x10"), "between 16 and 20000"),
+                         (("separate", "scene_01", "--reference", "east"), "'auto' or an angle")):
+        out = urd(*args, cwd=tmp_path)
+        assert out.returncode == 2 and reason in out.stderr, (args, out.stderr)

@@ -14,18 +14,13 @@ from urd.errors import DatasetError, ManifestError
 
 def make_scene(tmp_path):
     ds = dataset.Dataset.open_or_create(tmp_path / "ds")
-    scene = ds.new_scene()
+    scene = ds.new_scene("test", {"stage": "sim"})
     (scene.path / "raw").mkdir()
-    record = dataset.new_scene_manifest(scene.name, "test", {"stage": "sim"})
     for i, angle in enumerate((0, 45, 90)):
         path = scene.path / "raw" / f"shot_{i:02d}.dng"
         dataset.write_bytes_atomic(path, bytes([i]) * 1000)
-        record["shots"].append(
-            {"index": i, "angle_commanded_deg": angle, "angle_measured_deg": angle + 0.01,
-             "angle_calibrated_deg": None, "time": dataset.now_iso(), **dataset.file_record(scene.path, path)}
-        )
-    scene.save(record)
-    return ds, scene, record
+        scene.add_shot(i, path, angle, angle_measured_deg=angle + 0.01)
+    return ds, scene, scene.load()
 
 
 def test_manifest_round_trip(tmp_path):
@@ -65,18 +60,20 @@ def test_missing_shot_field_is_named_with_its_index(tmp_path):
 def test_wrong_type_and_schema_are_named(tmp_path):
     _, scene, record = make_scene(tmp_path)
     record["shots"][0]["size"] = "big"
+    scene.manifest_path.write_text(json.dumps(record))
     with pytest.raises(ManifestError, match=r"shots\[0\]: field 'size'"):
-        scene.save(record)
+        scene.load()
     record["shots"][0]["size"] = 1000
     record["schema"] = "other"
+    scene.manifest_path.write_text(json.dumps(record))
     with pytest.raises(ManifestError, match="field 'schema'"):
-        scene.save(record)
+        scene.load()
 
 
 def test_scene_folders_are_never_reused(tmp_path):
     ds, scene, _ = make_scene(tmp_path)
     with pytest.raises(DatasetError, match="already exists"):
-        ds.new_scene("scene_01")
+        ds.new_scene("test", {}, "scene_01")
     with pytest.raises(DatasetError, match="no scene 'scene_07'"):
         ds.scene("scene_07")
 

@@ -5,7 +5,6 @@ import shutil
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,7 +15,7 @@ from rig import capture_virtual
 from urd import raw as rawio
 from urd.dataset import Dataset
 from urd.errors import RawFormatError
-from urd.ingest import IngestOptions, ingest_folder, ingest_scene, load_stack
+from urd.ingest import IngestOptions, ingest_folder, ingest_scene
 
 
 def urd(*args):
@@ -40,7 +39,7 @@ def test_alignment_recovers_known_shake_within_a_tenth_of_a_pixel(tmp_path, seed
         truth = cam.shake(entry["shot"])
         assert np.abs(truth[:, 2]).max() > 1.0 or entry["shot"] == 0     # the shake is real
         assert warp_rms(entry["warp"], truth, 768, 1024) < 0.1, entry
-    stack, angles = load_stack(scene)
+    stack, angles = scene.reload().load_stack()
     assert stack.shape == (4, 768, 1024, 3) and angles == [0.0, 45.0, 90.0, 135.0]
     # aligned shots agree with the noiseless rendering in the reference frame (away from borders)
     for i, angle in enumerate(angles):
@@ -61,9 +60,9 @@ def test_unalignable_scene_is_flagged_and_no_stack_is_written(tmp_path):
     src = other.path / other.load()["shots"][2]["file"]
     dst = scene.path / record["shots"][2]["file"]
     shutil.copyfile(src, dst)
-    from urd.dataset import file_record
-    record["shots"][2].update(file_record(scene.path, dst))
-    scene.save(record)
+    from urd.dataset import write_json_atomic
+    record["shots"][2].update(scene.file_record(dst))
+    write_json_atomic(scene.manifest_path, record)
     out = urd("ingest", scene.path)
     assert out.returncode == 1 and "alignment failed" in out.stderr
     assert not (scene.path / "aligned").exists()
@@ -91,7 +90,8 @@ def test_ingest_folder_groups_by_time_and_reports_bad_files(tmp_path, monkeypatc
     opts = IngestOptions(gap_s=100)
     from urd import ingest as ingest_mod
     monkeypatch.setattr(ingest_mod, "capture_time", lambda p: p.stat().st_mtime)  # the staged times
-    outcomes, ignored = ingest_folder(raw_dir, tmp_path / "ds", opts)
+    report = ingest_folder(raw_dir, Dataset.open_or_create(tmp_path / "ds"), opts)
+    outcomes, ignored = report.outcomes, report.ignored
     assert ignored == [raw_dir / "notes.txt"]
     good = [o for o in outcomes if o.error is None]
     errors = {o.files[0].name[:5]: o.error for o in outcomes if o.error}
@@ -99,7 +99,7 @@ def test_ingest_folder_groups_by_time_and_reports_bad_files(tmp_path, monkeypatc
     assert "IMG_11.dng" in errors["IMG_1"] and "truncated" in errors["IMG_1"]
     assert "IMG_21.dng" in errors["IMG_2"] and "not a RAW file" in errors["IMG_2"]
     assert "wrong shot count" in errors["IMG_3"]
-    assert not [p for p in (tmp_path / "ds").iterdir() if p.name.startswith(".ingest")]
+    assert not [p for p in (tmp_path / "ds").iterdir() if p.name.startswith(".")]
 
 
 def test_mixed_sizes_and_missing_folder(tmp_path):

@@ -1,70 +1,66 @@
-"""The urd dataset format: a root folder with a dataset manifest and one folder per scene.
+"""The urd dataset: the one module that reads and writes manifests.
 
 Layout::
 
     DATASET/
       dataset.json              dataset manifest (schema "urd.dataset")
-      calibration.json          polarizer calibration, when measured (schema "urd.calibration")
+      calibration.json          mounting offset of the polarizer with its history (schema
+                                "urd.calibration"); written by `Dataset.save_calibration`
+                                for `calib.store`
+      calibration/sweep_NN/     the sweeps behind it: scenes like any other (owned by
+                                `calib.store`, created by `Dataset.new_sweep`)
+      .urd.lock                 the lock file of commands that write (`Dataset.lock`)
       scene_01/
         scene.json              scene manifest (schema "urd.scene")
-        raw/                    the RAW shots as captured, e.g. shot_00_000deg.dng
-        aligned/                linear float32 TIFF per shot, aligned to the first shot
+        raw/                    the RAW shots as captured, e.g. shot_00_000.0deg.dng
+        aligned/                16-bit linear TIFF per shot, aligned to the first shot
         truth/                  ground truth, for scenes from the virtual camera only
-        results/METHOD/         R.tiff, T.tiff (linear 16-bit) and sRGB previews
+        results/METHOD/         R.tiff, T.tiff (linear 16-bit), sRGB previews, extra maps
 
-Manifests are JSON with a schema name and version. Angles in manifests are degrees. Every
-file a manifest lists carries its size and SHA-256. All writes are atomic: a temporary file
-in the same folder, flushed and renamed over the target, so an interrupted write leaves the
-previous version intact. Nothing is overwritten unless the caller asks for it.
+Guarantees, all kept here:
+
+* **typed**: commands use `Dataset`, `Scene` and `Shot`; nothing else reads or writes a
+  manifest key. Every field is checked on load, with errors naming the file and the field;
+  newer schema versions are refused.
+* **atomic**: every write goes to a temporary file that is renamed into place; new outputs of
+  a re-run (``--redo``, ``--force``) are staged beside the old ones and swapped in only on
+  success, so the manifest never names a missing file.
+* **confined**: file paths in a manifest are relative and stay inside their scene folder.
+* **verified**: files are checked against their size and SHA-256 before use (a size + mtime
+  cache avoids re-hashing unchanged files); `Scene.verify` checks everything.
+* **locked**: commands that write take the dataset's lock; a second one is told who holds it.
+* **idempotent**: `Dataset.shot_index` maps RAW content hashes to scenes, so ingest skips
+  shots it already has.
 """
 
 from __future__ import annotations
 
 import contextlib
+import copy
+import dataclasses
 import datetime as _dt
+import fcntl
 import hashlib
 import json
 import os
 import re
+import shutil
 import tempfile
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any, Iterator
 
 from urd import __version__
-from urd.errors import DatasetError, ManifestError
+from urd.errors import DatasetBusyError, DatasetError, ManifestError
 
 SCHEMA_VERSION = 1
 DATASET_MANIFEST = "dataset.json"
 SCENE_MANIFEST = "scene.json"
+CALIBRATION_FILE = "calibration.json"
+LOCK_FILE = ".urd.lock"
+HASH_CACHE = ".urd-hashes.json"
+STAGING_PREFIX = ".staging-"
 SCENE_NAME = re.compile(r"^scene_(\d{2,})$")
-
-#: Required fields of a scene manifest: name → type (dict means a nested record).
-SCENE_FIELDS: dict[str, Any] = {
-    "schema": str,
-    "schema_version": int,
-    "name": str,
-    "created": str,
-    "source": str,
-    "capture": dict,
-    "shots": list,
-    "provenance": list,
-}
-SHOT_FIELDS: dict[str, Any] = {
-    "index": int,
-    "angle_commanded_deg": (int, float),
-    "angle_measured_deg": (int, float, type(None)),
-    "angle_calibrated_deg": (int, float, type(None)),
-    "file": str,
-    "size": int,
-    "sha256": str,
-    "time": str,
-}
-DATASET_FIELDS: dict[str, Any] = {
-    "schema": str,
-    "schema_version": int,
-    "created": str,
-    "urd_version": str,
-}
+SHA256 = re.compile(r"^[0-9a-f]{64}$")
 
 
 def now_iso() -> str:
@@ -79,6 +75,9 @@ def sha256_file(path: Path) -> str:
         for block in iter(lambda: fh.read(1 << 20), b""):
             digest.update(block)
     return digest.hexdigest()
+
+
+# ---------------------------------------------------------------- atomic writes
 
 
 @contextlib.contextmanager
@@ -119,41 +118,7 @@ def write_bytes_atomic(path: Path, data: bytes, overwrite: bool = False) -> None
 
 def write_json_atomic(path: Path, record: dict, overwrite: bool = True) -> None:
     """Write a JSON record atomically, replacing the old version only once complete."""
-    write_bytes_atomic(path, (json.dumps(record, indent=2, sort_keys=False) + "\n").encode(), overwrite)
-
-
-def _check_fields(record: Any, fields: dict[str, Any], where: str) -> None:
-    if not isinstance(record, dict):
-        raise ManifestError(f"{where}: expected an object, got {type(record).__name__}")
-    for key, kind in fields.items():
-        if key not in record:
-            raise ManifestError(f"{where}: missing field '{key}'")
-        if not isinstance(record[key], kind) or isinstance(record[key], bool) and kind is not bool:
-            raise ManifestError(f"{where}: field '{key}' has type {type(record[key]).__name__}")
-
-
-def validate_scene(record: Any, where: str = SCENE_MANIFEST) -> dict:
-    """Check a scene manifest's schema; raise ManifestError naming the offending field."""
-    _check_fields(record, SCENE_FIELDS, where)
-    if record["schema"] != "urd.scene":
-        raise ManifestError(f"{where}: field 'schema' is {record['schema']!r}, expected 'urd.scene'")
-    if record["schema_version"] > SCHEMA_VERSION:
-        raise ManifestError(
-            f"{where}: field 'schema_version' is {record['schema_version']}, this urd reads up to {SCHEMA_VERSION}"
-        )
-    for i, shot in enumerate(record["shots"]):
-        _check_fields(shot, SHOT_FIELDS, f"{where}: shots[{i}]")
-        if not re.fullmatch(r"[0-9a-f]{64}", shot["sha256"]):
-            raise ManifestError(f"{where}: shots[{i}].sha256 is not a SHA-256 hex digest")
-    return record
-
-
-def validate_dataset(record: Any, where: str = DATASET_MANIFEST) -> dict:
-    """Check a dataset manifest's schema; raise ManifestError naming the offending field."""
-    _check_fields(record, DATASET_FIELDS, where)
-    if record["schema"] != "urd.dataset":
-        raise ManifestError(f"{where}: field 'schema' is {record['schema']!r}, expected 'urd.dataset'")
-    return record
+    write_bytes_atomic(path, (json.dumps(record, indent=2) + "\n").encode(), overwrite)
 
 
 def read_json(path: Path) -> Any:
@@ -166,20 +131,136 @@ def read_json(path: Path) -> Any:
         raise ManifestError(f"{path}: not valid JSON ({exc})") from exc
 
 
-def file_record(scene_dir: Path, path: Path) -> dict:
-    """Size and SHA-256 of a file, with its path relative to the scene folder."""
-    path = Path(path)
-    return {"file": path.relative_to(scene_dir).as_posix(), "size": path.stat().st_size, "sha256": sha256_file(path)}
+# ---------------------------------------------------------------- validation
+
+NUMBER = (int, float)
+OPTIONAL_NUMBER = (int, float, type(None))
 
 
-def verify_files(scene_dir: Path, records: list[dict]) -> None:
-    """Check that every listed file exists with the recorded size and SHA-256."""
-    for rec in records:
-        path = Path(scene_dir) / rec["file"]
-        if not path.is_file():
-            raise ManifestError(f"{path}: listed in the manifest but missing")
-        if path.stat().st_size != rec["size"] or sha256_file(path) != rec["sha256"]:
-            raise ManifestError(f"{path}: SHA-256 or size does not match the manifest (corrupted or changed)")
+def _check(record: Any, where: str, required: dict[str, Any], optional: dict[str, Any] | None = None) -> dict:
+    """Check an object's fields by type; ManifestError naming ``where`` and the field."""
+    if not isinstance(record, dict):
+        raise ManifestError(f"{where}: expected an object, got {type(record).__name__}")
+    for key, kind in {**required, **(optional or {})}.items():
+        if key not in record:
+            if key in required:
+                raise ManifestError(f"{where}: missing field '{key}'")
+            continue
+        value = record[key]
+        if not isinstance(value, kind) or (isinstance(value, bool) and bool not in _as_tuple(kind)):
+            raise ManifestError(f"{where}: field '{key}' has type {type(value).__name__}, "
+                                f"expected {' or '.join(t.__name__ for t in _as_tuple(kind))}")
+    return record
+
+
+def _as_tuple(kind: Any) -> tuple:
+    return kind if isinstance(kind, tuple) else (kind,)
+
+
+def _check_numbers(values: Any, where: str) -> None:
+    if not isinstance(values, list) or not all(isinstance(v, NUMBER) and not isinstance(v, bool) for v in values):
+        raise ManifestError(f"{where}: expected a list of numbers, got {values!r:.80}")
+
+
+def _check_schema(record: dict, where: str, schema: str) -> None:
+    if record["schema"] != schema:
+        raise ManifestError(f"{where}: field 'schema' is {record['schema']!r}, expected {schema!r}")
+    version = record["schema_version"]
+    if version < 1:
+        raise ManifestError(f"{where}: field 'schema_version' is {version}, expected 1 to {SCHEMA_VERSION}")
+    if version > SCHEMA_VERSION:
+        raise ManifestError(f"{where}: field 'schema_version' is {version}, written by a newer urd; "
+                            f"this urd {__version__} reads up to {SCHEMA_VERSION}: upgrade urd")
+
+
+def confined_path(base: Path, relative: Any, where: str) -> Path:
+    """``base / relative`` for a manifest path that stays inside ``base``; ManifestError for an
+    absolute path, a ``..`` component, or a link leading outside."""
+    if not isinstance(relative, str) or not relative:
+        raise ManifestError(f"{where}: expected a relative file path, got {relative!r}")
+    pure = PurePosixPath(relative)
+    if pure.is_absolute() or ".." in pure.parts or "\\" in relative or relative.startswith("~"):
+        raise ManifestError(f"{where}: file path {relative!r} leaves the scene folder "
+                            "(manifest paths must be relative, without '..')")
+    path = Path(base) / pure
+    if not path.resolve().is_relative_to(Path(base).resolve()):
+        raise ManifestError(f"{where}: file path {relative!r} is a link that leads outside the scene folder")
+    return path
+
+
+def _check_file(record: Any, where: str, base: Path) -> None:
+    _check(record, where, {"file": str, "size": int, "sha256": str})
+    confined_path(base, record["file"], f"{where}.file")
+    if not SHA256.match(record["sha256"]):
+        raise ManifestError(f"{where}: field 'sha256' is not a SHA-256 hex digest")
+    if record["size"] < 0:
+        raise ManifestError(f"{where}: field 'size' is negative")
+
+
+SHOT_REQUIRED = {"index": int, "angle_commanded_deg": NUMBER, "angle_measured_deg": OPTIONAL_NUMBER,
+                 "angle_calibrated_deg": OPTIONAL_NUMBER, "file": str, "size": int, "sha256": str, "time": str}
+SHOT_OPTIONAL = {"stage_position_deg": OPTIONAL_NUMBER, "camera": (dict, type(None))}
+
+
+def validate_scene(record: Any, where: str, base: Path) -> dict:
+    """Check every field of a scene manifest; ManifestError naming file and field."""
+    _check(record, where, {"schema": str, "schema_version": int, "name": str, "created": str, "source": str,
+                           "capture": dict, "shots": list, "provenance": list},
+           {"ingest": dict, "results": dict, "calibration": dict})
+    _check_schema(record, where, "urd.scene")
+    capture = _check(record["capture"], f"{where}: capture", {}, {"angles_deg": list, "complete": bool,
+                                                                   "offset_deg": NUMBER, "tolerance_deg": NUMBER})
+    if "angles_deg" in capture:
+        _check_numbers(capture["angles_deg"], f"{where}: capture.angles_deg")
+    indices = []
+    for i, shot in enumerate(record["shots"]):
+        _check(shot, f"{where}: shots[{i}]", SHOT_REQUIRED, SHOT_OPTIONAL)
+        _check_file(shot, f"{where}: shots[{i}]", base)
+        indices.append(shot["index"])
+    if len(set(indices)) != len(indices):
+        raise ManifestError(f"{where}: shots: duplicate shot indices {sorted(indices)}")
+    for i, entry in enumerate(record["provenance"]):
+        _check(entry, f"{where}: provenance[{i}]", {"step": str, "time": str, "urd_version": str, "parameters": dict})
+    if "ingest" in record:
+        ingest = _check(record["ingest"], f"{where}: ingest", {"time": str, "ok": bool, "options": dict,
+                                                              "angles_deg": list, "aligned": list},
+                        {"alignment": (list, str), "error": str, "shot_hashes": list})
+        _check_numbers(ingest["angles_deg"], f"{where}: ingest.angles_deg")
+        for i, entry in enumerate(ingest["aligned"]):
+            _check_file(entry, f"{where}: ingest.aligned[{i}]", base)
+        if ingest["ok"] and len(ingest["aligned"]) < 3:
+            raise ManifestError(f"{where}: ingest.aligned: expected at least 3 aligned shots, got {len(ingest['aligned'])}")
+        if not ingest["ok"] and "error" not in ingest:
+            raise ManifestError(f"{where}: ingest: missing field 'error' of a failed ingest")
+    for method, entry in record.get("results", {}).items():
+        _check(entry, f"{where}: results.{method}", {"time": str, "method": str, "files": list},
+               {"angles_deg": list, "parameters": dict, "truth_metrics": (dict, type(None))})
+        for i, f in enumerate(entry["files"]):
+            _check_file(f, f"{where}: results.{method}.files[{i}]", base)
+    if "calibration" in record:
+        calib = _check(record["calibration"], f"{where}: calibration", {"time": str, "applied": bool, "errors_deg": list,
+                                                                        "uncertainty_deg": list})
+        _check_numbers(calib["errors_deg"], f"{where}: calibration.errors_deg")
+    return record
+
+
+def validate_dataset(record: Any, where: str) -> dict:
+    """Check a dataset manifest; ManifestError naming file and field."""
+    _check(record, where, {"schema": str, "schema_version": int, "created": str, "urd_version": str},
+           {"description": str})
+    _check_schema(record, where, "urd.dataset")
+    return record
+
+
+def validate_calibration(record: Any, where: str) -> dict:
+    """Check a calibration record (``calibration.json``); ManifestError naming file and field."""
+    fields = {"schema": str, "schema_version": int, "time": str, "offset_deg": NUMBER, "uncertainty_deg": NUMBER,
+              "target_angle_deg": NUMBER, "history": list}
+    _check(record, where, fields, {"modulation": NUMBER, "sweep": str, "residual_rms": NUMBER})
+    _check_schema(record, where, "urd.calibration")
+    for i, old in enumerate(record["history"]):
+        _check(old, f"{where}: history[{i}]", {"time": str, "offset_deg": NUMBER})
+    return record
 
 
 def provenance(step: str, parameters: dict) -> dict:
@@ -187,26 +268,93 @@ def provenance(step: str, parameters: dict) -> dict:
     return {"step": step, "time": now_iso(), "urd_version": __version__, "parameters": parameters}
 
 
-def new_scene_manifest(name: str, source: str, capture: dict) -> dict:
-    """An empty scene manifest (no shots yet)."""
-    return {
-        "schema": "urd.scene",
-        "schema_version": SCHEMA_VERSION,
-        "name": name,
-        "created": now_iso(),
-        "source": source,
-        "capture": capture,
-        "shots": [],
-        "provenance": [],
-    }
+# ---------------------------------------------------------------- shots and status
+
+
+@dataclasses.dataclass(frozen=True)
+class Shot:
+    """One shot of a scene. Angles in degrees (image-plane convention, see README)."""
+
+    index: int
+    file: str
+    size: int
+    sha256: str
+    time: str
+    angle_commanded_deg: float
+    angle_measured_deg: float | None = None
+    angle_calibrated_deg: float | None = None
+    stage_position_deg: float | None = None
+    camera: dict | None = None
+
+    @property
+    def angle_deg(self) -> float:
+        """Best known polarizer angle: calibrated, else measured, else commanded (deg)."""
+        for angle in (self.angle_calibrated_deg, self.angle_measured_deg, self.angle_commanded_deg):
+            if angle is not None:
+                return float(angle)
+        raise AssertionError("a shot always has a commanded angle")
+
+    def record(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneStatus:
+    """Where a scene stands. ``state``: broken, incomplete, captured, alignment failed, ingested."""
+
+    name: str
+    state: str
+    shots: int
+    expected: int
+    angles_deg: list[float]
+    methods: list[str]
+    calibrated: bool = False
+    problem: str | None = None
+
+    def describe(self) -> str:
+        """One line for a terminal."""
+        if self.state == "broken":
+            return f"{self.name}: BROKEN ({self.problem})"
+        angles = ",".join(f"{a:g}" for a in self.angles_deg)
+        parts = [f"{self.name}: {self.shots} shots at {angles} deg"]
+        if self.state == "incomplete":
+            parts.append(f"INCOMPLETE ({self.shots} of {self.expected} shots; resume the capture)")
+        else:
+            parts.append({"captured": "not ingested", "ingested": "aligned",
+                          "alignment failed": "ALIGNMENT FAILED"}[self.state])
+        parts.append("angles calibrated" if self.calibrated else "nominal angles")
+        parts.append(", ".join(self.methods) if self.methods else "no results")
+        return ", ".join(parts)
+
+
+# ---------------------------------------------------------------- hash cache
+
+
+def _cached_hash(scene_dir: Path, path: Path, cache: dict) -> str:
+    """SHA-256 of ``path``, taken from ``cache`` when size and mtime are unchanged."""
+    stat = path.stat()
+    key = path.relative_to(scene_dir).as_posix()
+    hit = cache.get(key)
+    if isinstance(hit, list) and hit[:2] == [stat.st_size, stat.st_mtime_ns]:
+        return hit[2]
+    digest = sha256_file(path)
+    cache[key] = [stat.st_size, stat.st_mtime_ns, digest]
+    return digest
+
+
+# ---------------------------------------------------------------- scene
 
 
 class Scene:
-    """One scene folder of a dataset, addressed by name (``scene_12``)."""
+    """One scene folder and its manifest. Construct through `Dataset` (or ``Scene(path)`` for
+    a scene folder given directly); every change is saved atomically at once."""
 
     def __init__(self, path: Path):
         self.path = Path(path)
         self.name = self.path.name
+        self._record: dict | None = None
+
+    # -- reading
 
     @property
     def manifest_path(self) -> Path:
@@ -215,21 +363,344 @@ class Scene:
     def exists(self) -> bool:
         return self.manifest_path.is_file()
 
+    def _data(self) -> dict:
+        if self._record is None:
+            self._record = validate_scene(read_json(self.manifest_path), str(self.manifest_path), self.path)
+        return self._record
+
+    def reload(self) -> "Scene":
+        """Forget the cached manifest (another process may have changed it)."""
+        self._record = None
+        return self
+
     def load(self, verify: bool = True) -> dict:
-        """Read and validate the scene manifest; with ``verify``, re-hash every listed file."""
-        record = validate_scene(read_json(self.manifest_path), str(self.manifest_path))
+        """A validated copy of the manifest, for inspection; with ``verify`` the RAW shots are
+        checked against their hashes first."""
+        self.reload()
         if verify:
-            verify_files(self.path, record["shots"])
-        return record
+            self.check_files(self._data()["shots"])
+        return copy.deepcopy(self._data())
 
-    def save(self, record: dict) -> None:
-        """Validate and atomically write the scene manifest."""
-        validate_scene(record, str(self.manifest_path))
-        write_json_atomic(self.manifest_path, record)
+    def shots(self) -> list[Shot]:
+        """The recorded shots, in index order."""
+        known = {f.name for f in dataclasses.fields(Shot)}
+        return [Shot(**{k: v for k, v in s.items() if k in known}) for s in sorted(self._data()["shots"], key=lambda s: s["index"])]
 
-    def shot_paths(self, record: dict) -> list[Path]:
-        """Absolute paths of the RAW shots, in shot order."""
-        return [self.path / s["file"] for s in sorted(record["shots"], key=lambda s: s["index"])]
+    def angles_deg(self) -> list[float]:
+        """Best known polarizer angle of each shot (deg): calibrated, else measured, else commanded."""
+        return [shot.angle_deg for shot in self.shots()]
+
+    def uncalibrated_angles_deg(self) -> list[float]:
+        """Each shot's measured, else commanded, angle (deg): the base of a calibration."""
+        return [dataclasses.replace(s, angle_calibrated_deg=None).angle_deg for s in self.shots()]
+
+    def capture_angles_deg(self) -> list[float] | None:
+        """The angles the capture plan asked for (deg), or None for ingested RAW folders."""
+        angles = self._data()["capture"].get("angles_deg")
+        return None if angles is None else [float(a) for a in angles]
+
+    def capture_settings(self) -> dict:
+        """Offset and tolerance a capture ran with (deg), for resuming it the same way."""
+        capture = self._data()["capture"]
+        return {"offset_deg": float(capture.get("offset_deg", 0.0)), "tolerance_deg": float(capture.get("tolerance_deg", 0.5))}
+
+    def is_complete(self) -> bool:
+        """True when every planned shot was taken (always for ingested RAW folders)."""
+        return bool(self._data()["capture"].get("complete", True))
+
+    def source(self) -> str:
+        return self._data()["source"]
+
+    def raw_paths(self) -> list[Path]:
+        """Absolute paths of the RAW shots, in shot order (confined to the scene folder)."""
+        return [confined_path(self.path, s.file, str(self.manifest_path)) for s in self.shots()]
+
+    def raw_hashes(self) -> set[str]:
+        """Content hashes of the RAW files this scene holds (or was ingested from)."""
+        data = self._data()
+        return {s["sha256"] for s in data["shots"]} | set(data.get("ingest", {}).get("shot_hashes", []))
+
+    def ingest(self) -> dict | None:
+        """A copy of the ingest record (ok, error, options, alignment, aligned files), or None."""
+        return copy.deepcopy(self._data().get("ingest"))
+
+    def is_ingested(self) -> bool:
+        return "ingest" in self._data()
+
+    def results(self) -> dict[str, dict]:
+        """Copies of the result records by method."""
+        return copy.deepcopy(self._data().get("results", {}))
+
+    def result_paths(self, method: str) -> dict[str, Path]:
+        """Files of a method's results by name (``R.tiff`` → path), hash-verified."""
+        entry = self._data().get("results", {}).get(method)
+        if entry is None:
+            raise DatasetError(f"{self.name} has no results of {method!r} (results: {sorted(self._data().get('results', {}))})")
+        self.check_files(entry["files"])
+        return {Path(f["file"]).name: confined_path(self.path, f["file"], str(self.manifest_path)) for f in entry["files"]}
+
+    def shot_calibration(self) -> dict | None:
+        """A copy of the per-shot calibration record, or None."""
+        return copy.deepcopy(self._data().get("calibration"))
+
+    def provenance(self) -> list[dict]:
+        return copy.deepcopy(self._data()["provenance"])
+
+    def truth_dir(self) -> Path:
+        """Folder of the virtual camera's ground truth (may not exist)."""
+        return self.path / "truth"
+
+    def results_dir(self, method: str) -> Path:
+        return self.path / "results" / method
+
+    def lock(self) -> contextlib.AbstractContextManager:
+        """The write lock of the dataset holding this scene (see `Dataset.lock`)."""
+        for root in (self.path.parent, self.path.parent.parent):
+            if (root / DATASET_MANIFEST).is_file():
+                return Dataset(root).lock()
+        raise DatasetError(f"{self.path} is not inside an urd dataset (no {DATASET_MANIFEST} above it)")
+
+    def status(self) -> SceneStatus:
+        """Where the scene stands; a scene whose manifest cannot be read is 'broken'."""
+        try:
+            data = self._data()
+        except (ManifestError, OSError) as exc:
+            return SceneStatus(self.name, "broken", 0, 0, [], [], problem=str(exc))
+        shots = self.shots()
+        planned = self.capture_angles_deg()
+        expected = len(planned) if planned else len(shots)
+        if not self.is_complete():
+            state = "incomplete"
+        elif "ingest" not in data:
+            state = "captured"
+        else:
+            state = "ingested" if data["ingest"]["ok"] else "alignment failed"
+        calibrated = bool(data.get("calibration", {}).get("applied"))
+        return SceneStatus(self.name, state, len(shots), expected, [s.angle_commanded_deg for s in shots],
+                           sorted(data.get("results", {})), calibrated)
+
+    # -- integrity
+
+    def check_files(self, records: list[dict]) -> None:
+        """Every listed file exists inside the scene with its recorded size and SHA-256
+        (unchanged files are recognized by size and mtime); ManifestError otherwise."""
+        cache_path = self.path / HASH_CACHE
+        try:
+            cache = json.loads(cache_path.read_text())
+        except (OSError, ValueError):
+            cache = {}
+        cache = cache if isinstance(cache, dict) else {}
+        before = dict(cache)
+        for rec in records:
+            path = confined_path(self.path, rec["file"], str(self.manifest_path))
+            if not path.is_file():
+                raise ManifestError(f"{path}: listed in the manifest but missing")
+            if path.stat().st_size != rec["size"] or _cached_hash(self.path, path, cache) != rec["sha256"]:
+                raise ManifestError(f"{path}: SHA-256 or size does not match the manifest (corrupted or changed); "
+                                    f"run 'urd verify' to check the whole dataset")
+        if cache != before:
+            with contextlib.suppress(DatasetError):            # a read-only dataset still verifies
+                write_json_atomic(cache_path, cache)
+
+    def verify(self) -> list[str]:
+        """Problems of this scene (empty when every listed file is present and intact)."""
+        try:
+            data = self.reload()._data()
+        except (ManifestError, OSError) as exc:
+            return [str(exc)]
+        groups = [data["shots"], data.get("ingest", {}).get("aligned", [])]
+        groups += [entry["files"] for entry in data.get("results", {}).values()]
+        problems = []
+        for records in groups:
+            for rec in records:
+                try:
+                    self.check_files([rec])
+                except ManifestError as exc:
+                    problems.append(str(exc))
+        return problems
+
+    def load_stack(self) -> tuple["Any", list[float]]:
+        """The aligned stack (N, H, W, 3) float32 linear, hash-verified, and its best known
+        polarizer angles (deg)."""
+        import numpy as np
+        import tifffile
+
+        ingest = self._data().get("ingest")
+        if not self.is_complete():
+            raise DatasetError(f"{self.name} is an incomplete capture ({len(self.shots())} of "
+                               f"{len(self.capture_angles_deg() or [])} shots); resume it with urd capture --scene {self.name}")
+        if not ingest:
+            raise DatasetError(f"{self.name} is not ingested yet; run: urd ingest {self.path}")
+        if not ingest["ok"]:
+            raise DatasetError(f"{self.name}: {ingest['error']}")
+        self.check_files(ingest["aligned"])
+        paths = [confined_path(self.path, f["file"], str(self.manifest_path)) for f in ingest["aligned"]]
+        first = tifffile.imread(paths[0])
+        images = np.empty((len(paths),) + first.shape, np.float32)     # filled in place: no 2x peak
+        images[0] = first / np.float32(65535.0)
+        del first
+        for i, path in enumerate(paths[1:], start=1):
+            images[i] = tifffile.imread(path) / np.float32(65535.0)
+        return images, self.angles_deg()
+
+    # -- writing
+
+    def _save(self) -> None:
+        validate_scene(self._record, str(self.manifest_path), self.path)
+        write_json_atomic(self.manifest_path, self._record)
+
+    def file_record(self, path: Path) -> dict:
+        """Size and SHA-256 of a file inside the scene, with its path relative to the scene."""
+        path = Path(path)
+        return {"file": path.relative_to(self.path).as_posix(), "size": path.stat().st_size, "sha256": sha256_file(path)}
+
+    def add_shot(self, index: int, path: Path, angle_commanded_deg: float, time: str | None = None,
+                 angle_measured_deg: float | None = None, stage_position_deg: float | None = None,
+                 camera: dict | None = None) -> Shot:
+        """Record a shot whose file is already in place inside the scene (hashed here)."""
+        data = self._data()
+        if any(s["index"] == index for s in data["shots"]):
+            raise DatasetError(f"{self.name} already has shot {index}")
+        shot = Shot(index=index, angle_commanded_deg=float(angle_commanded_deg), angle_measured_deg=angle_measured_deg,
+                    angle_calibrated_deg=None, stage_position_deg=stage_position_deg, time=time or now_iso(),
+                    camera=camera, **self.file_record(path))
+        data["shots"].append(shot.record())
+        data["shots"].sort(key=lambda s: s["index"])
+        self._save()
+        return shot
+
+    def mark_complete(self, parameters: dict) -> None:
+        """The capture has taken every planned shot."""
+        data = self._data()
+        data["capture"].update(complete=True, finished=now_iso())
+        data["provenance"].append(provenance("capture", parameters))
+        self._save()
+
+    def note(self, step: str, parameters: dict) -> None:
+        """Append a provenance entry and save."""
+        self._data()["provenance"].append(provenance(step, parameters))
+        self._save()
+
+    @contextlib.contextmanager
+    def staging(self) -> Iterator[Path]:
+        """A hidden folder inside the scene for outputs being computed; removed afterwards
+        (files swapped in with `set_ingest` / `add_result` are kept)."""
+        folder = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=self.path))
+        try:
+            yield folder
+        finally:
+            shutil.rmtree(folder, ignore_errors=True)
+
+    def _swap_in(self, staged: dict[str, Path], set_files) -> list[dict]:
+        """Move staged files to their final names (relative to the scene) without the manifest
+        ever naming a missing file: first the manifest names the staged files, then each final
+        name is replaced by a hard link of its staged file, then the manifest names the final
+        files and the staged names go. ``set_files(records)`` stores the file records."""
+        staged_records = [self.file_record(path) for path in staged.values()]
+        set_files(staged_records)
+        self._save()
+        final_records = []
+        for (relative, path), rec in zip(staged.items(), staged_records):
+            final = confined_path(self.path, relative, "output")
+            final.parent.mkdir(parents=True, exist_ok=True)
+            link = final.with_name(f".{final.name}.{os.getpid()}.link")
+            link.unlink(missing_ok=True)
+            os.link(path, link)
+            os.replace(link, final)
+            final_records.append({**rec, "file": relative})
+        set_files(final_records)
+        self._save()
+        for path in staged.values():
+            path.unlink(missing_ok=True)
+        return final_records
+
+    def set_ingest(self, ok: bool, options: dict, alignment: list | str, staged: dict[str, Path],
+                   error: str | None = None, shot_hashes: list[str] | None = None) -> None:
+        """Record an ingest: staged aligned files (final name → staged path) are swapped in;
+        aligned files of an earlier ingest that are no longer named are removed."""
+        data = self._data()
+        old = {f["file"] for f in data.get("ingest", {}).get("aligned", [])}
+        record = {"time": now_iso(), "ok": ok, "options": options, "angles_deg": self.angles_deg(),
+                  "alignment": alignment, "aligned": []}
+        if error is not None:
+            record["error"] = error
+        if shot_hashes:
+            record["shot_hashes"] = shot_hashes
+        if ok:
+            def set_files(files: list[dict]) -> None:
+                data["ingest"] = {**record, "aligned": files}
+
+            kept = {f["file"] for f in self._swap_in(staged, set_files)}
+        else:
+            data["ingest"] = record
+            kept = set()
+        data["provenance"].append(provenance("ingest", options))
+        self._save()
+        for name in sorted(old - kept):
+            (self.path / name).unlink(missing_ok=True)
+
+    def add_result(self, method: str, staged: dict[str, Path], entry: dict, replace: bool = False) -> dict:
+        """Record a method's results: staged files (final name → staged path) are swapped in
+        over the previous results (only with ``replace``); ``entry`` holds the method's
+        description (parameters, weights, metrics). Returns the stored entry."""
+        data = self._data()
+        results = data.setdefault("results", {})
+        if method in results and not replace:
+            raise DatasetError(f"{self.results_dir(method)} exists; pass --force to replace these results")
+        old = {f["file"] for f in results.get(method, {}).get("files", [])}
+        base = {**entry, "time": now_iso(), "method": method}
+
+        def set_files(files: list[dict]) -> None:
+            results[method] = {**base, "files": files}
+
+        kept = {f["file"] for f in self._swap_in(staged, set_files)}
+        data["provenance"].append(provenance(f"separate {method}", entry.get("parameters", {})))
+        self._save()
+        for name in sorted(old - kept):
+            (self.path / name).unlink(missing_ok=True)
+        return copy.deepcopy(results[method])
+
+    def set_shot_calibration(self, record: dict, calibrated_deg: list[float] | None) -> None:
+        """Store per-shot angle errors; with ``calibrated_deg`` also each shot's calibrated angle."""
+        data = self._data()
+        data["calibration"] = {"time": now_iso(), "applied": calibrated_deg is not None, **record}
+        if calibrated_deg is not None:
+            for shot, angle in zip(sorted(data["shots"], key=lambda s: s["index"]), calibrated_deg):
+                shot["angle_calibrated_deg"] = round(float(angle), 4)
+        data["provenance"].append(provenance("calibrate shots", {"apply": calibrated_deg is not None}))
+        self._save()
+
+    def remove_stale(self) -> list[Path]:
+        """Remove what killed runs left: staging folders and temporary files no manifest names.
+        Returns what was removed. Call with the dataset's lock held."""
+        removed = []
+        for path in self.path.glob(f"{STAGING_PREFIX}*"):
+            shutil.rmtree(path, ignore_errors=True)
+            removed.append(path)
+        named = {s["file"] for s in self._data()["shots"]} if self.exists() else set()
+        for folder in (self.path / "raw", self.path / "aligned"):
+            for path in folder.glob(".*") if folder.is_dir() else []:
+                if path.is_file() and path.relative_to(self.path).as_posix() not in named:
+                    path.unlink()
+                    removed.append(path)
+        return removed
+
+    def discard_if_empty(self) -> bool:
+        """Remove the scene folder if no shot was ever recorded in it (a capture that failed
+        before its first shot); True if removed."""
+        if self.exists() and self._data()["shots"]:
+            return False
+        leftovers = [p for p in self.path.rglob("*") if p.is_file() and p.name != SCENE_MANIFEST and not p.name.startswith(".")]
+        if leftovers:
+            return False
+        shutil.rmtree(self.path, ignore_errors=True)
+        return True
+
+
+def new_scene_record(name: str, source: str, capture: dict) -> dict:
+    """An empty scene manifest (no shots yet)."""
+    return {"schema": "urd.scene", "schema_version": SCHEMA_VERSION, "name": name, "created": now_iso(),
+            "source": source, "capture": capture, "shots": [], "provenance": []}
 
 
 def default_root(cwd: Path = Path(".")) -> Path:
@@ -239,8 +710,13 @@ def default_root(cwd: Path = Path(".")) -> Path:
     return cwd if (cwd / DATASET_MANIFEST).is_file() else cwd / "dataset"
 
 
+# ---------------------------------------------------------------- dataset
+
+_HELD: dict[Path, int] = {}          # lock depth per dataset held by this process
+
+
 class Dataset:
-    """A dataset root: ``dataset.json`` plus scene folders."""
+    """A dataset root: ``dataset.json``, ``calibration.json`` and scene folders."""
 
     def __init__(self, root: Path):
         self.root = Path(root)
@@ -261,17 +737,9 @@ class Dataset:
         if ds.manifest_path.exists():
             validate_dataset(read_json(ds.manifest_path), str(ds.manifest_path))
         else:
-            write_json_atomic(
-                ds.manifest_path,
-                {
-                    "schema": "urd.dataset",
-                    "schema_version": SCHEMA_VERSION,
-                    "created": now_iso(),
-                    "urd_version": __version__,
-                    "description": description,
-                },
-                overwrite=False,
-            )
+            write_json_atomic(ds.manifest_path, {"schema": "urd.dataset", "schema_version": SCHEMA_VERSION,
+                                                 "created": now_iso(), "urd_version": __version__,
+                                                 "description": description}, overwrite=False)
         return ds
 
     @classmethod
@@ -283,17 +751,59 @@ class Dataset:
         validate_dataset(read_json(ds.manifest_path), str(ds.manifest_path))
         return ds
 
+    @contextlib.contextmanager
+    def lock(self) -> Iterator[None]:
+        """Hold the dataset's write lock; DatasetBusyError naming the holder's pid when another
+        process has it. Re-entrant within a process."""
+        key = self.root.resolve()
+        if _HELD.get(key):
+            _HELD[key] += 1
+            try:
+                yield
+            finally:
+                _HELD[key] -= 1
+            return
+        path = self.root / LOCK_FILE
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise DatasetError(f"cannot lock dataset {self.root}: {exc.strerror or exc}") from exc
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "unknown"
+                raise DatasetBusyError(f"dataset {self.root} busy (held by pid {holder}); "
+                                       "wait for that command to finish") from None
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+            _HELD[key] = 1
+            try:
+                yield
+            finally:
+                del _HELD[key]
+                os.ftruncate(fd, 0)
+        finally:
+            os.close(fd)
+
     def scene_names(self) -> list[str]:
-        """Names of the scenes present, sorted by number."""
+        """Names of the scene folders present (readable or not), sorted by number."""
         names = [p.name for p in self.root.iterdir() if p.is_dir() and SCENE_NAME.match(p.name)]
         return sorted(names, key=lambda n: int(SCENE_NAME.match(n).group(1)))
 
+    def scenes(self) -> list[Scene]:
+        """Every scene folder; a broken one reports itself through `Scene.status`."""
+        return [Scene(self.root / name) for name in self.scene_names()]
+
     def scene(self, name: str) -> Scene:
-        """The scene called ``name``; DatasetError if it has no manifest."""
-        scene = Scene(self.root / name)
-        if not scene.exists():
+        """The scene called ``name``; DatasetError if there is no such folder or no manifest."""
+        path = self.root / name
+        if not SCENE_NAME.match(name) or not path.is_dir():
             known = ", ".join(self.scene_names()) or "none"
             raise DatasetError(f"no scene '{name}' in {self.root} (scenes: {known})")
+        scene = Scene(path)
+        if not scene.exists():
+            raise DatasetError(f"scene folder {path} has no {SCENE_MANIFEST} (an empty or broken scene)")
         return scene
 
     def next_scene_name(self) -> str:
@@ -301,21 +811,97 @@ class Dataset:
         numbers = [int(SCENE_NAME.match(n).group(1)) for n in self.scene_names()]
         return f"scene_{(max(numbers, default=0) + 1):02d}"
 
-    def new_scene(self, name: str | None = None) -> Scene:
-        """Create an empty scene folder; never reuses an existing folder."""
+    def new_scene(self, source: str, capture: dict, name: str | None = None) -> Scene:
+        """Create a scene folder with its manifest; never reuses an existing folder."""
         name = name or self.next_scene_name()
         if not SCENE_NAME.match(name):
             raise DatasetError(f"expected a scene name like scene_01, got {name!r}")
-        path = self.root / name
-        try:
-            path.mkdir()
-        except FileExistsError as exc:
-            raise DatasetError(f"scene {path} already exists; refusing to overwrite it") from exc
-        except OSError as exc:
-            raise DatasetError(f"cannot create scene folder {path}: {exc.strerror or exc}") from exc
-        return Scene(path)
+        return _create_scene(self.root / name, source, capture)
 
-    def read_calibration(self) -> dict | None:
-        """The dataset's polarizer calibration record, or None when not measured."""
-        path = self.root / "calibration.json"
-        return read_json(path) if path.is_file() else None
+    def adopt_scene(self, staged: Path) -> Scene:
+        """Move a scene assembled in a staging folder (see `staged_scene`) into place under the
+        next free name."""
+        name = self.next_scene_name()
+        scene = Scene(staged)
+        scene._data()["name"] = name
+        scene._save()
+        os.rename(staged, self.root / name)
+        return Scene(self.root / name)
+
+    @contextlib.contextmanager
+    def staged_scene(self, source: str, capture: dict) -> Iterator[Scene]:
+        """A new scene assembled in a hidden folder of the dataset; removed unless adopted."""
+        folder = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=self.root))
+        try:
+            yield _create_scene(folder, source, capture, exist_ok=True)
+        finally:
+            shutil.rmtree(folder, ignore_errors=True)
+
+    def remove_stale(self) -> None:
+        """Remove staging folders left by killed runs (call with the lock held)."""
+        for path in self.root.glob(f"{STAGING_PREFIX}*"):
+            shutil.rmtree(path, ignore_errors=True)
+
+    def shot_index(self) -> dict[str, str]:
+        """Content hash of every RAW shot already in the dataset → its scene's name."""
+        index = {}
+        for scene in self.scenes():
+            with contextlib.suppress(ManifestError, OSError):
+                index.update({digest: scene.name for digest in scene.raw_hashes()})
+        return index
+
+    def latest_incomplete(self) -> Scene | None:
+        """The newest scene whose capture stopped before its last shot, if any."""
+        for scene in reversed(self.scenes()):
+            if scene.status().state == "incomplete":
+                return scene
+        return None
+
+    # -- calibration
+
+    @property
+    def calibration_path(self) -> Path:
+        return self.root / CALIBRATION_FILE
+
+    def calibration(self) -> dict | None:
+        """The validated polarizer calibration record, or None when not measured."""
+        if not self.calibration_path.is_file():
+            return None
+        return validate_calibration(read_json(self.calibration_path), str(self.calibration_path))
+
+    def offset_deg(self) -> float:
+        """The polarizer's mounting offset (deg), 0 when not calibrated."""
+        record = self.calibration()
+        return float(record["offset_deg"]) if record else 0.0
+
+    def save_calibration(self, fit: dict, target_angle_deg: float, sweep: Scene) -> dict:
+        """Write ``calibration.json``; an earlier calibration moves into its ``history``."""
+        old = self.calibration()
+        record = {"schema": "urd.calibration", "schema_version": SCHEMA_VERSION, "time": now_iso(), **fit,
+                  "target_angle_deg": float(target_angle_deg), "sweep": sweep.path.relative_to(self.root).as_posix(),
+                  "history": (old["history"] + [{k: v for k, v in old.items() if k != "history"}]) if old else []}
+        validate_calibration(record, str(self.calibration_path))
+        write_json_atomic(self.calibration_path, record)
+        return record
+
+    def new_sweep(self, capture: dict) -> Scene:
+        """A new calibration sweep scene under ``calibration/sweep_NN``."""
+        folder = self.root / "calibration"
+        folder.mkdir(exist_ok=True)
+        n = 1
+        while (folder / f"sweep_{n:02d}").exists():
+            n += 1
+        return _create_scene(folder / f"sweep_{n:02d}", "calibration sweep", capture)
+
+
+def _create_scene(path: Path, source: str, capture: dict, exist_ok: bool = False) -> Scene:
+    try:
+        path.mkdir(exist_ok=exist_ok)
+    except FileExistsError as exc:
+        raise DatasetError(f"scene {path} already exists; refusing to overwrite it") from exc
+    except OSError as exc:
+        raise DatasetError(f"cannot create scene folder {path}: {exc.strerror or exc}") from exc
+    scene = Scene(path)
+    scene._record = new_scene_record(path.name, source, capture)
+    scene._save()
+    return scene

@@ -39,3 +39,11 @@ class CalibrationError(UrdError):
 
 class WeightsError(UrdError):
     """A weights file is missing, corrupt, or does not fit the model."""
+
+
+class DatasetBusyError(DatasetError):
+    """Another process holds the dataset's write lock."""
+
+
+class CaptureInterrupted(UrdError):
+    """A capture was stopped by the user (Ctrl-C); its completed shots are kept."""

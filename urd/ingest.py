@@ -1,35 +1,38 @@
 """Ingest: RAW shots → dataset scenes of aligned, linear polarization stacks.
 
-Two entry points:
+`ingest` is the workflow of ``urd ingest``; it takes
 
-* `ingest_folder` groups a folder of RAW files into new scenes (by capture time and count,
-  angles in the order given) and processes each; a scene is assembled in a hidden folder and
-  renamed into place only when complete, so a failed scene leaves nothing behind.
-* `ingest_scene` processes a scene captured by ``urd capture`` in place.
+* a folder of RAW files: grouped into new scenes (by capture time and count, angles in the
+  order given); files already in the dataset (same SHA-256) are reported and skipped, so
+  ingesting a folder twice, or a scene's own ``raw/``, makes no duplicate; a file that cannot
+  be decoded is reported by name;
+* a captured scene, or a whole dataset: every complete scene not yet ingested, in place;
+  incomplete captures are reported with the command that resumes them;
+* polarization-camera frames (``mosaic``): one scene per frame.
 
-Processing decodes every shot to linear RGB (`urd.raw.decode`), aligns shots 1.. to shot 0
-with ECC (`urd.align`), and writes ``aligned/shot_NN.tiff``: 16-bit linear RGB, value/65535
-being the decoded linear value. A scene whose alignment fails is flagged in its manifest and
-gets no aligned stack.
+Processing decodes every shot to linear RGB (`urd.raw.decode`), aligns shots 1.. to shot 0 with
+ECC (`urd.align`), and writes ``aligned/shot_NN.tiff``: 16-bit linear RGB, value/65535 being the
+decoded linear value. Outputs are staged and swapped in only on success (`Scene.set_ingest`).
+New scenes are assembled in a hidden folder and moved into place only when complete. A scene
+whose alignment fails is flagged in its manifest and gets no aligned stack.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import os
+import datetime as _dt
 import shutil
-import tempfile
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import tifffile
 
 from urd import raw as rawio
 from urd.align import Motion, align, apply_warp
-from urd.dataset import (Dataset, Scene, atomic_path, file_record, new_scene_manifest, now_iso, provenance,
-                         sha256_file)
+from urd.dataset import Dataset, Scene, atomic_path, sha256_file
 from urd.errors import AlignmentError, DatasetError, RawFormatError, UrdError
+from urd.images import IMAGE_SUFFIXES, Transfer, read_raw_codes, srgb_to_linear
+from urd.progress import Progress
 
 
 @dataclasses.dataclass
@@ -49,11 +52,25 @@ class IngestOptions:
 
 @dataclasses.dataclass
 class SceneOutcome:
-    """What happened to one scene: its name when written, and an error when not (or flagged)."""
+    """What happened to one scene or file group: ``state`` is ingested, failed (``error``
+    says why), skipped (already ingested: ``error`` says where) or incomplete."""
 
     name: str | None
     files: list[Path]
     error: str | None = None
+    state: str = "ingested"
+
+
+@dataclasses.dataclass
+class IngestReport:
+    """Outcomes of one ``urd ingest`` run and the files it ignored (not RAW by name)."""
+
+    outcomes: list[SceneOutcome]
+    ignored: list[Path]
+
+    @property
+    def failed(self) -> list[SceneOutcome]:
+        return [o for o in self.outcomes if o.state == "failed"]
 
 
 def find_raw_files(folder: Path) -> tuple[list[Path], list[Path]]:
@@ -71,12 +88,21 @@ def capture_time(path: Path) -> float:
     try:
         stamp = rawio.metadata(path)["time"]
         if stamp:
-            import datetime as _dt
-
             return _dt.datetime.fromisoformat(stamp).timestamp()
     except RawFormatError:
         pass
     return path.stat().st_mtime
+
+
+def unreadable_reason(path: Path) -> str | None:
+    """Why a RAW-named file cannot be ingested (empty, corrupt, not RAW), or None if it can."""
+    if path.stat().st_size == 0:
+        return "empty file"
+    try:
+        rawio.metadata(path)
+    except RawFormatError as exc:
+        return str(exc).removeprefix(f"{path}: ")
+    return None
 
 
 def group_shots(files: list[Path], count: int, gap_s: float) -> tuple[list[list[Path]], list[SceneOutcome]]:
@@ -99,7 +125,8 @@ def group_shots(files: list[Path], count: int, gap_s: float) -> tuple[list[list[
     for run in runs:
         if len(run) % count:
             failures.append(SceneOutcome(None, run, f"wrong shot count: {len(run)} shots taken together "
-                                                    f"({', '.join(p.name for p in run)}) is not a multiple of {count} angles"))
+                                                    f"({', '.join(p.name for p in run)}) is not a multiple of {count} angles",
+                                         "failed"))
             continue
         groups += [run[i : i + count] for i in range(0, len(run), count)]
     return groups, failures
@@ -112,39 +139,21 @@ def write_aligned(path: Path, image: np.ndarray) -> None:
         tifffile.imwrite(tmp, data, photometric="rgb")
 
 
-def read_aligned(path: Path) -> np.ndarray:
-    """Read an aligned 16-bit TIFF back to float32 linear."""
-    return tifffile.imread(path).astype(np.float32) / 65535.0
-
-
-def shot_angles(record: dict) -> list[float]:
-    """Best known polarizer angle of each shot (deg): calibrated, else measured, else commanded."""
-    out = []
-    for shot in sorted(record["shots"], key=lambda s: s["index"]):
-        for key in ("angle_calibrated_deg", "angle_measured_deg", "angle_commanded_deg"):
-            if shot.get(key) is not None:
-                out.append(float(shot[key]))
-                break
-    return out
-
-
-def process_scene(scene: Scene, record: dict, opts: IngestOptions, progress: Callable[[str], None] | None = None) -> dict:
-    """Decode and align the shots of ``scene``; write ``aligned/`` and the ``ingest`` record.
+def process_scene(scene: Scene, opts: IngestOptions, progress: Progress | None = None) -> None:
+    """Decode and align the shots of ``scene``; stage ``aligned/`` and record the ingest.
 
     Raises RawFormatError for an undecodable shot, AlignmentError for mixed sizes; a failed
-    alignment is recorded (``ingest.ok`` false) with no aligned stack written.
+    alignment is recorded (ok false) with no aligned stack.
     """
-    paths = scene.shot_paths(record)
-    aligned_dir = scene.path / "aligned"
-    if aligned_dir.exists():
-        if not opts.redo:
-            raise DatasetError(f"{scene.path} is already ingested; pass --redo to decode and align it again")
-        shutil.rmtree(aligned_dir)
+    paths = scene.raw_paths()
+    label = f"ingest {scene.name}"
+    if progress:
+        progress(0, len(paths), label)
     reference = rawio.decode(paths[0], opts.half_size)
     results, images = [], {0: reference}
     for i, path in enumerate(paths[1:], start=1):
         if progress:
-            progress(f"{scene.name}: aligning {path.name}")
+            progress(i, len(paths), label)
         image = rawio.decode(path, opts.half_size)
         if image.shape != reference.shape:
             raise AlignmentError(f"{path}: size {image.shape[1]}×{image.shape[0]} differs from "
@@ -153,150 +162,182 @@ def process_scene(scene: Scene, record: dict, opts: IngestOptions, progress: Cal
         results.append(result)
         if result.ok:
             images[i] = apply_warp(image, result.warp)
-    ok = all(r.ok for r in results)
-    ingest = {"time": now_iso(), "ok": ok, "options": opts.record(), "angles_deg": shot_angles(record),
-              "alignment": [{"shot": 0, "reference": True}] + [{"shot": i, **r.record()} for i, r in enumerate(results, 1)],
-              "aligned": []}
-    if ok:
-        aligned_dir.mkdir()
-        for i in range(len(paths)):
-            path = aligned_dir / f"shot_{i:02d}.tiff"
-            write_aligned(path, images[i])
-            ingest["aligned"].append(file_record(scene.path, path))
-    else:
+    alignment = [{"shot": 0, "reference": True}] + [{"shot": i, **r.record()} for i, r in enumerate(results, 1)]
+    if not all(r.ok for r in results):
         bad = [f"shot {i}: {r.reason}" for i, r in enumerate(results, 1) if not r.ok]
-        ingest["error"] = "alignment failed, no aligned stack written (" + "; ".join(bad) + ")"
-    record["ingest"] = ingest
-    record["provenance"].append(provenance("ingest", opts.record()))
-    scene.save(record)
-    return record
+        scene.set_ingest(False, opts.record(), alignment, {},
+                         error="alignment failed, no aligned stack written (" + "; ".join(bad) + ")")
+        return
+    with scene.staging() as staging:
+        staged = {}
+        for i in range(len(paths)):
+            staged[f"aligned/shot_{i:02d}.tiff"] = staging / f"shot_{i:02d}.tiff"
+            write_aligned(staged[f"aligned/shot_{i:02d}.tiff"], images.pop(i))
+        scene.set_ingest(True, opts.record(), alignment, staged)
+    if progress:
+        progress(len(paths), len(paths), label)
 
 
-def ingest_scene(scene: Scene, opts: IngestOptions, progress=None) -> SceneOutcome:
-    """Process a captured scene in place."""
-    record = scene.load(verify=True)
-    record = process_scene(scene, record, opts, progress)
-    return SceneOutcome(scene.name, scene.shot_paths(record), None if record["ingest"]["ok"] else record["ingest"]["error"])
-
-
-def ingest_group(ds: Dataset, files: list[Path], opts: IngestOptions, progress=None) -> SceneOutcome:
-    """Make a new scene from RAW files taken at ``opts.angles_deg``; nothing is left on failure."""
-    tmp = Path(tempfile.mkdtemp(prefix=".ingest-", dir=ds.root))
-    copies: dict[str, str] = {}
+def ingest_scene(scene: Scene, opts: IngestOptions, progress: Progress | None = None) -> SceneOutcome:
+    """Process a captured scene in place (not again unless ``opts.redo``)."""
+    status = scene.reload().status()
+    if status.state == "broken":
+        return SceneOutcome(scene.name, [], status.problem, "failed")
+    if status.state == "incomplete":
+        return SceneOutcome(scene.name, [], f"incomplete capture ({status.shots} of {status.expected} shots); "
+                            f"resume it with: urd capture --scene {scene.name} (same --stage and --angles)", "incomplete")
+    if scene.is_ingested() and not opts.redo:
+        return SceneOutcome(scene.name, [], "already ingested (--redo decodes and aligns it again)", "skipped")
     try:
-        scene = Scene(tmp)
-        (tmp / "raw").mkdir()
-        record = new_scene_manifest("pending", "ingest", {"source_files": [str(f) for f in files],
-                                                          "angles_deg": list(opts.angles_deg), "complete": True})
-        for i, (src, angle) in enumerate(zip(files, opts.angles_deg)):
-            meta = rawio.metadata(src)
-            dst = tmp / "raw" / f"shot_{i:02d}_{angle:05.1f}deg{src.suffix.lower()}"
-            copies[str(dst)], copies[dst.name] = str(src), src.name
-            with atomic_path(dst) as part:
-                shutil.copyfile(src, part)
-            if sha256_file(dst) != sha256_file(src):
-                raise DatasetError(f"{src}: copy does not match the source")
-            record["shots"].append({"index": i, "angle_commanded_deg": angle, "angle_measured_deg": None,
-                                    "angle_calibrated_deg": None, "time": meta["time"] or now_iso(),
-                                    **file_record(tmp, dst), "camera": meta})
-        record = process_scene(scene, record, opts, progress)
-        name = ds.next_scene_name()
-        record["name"] = name
-        scene.save(record)
-        os.rename(tmp, ds.root / name)
-        return SceneOutcome(name, files, None if record["ingest"]["ok"] else record["ingest"]["error"])
+        scene.check_files([{"file": s.file, "size": s.size, "sha256": s.sha256} for s in scene.shots()])
+        process_scene(scene, opts, progress)
     except UrdError as exc:
-        shutil.rmtree(tmp, ignore_errors=True)
+        return SceneOutcome(scene.name, [], str(exc), "failed")
+    ingest = scene.ingest()
+    return SceneOutcome(scene.name, scene.raw_paths(), None if ingest["ok"] else ingest["error"],
+                        "ingested" if ingest["ok"] else "failed")
+
+
+def ingest_group(ds: Dataset, files: list[Path], opts: IngestOptions, progress: Progress | None = None) -> SceneOutcome:
+    """Make a new scene from RAW files taken at ``opts.angles_deg``; nothing is left on failure."""
+    try:
+        with ds.staged_scene("ingest", {"source_files": [str(f) for f in files], "angles_deg": list(opts.angles_deg),
+                                        "complete": True}) as staged:
+            (staged.path / "raw").mkdir()
+            for i, (src, angle) in enumerate(zip(files, opts.angles_deg)):
+                meta = rawio.metadata(src)
+                dst = staged.path / "raw" / f"shot_{i:02d}_{angle:05.1f}deg{src.suffix.lower()}"
+                with atomic_path(dst) as part:
+                    shutil.copyfile(src, part)
+                if sha256_file(dst) != sha256_file(src):
+                    raise DatasetError(f"{src}: copy does not match the source")
+                staged.add_shot(i, dst, angle, time=meta["time"], camera=meta)
+            process_scene(staged, opts, progress)
+            ingest = staged.ingest()
+            scene = ds.adopt_scene(staged.path)
+    except UrdError as exc:
         message = str(exc)
-        for copy, source in sorted(copies.items(), key=lambda kv: -len(kv[0])):
-            message = message.replace(copy, source)
-        return SceneOutcome(None, files, message)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+        for i, src in enumerate(files):
+            message = message.replace(f"shot_{i:02d}_{opts.angles_deg[i]:05.1f}deg{src.suffix.lower()}", src.name)
+        return SceneOutcome(None, files, message, "failed")
+    return SceneOutcome(scene.name, files, None if ingest["ok"] else ingest["error"], "ingested" if ingest["ok"] else "failed")
 
 
-def ingest_folder(raw_dir: Path, dataset: Path, opts: IngestOptions, progress=None) -> tuple[list[SceneOutcome], list[Path]]:
-    """Group, decode and align every scene in ``raw_dir`` into ``dataset``.
+def ingest_folder(raw_dir: Path, ds: Dataset, opts: IngestOptions, progress: Progress | None = None) -> IngestReport:
+    """Group, decode and align every new scene in ``raw_dir`` into ``ds``.
 
-    Returns the outcome of every scene (failures included) and the ignored non-RAW files.
+    Files whose content the dataset already holds are skipped (one outcome per scene they
+    are in); unreadable files are named, with the group they belong to.
     """
     raws, ignored = find_raw_files(raw_dir)
     if not raws:
         raise DatasetError(f"{raw_dir}: no RAW files (looked for {', '.join(rawio.RAW_SUFFIXES)})")
-    ds = Dataset.open_or_create(dataset)
-    groups, outcomes = group_shots(raws, len(opts.angles_deg), opts.gap_s)
+    known = ds.shot_index()
+    outcomes, fresh, already = [], [], {}
+    for path in raws:
+        scene = known.get(sha256_file(path))
+        if scene is None:
+            fresh.append(path)
+        else:
+            already.setdefault(scene, []).append(path)
+    for scene, paths in already.items():
+        outcomes.append(SceneOutcome(scene, paths, f"already ingested as {scene}", "skipped"))
+    if not fresh:
+        return IngestReport(outcomes, ignored)
+    unreadable = {path: reason for path in fresh if (reason := unreadable_reason(path))}
+    groups, failures = group_shots(fresh, len(opts.angles_deg), opts.gap_s)
+    for failure in failures:
+        bad = [p for p in failure.files if p in unreadable]
+        if bad:
+            failure.error = "; ".join(f"{p.name} is unreadable ({unreadable[p]})" for p in bad)
+    outcomes += failures
     for files in groups:
+        bad = [p for p in files if p in unreadable]
+        if bad:
+            outcomes.append(SceneOutcome(None, files, "; ".join(f"{p.name} is unreadable ({unreadable[p]})" for p in bad),
+                                         "failed"))
+            continue
         outcomes.append(ingest_group(ds, files, opts, progress))
-        if progress:
-            progress(f"scene done: {outcomes[-1].name or 'failed'}")
-    return outcomes, ignored
+    return IngestReport(outcomes, ignored)
 
 
-def ingest_mosaic(ds: Dataset, path: Path, layout) -> SceneOutcome:
+def ingest_mosaic(ds: Dataset, path: Path, layout, demosaic, transfer: Transfer = Transfer.LINEAR) -> SceneOutcome:
     """Make a new scene from one division-of-focal-plane frame (8/16-bit PNG or TIFF).
 
-    The frame is split into its 0/45/90/135 channels (`urd.mosaic`), which are simultaneous
-    and need no alignment; mono sensors give grey RGB. Values are scaled by the file's bit
-    depth (1.0 = its maximum code).
+    The frame is demosaiced into its 0/45/90/135 channels (`urd.mosaic.demosaic`, the four
+    sites registered to common points), which are simultaneous and need no alignment; mono
+    sensors give grey RGB. 8-bit codes follow ``transfer`` (`urd.images`).
     """
-    import cv2
+    from urd.mosaic import demosaic as run_demosaic
 
-    from urd.mosaic import split_mosaic
-
-    tmp = Path(tempfile.mkdtemp(prefix=".ingest-", dir=ds.root))
+    digest = sha256_file(path)
+    owner = ds.shot_index().get(digest)
+    if owner is not None:
+        return SceneOutcome(owner, [path], f"already ingested as {owner}", "skipped")
     try:
-        data = tifffile.imread(path) if path.suffix.lower() in (".tif", ".tiff") else cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if data is None or data.ndim != 2 or data.dtype not in (np.uint8, np.uint16):
-            raise RawFormatError(f"{path}: expected a single-channel 8- or 16-bit mosaic image")
-        stack, angles = split_mosaic(data, layout)
-        stack = stack / float(np.iinfo(data.dtype).max)
+        data = read_raw_codes(path)
+        if data.ndim != 2 or data.dtype not in (np.uint8, np.uint16):
+            raise RawFormatError(f"{path}: expected a single-channel 8- or 16-bit mosaic image, got {data.dtype} {data.shape}")
+        codes, angles = run_demosaic(data, layout, demosaic)
+        stack = _mosaic_linear(codes, data.dtype, transfer)
         if stack.shape[-1] == 1:
             stack = np.repeat(stack, 3, axis=-1)
-        (tmp / "raw").mkdir()
-        (tmp / "aligned").mkdir()
-        dst = tmp / "raw" / path.name
-        with atomic_path(dst) as part:
-            shutil.copyfile(path, part)
-        record = new_scene_manifest("pending", "ingest", {"source_files": [str(path)], "angles_deg": angles,
-                                                          "mosaic": layout.value, "complete": True})
-        raw_rec = file_record(tmp, dst)
-        aligned = []
-        for i, angle in enumerate(angles):
-            record["shots"].append({"index": i, "angle_commanded_deg": angle, "angle_measured_deg": None,
-                                    "angle_calibrated_deg": None, "time": now_iso(), **raw_rec})
-            out = tmp / "aligned" / f"shot_{i:02d}.tiff"
-            write_aligned(out, stack[i])
-            aligned.append(file_record(tmp, out))
-        record["ingest"] = {"time": now_iso(), "ok": True, "options": {"mosaic": layout.value}, "angles_deg": angles,
-                            "alignment": "none: the channels of a division-of-focal-plane sensor are simultaneous",
-                            "aligned": aligned}
-        record["provenance"].append(provenance("ingest", {"mosaic": layout.value}))
-        name = ds.next_scene_name()
-        record["name"] = name
-        Scene(tmp).save(record)
-        os.rename(tmp, ds.root / name)
-        return SceneOutcome(name, [path])
+        options = {"mosaic": layout.value, "demosaic": str(getattr(demosaic, "value", demosaic)), "transfer": Transfer(transfer).value}
+        with ds.staged_scene("ingest", {"source_files": [str(path)], "angles_deg": [float(a) for a in angles],
+                                        "complete": True, **options}) as staged:
+            (staged.path / "raw").mkdir()
+            dst = staged.path / "raw" / path.name
+            with atomic_path(dst) as part:
+                shutil.copyfile(path, part)
+            for i, angle in enumerate(angles):
+                staged.add_shot(i, dst, angle)
+            with staged.staging() as staging:
+                files = {}
+                for i in range(len(angles)):
+                    files[f"aligned/shot_{i:02d}.tiff"] = staging / f"shot_{i:02d}.tiff"
+                    write_aligned(files[f"aligned/shot_{i:02d}.tiff"], stack[i])
+                staged.set_ingest(True, options, "none: the channels of a division-of-focal-plane sensor are simultaneous",
+                                  files)
+            scene = ds.adopt_scene(staged.path)
+        return SceneOutcome(scene.name, [path])
     except (UrdError, ValueError) as exc:
-        shutil.rmtree(tmp, ignore_errors=True)
-        return SceneOutcome(None, [path], str(exc))
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+        return SceneOutcome(None, [path], str(exc), "failed")
 
 
-def load_stack(scene: Scene) -> tuple[np.ndarray, list[float]]:
-    """The aligned stack (N, H, W, 3) float32 linear and its polarizer angles (deg)."""
-    record = scene.load(verify=False)
-    ingest = record.get("ingest")
-    if not ingest:
-        raise DatasetError(f"{scene.name} is not ingested yet; run: urd ingest {scene.path}")
-    if not ingest["ok"]:
-        raise AlignmentError(f"{scene.name}: {ingest['error']}")
-    first = read_aligned(scene.path / ingest["aligned"][0]["file"])
-    images = np.empty((len(ingest["aligned"]),) + first.shape, np.float32)   # filled in place: no 2x peak
-    images[0] = first
-    del first
-    for i, f in enumerate(ingest["aligned"][1:], start=1):
-        images[i] = read_aligned(scene.path / f["file"])
-    return images, shot_angles(record)
+def _mosaic_linear(codes: np.ndarray, dtype: np.dtype, transfer: Transfer) -> np.ndarray:
+    """Demosaiced codes (in the frame's code units, any float or int type) → linear float32."""
+    peak = float(np.iinfo(dtype).max)
+    x = np.clip(codes.astype(np.float32) / peak, 0.0, 1.0)
+    if dtype == np.uint8 and Transfer(transfer) is Transfer.SRGB:
+        return srgb_to_linear(x)
+    return x
+
+
+def ingest(source: Path, root: Path, opts: IngestOptions, mosaic=None, demosaic=None,
+           transfer: Transfer = Transfer.LINEAR, progress: Progress | None = None) -> IngestReport:
+    """The workflow of ``urd ingest``: a RAW folder (or mosaic frames) into the dataset at
+    ``root``, or a captured scene / a whole dataset in place (see the module docstring)."""
+    source = Path(source)
+    if not source.exists():
+        raise DatasetError(f"{source}: no such folder or file")
+    if (source / "scene.json").is_file():
+        root, scenes = source.parent, [source.name]
+    elif (source / "dataset.json").is_file():
+        root, scenes = source, None
+    else:
+        scenes = []
+    ds = Dataset.open_or_create(root) if scenes == [] else Dataset.open(root)
+    with ds.lock():
+        ds.remove_stale()
+        if mosaic is not None:
+            files = [source] if source.is_file() else sorted(p for p in source.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+            outcomes = []
+            for i, f in enumerate(files):
+                if progress:
+                    progress(i, len(files), "ingest mosaics")
+                outcomes.append(ingest_mosaic(ds, f, mosaic, demosaic, transfer))
+            return IngestReport(outcomes, [])
+        if scenes == []:
+            return ingest_folder(source, ds, opts, progress)
+        targets = [ds.root / name for name in (scenes or ds.scene_names())]
+        return IngestReport([ingest_scene(Scene(path), opts, progress) for path in targets], [])

@@ -10,18 +10,17 @@ against the virtual camera's ground truth when the scene has one.
 
 from __future__ import annotations
 
-import shutil
+import dataclasses
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
 import tifffile
 
 from separate import metrics
-from urd.dataset import Scene, atomic_path, file_record, now_iso, provenance
+from urd.dataset import Scene, atomic_path
 from urd.errors import DatasetError
-from urd.ingest import load_stack
+from urd.images import Transfer, read_image
 
 FULL_SCALE = 2.0
 PREVIEW_SIDE = 2048
@@ -55,34 +54,13 @@ def write_preview(path: Path, image: np.ndarray, white: float, overwrite: bool =
             raise DatasetError(f"cannot write {path}")
 
 
-def read_image(path: Path) -> np.ndarray:
-    """Read an image file as linear float32 H×W×3: 16-bit and float TIFF/PNG are taken as
-    linear (16-bit scaled by 1/65535); 8-bit files are taken as sRGB and linearized."""
-    path = Path(path)
-    if not path.is_file():
-        raise DatasetError(f"{path}: no such file")
-    data = tifffile.imread(path) if path.suffix.lower() in (".tif", ".tiff") else cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if data is None:
-        raise DatasetError(f"{path}: not an image file urd can read")
-    if data.ndim == 3 and path.suffix.lower() not in (".tif", ".tiff"):
-        data = data[..., 2::-1]
-    if data.ndim == 2:
-        data = np.repeat(data[..., None], 3, axis=2)
-    if data.dtype == np.uint8:
-        x = data.astype(np.float32) / 255.0
-        return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
-    if data.dtype == np.uint16:
-        return data.astype(np.float32) / 65535.0
-    return data[..., :3].astype(np.float32)
-
-
 def truth_metrics(scene: Scene, r_hat: np.ndarray, t_hat: np.ndarray) -> dict | None:
     """PSNR/SSIM of R̂, T̂ and of no separation against the scene's ground truth, if any.
 
     Figures are computed 5% inside the border (aligned shots are padded there), with peak 1;
     SSIM on the central 2048×2048 pixels at most.
     """
-    truth = scene.path / "truth"
+    truth = scene.truth_dir()
     if not (truth / "T_obs.tiff").is_file():
         return None
     r_true, t_true = tifffile.imread(truth / "R_obs.tiff"), tifffile.imread(truth / "T_obs.tiff")
@@ -99,8 +77,10 @@ def truth_metrics(scene: Scene, r_hat: np.ndarray, t_hat: np.ndarray) -> dict | 
     return out
 
 
-def write_results(folder: Path, r_hat: np.ndarray, t_hat: np.ndarray, overwrite: bool) -> list[Path]:
-    """Write the four result files into ``folder``; return their paths."""
+def write_results(folder: Path, r_hat: np.ndarray, t_hat: np.ndarray, overwrite: bool,
+                  confidence: np.ndarray | None = None) -> list[Path]:
+    """Write the result files into ``folder`` (R, T as linear TIFF, sRGB previews, and the
+    reflection-presence map when given); return their paths."""
     folder.mkdir(parents=True, exist_ok=True)
     step = max(1, int(np.sqrt(r_hat.size / 3 / 1e6)))                 # percentile of ~1 M samples
     white = float(np.percentile(r_hat[::step, ::step] + t_hat[::step, ::step], 99.5)) or 1.0
@@ -109,26 +89,68 @@ def write_results(folder: Path, r_hat: np.ndarray, t_hat: np.ndarray, overwrite:
     write_linear_tiff(paths[1], t_hat, overwrite)
     write_preview(paths[2], r_hat, white, overwrite)
     write_preview(paths[3], t_hat, white, overwrite)
+    if confidence is not None:
+        paths.append(folder / "confidence.tiff")
+        with atomic_path(paths[-1], overwrite) as tmp:
+            tifffile.imwrite(tmp, np.asarray(confidence, np.float32), photometric="minisblack")
     return paths
 
 
-def separate_scene(scene: Scene, method: str, run: Callable[[np.ndarray, list[float]], tuple[np.ndarray, np.ndarray]],
-                   info: dict, force: bool = False) -> dict:
-    """Separate an ingested scene with ``run`` and record the results in its manifest."""
-    folder = scene.path / "results" / method
-    if folder.exists():
-        if not force:
-            raise DatasetError(f"{folder} exists; pass --force to replace these results")
-        shutil.rmtree(folder)
-    images, angles = load_stack(scene)
-    r_hat, t_hat = run(images, angles)
-    del images                                            # the largest array: free it before writing
-    paths = write_results(folder, r_hat, t_hat, overwrite=False)
-    record = scene.load(verify=False)
-    entry = {"time": now_iso(), "method": method, "angles_deg": angles, **info,
-             "full_scale": FULL_SCALE, "files": [file_record(scene.path, p) for p in paths],
-             "truth_metrics": truth_metrics(scene, r_hat, t_hat)}
-    record.setdefault("results", {})[method] = entry
-    record["provenance"].append(provenance(f"separate {method}", info.get("parameters", {})))
-    scene.save(record)
-    return entry
+@dataclasses.dataclass
+class Separation:
+    """What a separation produced: files written, the reference angle used (deg), warnings
+    about the input, and PSNR/SSIM against ground truth where the scene has one."""
+
+    files: list[Path]
+    reference_deg: float
+    warnings: list[str]
+    truth_metrics: dict | None = None
+
+
+def _separate(images: np.ndarray, angles: list[float], run, reference: str | float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, list[str]]:
+    """Check the stack, choose the reference angle, run the method, compute the presence map."""
+    from separate.reference import estimate_reference_deg, polarization_warnings, presence_map
+
+    warnings = polarization_warnings(images, angles)
+    reference_deg = estimate_reference_deg(images, angles) if reference == "auto" else float(reference)
+    confidence = presence_map(images, angles, reference_deg)
+    r_hat, t_hat = run(images, angles, reference_deg)
+    return r_hat, t_hat, confidence, reference_deg, warnings
+
+
+def separate_scene(scene: Scene, method: str, run, info: dict, force: bool = False,
+                   reference: str | float = "auto") -> Separation:
+    """Separate an ingested scene with ``run`` (from `separate.methods.get_method`) and record
+    the results in its manifest; earlier results of the method are replaced only with
+    ``force``, and only once the new ones are complete."""
+    with scene.lock():
+        scene.reload()
+        if method in scene.results() and not force:
+            raise DatasetError(f"{scene.results_dir(method)} exists; pass --force to replace these results")
+        images, angles = scene.load_stack()
+        r_hat, t_hat, confidence, reference_deg, warnings = _separate(images, angles, run, reference)
+        del images                                            # the largest array: free it before writing
+        metrics_truth = truth_metrics(scene, r_hat, t_hat)
+        with scene.staging() as staging:
+            paths = write_results(staging, r_hat, t_hat, overwrite=False, confidence=confidence)
+            staged = {f"results/{method}/{p.name}": p for p in paths}
+            entry = scene.add_result(method, staged, {"angles_deg": angles, **info, "full_scale": FULL_SCALE,
+                                                      "reference_deg": round(reference_deg, 3),
+                                                      "reference": "estimated" if reference == "auto" else "given",
+                                                      "warnings": warnings, "truth_metrics": metrics_truth},
+                                     replace=force)
+    return Separation([scene.path / f["file"] for f in entry["files"]], reference_deg, warnings, metrics_truth)
+
+
+def separate_images(paths: list[Path], angles_deg: list[float], out: Path, run, transfer: Transfer = Transfer.LINEAR,
+                    force: bool = False, reference: str | float = "auto") -> Separation:
+    """Separate image files (one per angle) into ``out``; existing results only with ``force``."""
+    if len(paths) != len(angles_deg):
+        raise ValueError(f"expected one angle per image ({len(paths)} images), got {len(angles_deg)} angles")
+    loaded = [read_image(p, transfer) for p in paths]
+    if len({im.shape for im in loaded}) > 1:
+        raise ValueError(f"expected images of one size, got {[im.shape[:2] for im in loaded]}")
+    stack = np.stack(loaded)
+    del loaded
+    r_hat, t_hat, confidence, reference_deg, warnings = _separate(stack, angles_deg, run, reference)
+    return Separation(write_results(Path(out), r_hat, t_hat, overwrite=force, confidence=confidence), reference_deg, warnings)

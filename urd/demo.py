@@ -1,0 +1,37 @@
+"""The demo workflow: the whole pipeline on the simulated rig with bundled photos."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable
+
+from urd.errors import UrdError
+from urd.progress import Progress
+
+
+def run_demo(folder: Path, width: int, height: int, seed: int, precision: str = "auto",
+             announce: Callable[[str], None] = print, progress: Progress | None = None):
+    """Capture a scene with the simulated ELL14 and virtual camera, ingest it, separate it with
+    the shipped network; returns the `urd.separation.Separation` (with PSNR against truth)."""
+    from acquire.plan import capture_scene
+    from acquire.rig import SimSettings
+    from separate.methods import get_method
+    from urd.align import Motion
+    from urd.ingest import IngestOptions, ingest_scene
+    from urd.separation import separate_scene
+
+    sim = SimSettings(offset_deg=0.0, jitter_deg=0.3, width=width, height=height, seed=seed)
+    scene = capture_scene(folder, "sim", "virtual", [0.0, 45.0, 90.0], new=True, sim=sim,
+                          announce=lambda line: None, progress=progress)
+    announce(f"1/3 captured {scene.path.resolve()} (3 DNG shots from the simulated ELL14 and virtual camera)")
+    with scene.lock():
+        outcome = ingest_scene(scene, IngestOptions(motion=Motion.EUCLIDEAN), progress)
+    if outcome.error:
+        raise UrdError(outcome.error)
+    announce(f"2/3 ingested: decoded to linear RGB and aligned (ECC) in {(scene.path / 'aligned').resolve()}")
+    run, info = get_method("network", precision=precision,
+                           progress=lambda done, total: progress and progress(done, total, "separate (network)"))
+    announce(f"    network precision: {info['parameters']['precision']}")
+    result = separate_scene(scene, "network", run, info)
+    announce(f"3/3 separated: {scene.results_dir('network').resolve()}")
+    return result

@@ -1,0 +1,71 @@
+"""Reading image files (not RAW): frames of polarization cameras and ``--images`` inputs.
+
+One transfer rule for every command: 16-bit (and 12-bit data stored in 16 bits) and float
+files are linear; 8-bit files are read with the chosen `Transfer`, by default ``linear``
+(the sensor codes of machine-vision and polarization cameras); ``srgb`` linearizes 8-bit
+PNG/JPEG photos from ordinary cameras with the IEC 61966-2-1 curve. Values are scaled so that
+1.0 is the file's largest code.
+"""
+
+from __future__ import annotations
+
+import enum
+from pathlib import Path
+
+import cv2
+import numpy as np
+import tifffile
+
+from urd.errors import DatasetError, RawFormatError
+
+IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg")
+
+
+class Transfer(str, enum.Enum):
+    """How 8-bit codes map to linear light."""
+
+    LINEAR = "linear"
+    SRGB = "srgb"
+
+
+def srgb_to_linear(x: np.ndarray) -> np.ndarray:
+    """sRGB-encoded [0, 1] → linear [0, 1] (IEC 61966-2-1), float32."""
+    x = np.asarray(x, np.float32)
+    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+def read_raw_codes(path: Path) -> np.ndarray:
+    """The file's pixel codes as stored (H×W or H×W×3 in RGB order); RawFormatError if unreadable."""
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"{path}: no such file")
+    try:
+        data = tifffile.imread(path) if path.suffix.lower() in (".tif", ".tiff") else cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    except (OSError, ValueError) as exc:
+        raise RawFormatError(f"{path}: not an image file urd can read ({exc})") from exc
+    if data is None:
+        raise RawFormatError(f"{path}: not an image file urd can read")
+    if data.ndim == 3 and path.suffix.lower() not in (".tif", ".tiff"):
+        data = data[..., 2::-1] if data.shape[-1] >= 3 else data[..., 0]
+    return data
+
+
+def to_linear(data: np.ndarray, transfer: Transfer = Transfer.LINEAR) -> np.ndarray:
+    """Pixel codes → linear float32 by the module's rule (1.0 = the largest code)."""
+    transfer = Transfer(transfer)
+    if data.dtype == np.uint8:
+        x = data.astype(np.float32) / 255.0
+        return srgb_to_linear(x) if transfer is Transfer.SRGB else x
+    if data.dtype == np.uint16:
+        return data.astype(np.float32) / 65535.0
+    if data.dtype.kind == "f":
+        return data.astype(np.float32)
+    raise RawFormatError(f"expected 8-bit, 16-bit or float pixels, got {data.dtype}")
+
+
+def read_image(path: Path, transfer: Transfer = Transfer.LINEAR) -> np.ndarray:
+    """An image file as linear float32 H×W×3 (grey files repeated into three channels)."""
+    data = to_linear(read_raw_codes(path), transfer)
+    if data.ndim == 2:
+        data = np.repeat(data[..., None], 3, axis=2)
+    return np.ascontiguousarray(data[..., :3])

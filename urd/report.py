@@ -1,0 +1,107 @@
+"""Dataset reports: a text summary for terminals, integrity checks (``urd verify``), and the
+data behind the HTML report (`urd.report_html`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from urd.dataset import Dataset
+
+
+def report_text(root: Path) -> str:
+    """One line per scene (state, angles, calibration, results); broken scenes say why."""
+    ds = Dataset.open(root)
+    calibration = ds.calibration()
+    offset = (f"{calibration['offset_deg']:.3f} ± {calibration['uncertainty_deg']:.3f} deg" if calibration
+              else "not calibrated")
+    scenes = ds.scenes()
+    lines = [f"dataset {ds.root.resolve()}: {len(scenes)} scenes; polarizer offset {offset}"]
+    lines += [f"  {scene.status().describe()}" for scene in scenes]
+    return "\n".join(lines)
+
+
+def verify(root: Path) -> dict[str, list[str]]:
+    """Problems per scene (missing or changed files, unreadable manifests); empty when intact."""
+    ds = Dataset.open(root)
+    return {scene.name: scene.verify() for scene in ds.scenes()}
+
+
+def _shrink(image, max_side: int):
+    """Downscale an H×W×C image so its long side is at most ``max_side`` (area average)."""
+    import cv2
+
+    scale = max_side / max(image.shape[:2])
+    return image if scale >= 1 else cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+
+
+def scene_view(scene, max_side: int = 2048):
+    """What the HTML report shows of one scene (`urd.report_html.SceneView`), images at most
+    ``max_side`` px long."""
+    import numpy as np
+    import tifffile
+
+    from urd.report_html import ResultView, SceneView
+
+    status = scene.status()
+    notes = [status.problem] if status.problem else []
+    if status.state == "broken":
+        return SceneView(scene.name, status.describe(), [], None, None, [], notes)
+    shots, reference, results = [], None, []
+    if status.state == "ingested":
+        stack, angles = scene.load_stack()
+        shots = [(angle, _shrink(image, max_side)) for angle, image in zip(angles, stack)]
+        del stack
+    for method, entry in scene.results().items():
+        try:
+            paths = scene.result_paths(method)
+        except (OSError, ValueError) as exc:
+            notes.append(f"{method}: {exc}")
+            continue
+        r, t = (_shrink(tifffile.imread(paths[f"{name}.tiff"]).astype(np.float32) * (entry.get("full_scale", 2.0) / 65535.0),
+                        max_side) for name in ("R", "T"))
+        confidence = _shrink(tifffile.imread(paths["confidence.tiff"]), max_side) if "confidence.tiff" in paths else None
+        reference = entry.get("reference_deg", reference)
+        notes += [f"{method}: {w}" for w in entry.get("warnings", [])]
+        provenance = {k: v for k, v in entry.items() if k not in ("files", "truth_metrics")}
+        if entry.get("truth_metrics"):
+            provenance["truth_metrics"] = entry["truth_metrics"]
+        results.append(ResultView(method, r, t, provenance, confidence))
+    calibration = scene.shot_calibration()
+    return SceneView(scene.name, status.describe().split(": ", 1)[1], shots, reference,
+                     calibration["errors_deg"] if calibration else None, results, notes)
+
+
+def calibration_view(ds):
+    """The Malus-law sweep behind the dataset's offset calibration (`urd.report_html.CalibrationView`)."""
+    import numpy as np
+
+    from calib.store import sweep_intensities
+    from separate.optics import stokes_matrix
+    from urd.dataset import Scene
+    from urd.report_html import CalibrationView
+
+    record = ds.calibration()
+    if record is None or "sweep" not in record:
+        return None
+    sweep = Scene(ds.root / record["sweep"])
+    angles, values = sweep_intensities(sweep)
+    design = stokes_matrix(np.radians(angles))
+    coef, *_ = np.linalg.lstsq(design, np.asarray(values), rcond=None)
+    grid = np.arange(0.0, 180.5, 1.0)
+    return CalibrationView(angles, values, grid.tolist(), (stokes_matrix(np.radians(grid)) @ coef).tolist(),
+                           record["offset_deg"], record["uncertainty_deg"])
+
+
+def report_html(root, out, overwrite: bool = False, progress=None):
+    """Write the static HTML report of the dataset at ``root`` into ``out``; returns index.html."""
+    from urd.report_html import write_html_report
+
+    ds = Dataset.open(root)
+    scenes = ds.scenes()
+    views = []
+    for i, scene in enumerate(scenes):
+        if progress:
+            progress(i, len(scenes), "report: reading scenes")
+        views.append(scene_view(scene))
+    return write_html_report(views, out, f"urd dataset {ds.root.resolve().name}", calibration_view(ds),
+                             overwrite=overwrite, progress=progress and (lambda d, t: progress(d, t, "report: writing")))
