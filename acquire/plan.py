@@ -89,8 +89,7 @@ def run_capture(
     if planned != [float(a) for a in angles_deg]:
         raise ManifestError(f"{scene.manifest_path}: scene was captured with angles {planned}, "
                             f"not {list(angles_deg)}; use a new scene")
-    settings = scene.capture_settings()
-    offset_deg, tolerance_deg = settings["offset_deg"], settings["tolerance_deg"]
+    offset_deg, tolerance_deg = scene.capture_settings()
     raw_dir = scene.path / "raw"
     raw_dir.mkdir(exist_ok=True)
     scene.remove_stale()

@@ -68,6 +68,6 @@ def test_ingest_and_separate_a_real_mosaic_through_the_dataset(tmp_path):
     run, info = get_method("none")
     result = separate_scene(scene, "none", run, info)
     assert 0.0 <= result.reference_deg < 180.0
-    assert scene.results()["none"]["reference_deg"] == pytest.approx(result.reference_deg, abs=1e-3)
+    assert scene.result("none").reference_deg == pytest.approx(result.reference_deg, abs=1e-3)
     again = ingest(folder, tmp_path / "ds", IngestOptions(), MosaicLayout.IMX250MZR, Demosaic.BILINEAR, Transfer.LINEAR)
     assert [o.state for o in again.outcomes] == ["skipped"]

@@ -280,8 +280,8 @@ def calibrate_offset_cmd(
     sim = SimSettings(offset_deg=sim_offset, width=256, height=192, shake_px=0, shake_deg=0, seed=seed,
                       target_angle_deg=target_angle)
     record = run_guarded(sweep_and_calibrate, root, stage, camera, step, target_angle, address, sim, progress=TerminalProgress())
-    typer.echo(f"mounting offset {record['offset_deg']:.3f} ± {record['uncertainty_deg']:.3f} deg "
-               f"(modulation {record['modulation']:.2f}); written to {(Path(root) / 'calibration.json').resolve()}")
+    typer.echo(f"mounting offset {record.offset_deg:.3f} ± {record.uncertainty_deg:.3f} deg "
+               f"(modulation {record.modulation:.2f}); written to {(Path(root) / 'calibration.json').resolve()}")
 
 
 @calibrate_app.command("shots")

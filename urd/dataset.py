@@ -327,6 +327,35 @@ class SceneStatus:
         return ", ".join(parts)
 
 
+@dataclasses.dataclass(frozen=True)
+class Result:
+    """A method's stored results: files by name (``R.tiff`` → path), the reference angle it was
+    given (deg), warnings about its input, the TIFF full scale, PSNR/SSIM against ground truth
+    (virtual scenes), and the rest of its record (parameters, weights, time) as ``description``."""
+
+    method: str
+    files: dict[str, Path]
+    reference_deg: float | None
+    warnings: list[str]
+    full_scale: float
+    truth_metrics: dict | None
+    description: dict
+
+
+@dataclasses.dataclass(frozen=True)
+class OffsetCalibration:
+    """The polarizer's mounting offset (deg) with its uncertainty, the sweep it was fitted to
+    (a scene folder, or None), and when."""
+
+    offset_deg: float
+    uncertainty_deg: float
+    modulation: float | None
+    target_angle_deg: float
+    time: str
+    sweep: Path | None
+    earlier: int
+
+
 # ---------------------------------------------------------------- hash cache
 
 
@@ -399,10 +428,11 @@ class Scene:
         angles = self._data()["capture"].get("angles_deg")
         return None if angles is None else [float(a) for a in angles]
 
-    def capture_settings(self) -> dict:
-        """Offset and tolerance a capture ran with (deg), for resuming it the same way."""
+    def capture_settings(self) -> tuple[float, float]:
+        """Mounting offset and read-back tolerance (deg) the capture runs with, for resuming it
+        the same way."""
         capture = self._data()["capture"]
-        return {"offset_deg": float(capture.get("offset_deg", 0.0)), "tolerance_deg": float(capture.get("tolerance_deg", 0.5))}
+        return float(capture.get("offset_deg", 0.0)), float(capture.get("tolerance_deg", 0.5))
 
     def is_complete(self) -> bool:
         """True when every planned shot was taken (always for ingested RAW folders)."""
@@ -420,28 +450,35 @@ class Scene:
         data = self._data()
         return {s["sha256"] for s in data["shots"]} | set(data.get("ingest", {}).get("shot_hashes", []))
 
-    def ingest(self) -> dict | None:
-        """A copy of the ingest record (ok, error, options, alignment, aligned files), or None."""
-        return copy.deepcopy(self._data().get("ingest"))
+    def ingest_outcome(self) -> tuple[bool, str | None] | None:
+        """(aligned?, the error when not) of the last ingest, or None before any."""
+        ingest = self._data().get("ingest")
+        return None if ingest is None else (ingest["ok"], ingest.get("error"))
 
     def is_ingested(self) -> bool:
         return "ingest" in self._data()
 
-    def results(self) -> dict[str, dict]:
-        """Copies of the result records by method."""
-        return copy.deepcopy(self._data().get("results", {}))
+    def methods(self) -> list[str]:
+        """Methods whose results the scene holds."""
+        return sorted(self._data().get("results", {}))
 
-    def result_paths(self, method: str) -> dict[str, Path]:
-        """Files of a method's results by name (``R.tiff`` → path), hash-verified."""
+    def result(self, method: str, verify: bool = True) -> Result:
+        """A method's results; with ``verify`` its files are checked against their hashes."""
         entry = self._data().get("results", {}).get(method)
         if entry is None:
-            raise DatasetError(f"{self.name} has no results of {method!r} (results: {sorted(self._data().get('results', {}))})")
-        self.check_files(entry["files"])
-        return {Path(f["file"]).name: confined_path(self.path, f["file"], str(self.manifest_path)) for f in entry["files"]}
+            raise DatasetError(f"{self.name} has no results of {method!r} (results: {self.methods()})")
+        if verify:
+            self.check_files(entry["files"])
+        files = {Path(f["file"]).name: confined_path(self.path, f["file"], str(self.manifest_path)) for f in entry["files"]}
+        known = ("files", "reference_deg", "warnings", "full_scale", "truth_metrics")
+        return Result(method, files, entry.get("reference_deg"), list(entry.get("warnings", [])),
+                      float(entry.get("full_scale", 2.0)), copy.deepcopy(entry.get("truth_metrics")),
+                      {k: copy.deepcopy(v) for k, v in entry.items() if k not in known})
 
-    def shot_calibration(self) -> dict | None:
-        """A copy of the per-shot calibration record, or None."""
-        return copy.deepcopy(self._data().get("calibration"))
+    def shot_errors_deg(self) -> list[float] | None:
+        """Per-shot angle errors (deg) from `urd calibrate shots`, or None."""
+        calibration = self._data().get("calibration")
+        return None if calibration is None else [float(e) for e in calibration["errors_deg"]]
 
     def provenance(self) -> list[dict]:
         return copy.deepcopy(self._data()["provenance"])
@@ -639,7 +676,7 @@ class Scene:
         for name in sorted(old - kept):
             (self.path / name).unlink(missing_ok=True)
 
-    def add_result(self, method: str, staged: dict[str, Path], entry: dict, replace: bool = False) -> dict:
+    def add_result(self, method: str, staged: dict[str, Path], entry: dict, replace: bool = False) -> Result:
         """Record a method's results: staged files (final name → staged path) are swapped in
         over the previous results (only with ``replace``); ``entry`` holds the method's
         description (parameters, weights, metrics). Returns the stored entry."""
@@ -658,7 +695,7 @@ class Scene:
         self._save()
         for name in sorted(old - kept):
             (self.path / name).unlink(missing_ok=True)
-        return copy.deepcopy(results[method])
+        return self.result(method, verify=False)
 
     def set_shot_calibration(self, record: dict, calibrated_deg: list[float] | None) -> None:
         """Store per-shot angle errors; with ``calibrated_deg`` also each shot's calibrated angle."""
@@ -863,26 +900,35 @@ class Dataset:
     def calibration_path(self) -> Path:
         return self.root / CALIBRATION_FILE
 
-    def calibration(self) -> dict | None:
-        """The validated polarizer calibration record, or None when not measured."""
+    def _calibration_record(self) -> dict | None:
         if not self.calibration_path.is_file():
             return None
         return validate_calibration(read_json(self.calibration_path), str(self.calibration_path))
 
+    def calibration(self) -> OffsetCalibration | None:
+        """The polarizer's mounting offset calibration, or None when not measured."""
+        record = self._calibration_record()
+        if record is None:
+            return None
+        sweep = confined_path(self.root, record["sweep"], str(self.calibration_path)) if "sweep" in record else None
+        return OffsetCalibration(float(record["offset_deg"]), float(record["uncertainty_deg"]), record.get("modulation"),
+                                 float(record["target_angle_deg"]), record["time"], sweep, len(record["history"]))
+
     def offset_deg(self) -> float:
         """The polarizer's mounting offset (deg), 0 when not calibrated."""
-        record = self.calibration()
-        return float(record["offset_deg"]) if record else 0.0
+        calibration = self.calibration()
+        return calibration.offset_deg if calibration else 0.0
 
-    def save_calibration(self, fit: dict, target_angle_deg: float, sweep: Scene) -> dict:
-        """Write ``calibration.json``; an earlier calibration moves into its ``history``."""
-        old = self.calibration()
+    def save_calibration(self, fit: dict, target_angle_deg: float, sweep: Scene) -> OffsetCalibration:
+        """Write ``calibration.json`` from a fit record (offset_deg, uncertainty_deg, modulation,
+        residual_rms); an earlier calibration moves into its ``history``."""
+        old = self._calibration_record()
         record = {"schema": "urd.calibration", "schema_version": SCHEMA_VERSION, "time": now_iso(), **fit,
                   "target_angle_deg": float(target_angle_deg), "sweep": sweep.path.relative_to(self.root).as_posix(),
                   "history": (old["history"] + [{k: v for k, v in old.items() if k != "history"}]) if old else []}
         validate_calibration(record, str(self.calibration_path))
         write_json_atomic(self.calibration_path, record)
-        return record
+        return self.calibration()
 
     def new_sweep(self, capture: dict) -> Scene:
         """A new calibration sweep scene under ``calibration/sweep_NN``."""

@@ -193,9 +193,8 @@ def ingest_scene(scene: Scene, opts: IngestOptions, progress: Progress | None = 
         process_scene(scene, opts, progress)
     except UrdError as exc:
         return SceneOutcome(scene.name, [], str(exc), "failed")
-    ingest = scene.ingest()
-    return SceneOutcome(scene.name, scene.raw_paths(), None if ingest["ok"] else ingest["error"],
-                        "ingested" if ingest["ok"] else "failed")
+    ok, error = scene.ingest_outcome()
+    return SceneOutcome(scene.name, scene.raw_paths(), error, "ingested" if ok else "failed")
 
 
 def ingest_group(ds: Dataset, files: list[Path], opts: IngestOptions, progress: Progress | None = None) -> SceneOutcome:
@@ -213,14 +212,14 @@ def ingest_group(ds: Dataset, files: list[Path], opts: IngestOptions, progress: 
                     raise DatasetError(f"{src}: copy does not match the source")
                 staged.add_shot(i, dst, angle, time=meta["time"], camera=meta)
             process_scene(staged, opts, progress)
-            ingest = staged.ingest()
+            ok, error = staged.ingest_outcome()
             scene = ds.adopt_scene(staged.path)
     except UrdError as exc:
         message = str(exc)
         for i, src in enumerate(files):
             message = message.replace(f"shot_{i:02d}_{opts.angles_deg[i]:05.1f}deg{src.suffix.lower()}", src.name)
         return SceneOutcome(None, files, message, "failed")
-    return SceneOutcome(scene.name, files, None if ingest["ok"] else ingest["error"], "ingested" if ingest["ok"] else "failed")
+    return SceneOutcome(scene.name, files, error, "ingested" if ok else "failed")
 
 
 def ingest_folder(raw_dir: Path, ds: Dataset, opts: IngestOptions, progress: Progress | None = None) -> IngestReport:

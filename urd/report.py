@@ -12,7 +12,7 @@ def report_text(root: Path) -> str:
     """One line per scene (state, angles, calibration, results); broken scenes say why."""
     ds = Dataset.open(root)
     calibration = ds.calibration()
-    offset = (f"{calibration['offset_deg']:.3f} ± {calibration['uncertainty_deg']:.3f} deg" if calibration
+    offset = (f"{calibration.offset_deg:.3f} ± {calibration.uncertainty_deg:.3f} deg" if calibration
               else "not calibrated")
     scenes = ds.scenes()
     lines = [f"dataset {ds.root.resolve()}: {len(scenes)} scenes; polarizer offset {offset}"]
@@ -51,24 +51,22 @@ def scene_view(scene, max_side: int = 2048):
         stack, angles = scene.load_stack()
         shots = [(angle, _shrink(image, max_side)) for angle, image in zip(angles, stack)]
         del stack
-    for method, entry in scene.results().items():
+    for method in scene.methods():
         try:
-            paths = scene.result_paths(method)
+            result = scene.result(method)
         except (OSError, ValueError) as exc:
             notes.append(f"{method}: {exc}")
             continue
-        r, t = (_shrink(tifffile.imread(paths[f"{name}.tiff"]).astype(np.float32) * (entry.get("full_scale", 2.0) / 65535.0),
+        r, t = (_shrink(tifffile.imread(result.files[f"{name}.tiff"]).astype(np.float32) * (result.full_scale / 65535.0),
                         max_side) for name in ("R", "T"))
-        confidence = _shrink(tifffile.imread(paths["confidence.tiff"]), max_side) if "confidence.tiff" in paths else None
-        reference = entry.get("reference_deg", reference)
-        notes += [f"{method}: {w}" for w in entry.get("warnings", [])]
-        provenance = {k: v for k, v in entry.items() if k not in ("files", "truth_metrics")}
-        if entry.get("truth_metrics"):
-            provenance["truth_metrics"] = entry["truth_metrics"]
+        confidence = result.files.get("confidence.tiff")
+        confidence = None if confidence is None else _shrink(tifffile.imread(confidence), max_side)
+        reference = result.reference_deg if result.reference_deg is not None else reference
+        notes += [f"{method}: {w}" for w in result.warnings]
+        provenance = {**result.description, **({"truth_metrics": result.truth_metrics} if result.truth_metrics else {})}
         results.append(ResultView(method, r, t, provenance, confidence))
-    calibration = scene.shot_calibration()
     return SceneView(scene.name, status.describe().split(": ", 1)[1], shots, reference,
-                     calibration["errors_deg"] if calibration else None, results, notes)
+                     scene.shot_errors_deg(), results, notes)
 
 
 def calibration_view(ds):
@@ -80,16 +78,15 @@ def calibration_view(ds):
     from urd.dataset import Scene
     from urd.report_html import CalibrationView
 
-    record = ds.calibration()
-    if record is None or "sweep" not in record:
+    calibration = ds.calibration()
+    if calibration is None or calibration.sweep is None:
         return None
-    sweep = Scene(ds.root / record["sweep"])
-    angles, values = sweep_intensities(sweep)
+    angles, values = sweep_intensities(Scene(calibration.sweep))
     design = stokes_matrix(np.radians(angles))
     coef, *_ = np.linalg.lstsq(design, np.asarray(values), rcond=None)
     grid = np.arange(0.0, 180.5, 1.0)
     return CalibrationView(angles, values, grid.tolist(), (stokes_matrix(np.radians(grid)) @ coef).tolist(),
-                           record["offset_deg"], record["uncertainty_deg"])
+                           calibration.offset_deg, calibration.uncertainty_deg)
 
 
 def report_html(root, out, overwrite: bool = False, progress=None):

@@ -125,7 +125,7 @@ def separate_scene(scene: Scene, method: str, run, info: dict, force: bool = Fal
     ``force``, and only once the new ones are complete."""
     with scene.lock():
         scene.reload()
-        if method in scene.results() and not force:
+        if method in scene.methods() and not force:
             raise DatasetError(f"{scene.results_dir(method)} exists; pass --force to replace these results")
         images, angles = scene.load_stack()
         r_hat, t_hat, confidence, reference_deg, warnings = _separate(images, angles, run, reference)
@@ -139,7 +139,7 @@ def separate_scene(scene: Scene, method: str, run, info: dict, force: bool = Fal
                                                       "reference": "estimated" if reference == "auto" else "given",
                                                       "warnings": warnings, "truth_metrics": metrics_truth},
                                      replace=force)
-    return Separation([scene.path / f["file"] for f in entry["files"]], reference_deg, warnings, metrics_truth)
+    return Separation(list(entry.files.values()), reference_deg, warnings, metrics_truth)
 
 
 def separate_images(paths: list[Path], angles_deg: list[float], out: Path, run, transfer: Transfer = Transfer.LINEAR,
