@@ -1,10 +1,69 @@
-"""A simulated ELL14 served behind a real pseudo-terminal.
+"""A simulated ELL14 served behind a real pseudo-terminal, usable as a tool.
 
-The driver opens the pty's slave path with pyserial exactly as it opens /dev/ttyUSB0, so every
-byte goes through the real serial code path. The twin answers ``in``, ``gs``, ``gp``, ``ho`` and
-``ma`` like the device, takes time to move, quantizes positions to encoder counts, and has
-simulation-only knobs (``sim_`` prefix): a mounting offset and angle jitter that the encoder
-does not see (they show only in the light through the polarizer), and fault injection.
+The driver (or any third-party Elliptec client) opens the pty's slave path with pyserial exactly
+as it opens /dev/ttyUSB0, so every byte goes through the real serial code path. Run it alone with
+``python -m acquire.sim_ell14`` (or ``urd sim-stage``); it prints the slave path and serves until
+Ctrl-C or SIGTERM.
+
+Protocol followed: Thorlabs "Elliptec ELLx modules protocol manual", Issue 7 (the revision
+Thorlabs links for the ELL14; Issue 5, Nov 2019, has the same messages for the commands below).
+The manual's own text was not at hand offline: message codes, data lengths and reply formats
+come from its message list as reproduced by open-source Elliptec clients, and the ELL14 ``IN``
+reply matches one recorded from a real ELL14. Behaviour the manual leaves open is marked
+*(sim)* below; it is this simulator's choice, not a documented device fact.
+
+A command is the address ('0'-'F'), a two-letter lower-case code and a fixed amount of data;
+no terminator is needed (CR and LF between commands are skipped). Positions and distances are
+32-bit two's-complement encoder counts as 8 upper-case hex digits; 143360 counts per turn.
+Every reply is the address, an upper-case code, data and CR LF.
+
+=============  ====================================  =========================================
+command        meaning                               reply
+=============  ====================================  =========================================
+``in``         device information                    ``IN`` type(2) serial(8) year(4) fw(2)
+                                                     hw(2) travel(4 hex) counts/turn(8 hex)
+``gs``         status                                ``GS00``; ``GS09`` while busy
+``gp``         position                              ``PO`` counts(8)
+``hoD``        home, D = 0 clockwise, 1 ccw          ``PO00000000`` when done
+``maXXXXXXXX`` move absolute, counts in [0, turn)    ``PO`` counts(8) when done
+``mrXXXXXXXX`` move relative, signed counts          ``PO`` counts(8) when done (wraps a turn)
+``gj``         jog step size                         ``GJ`` counts(8)
+``sjXXXXXXXX`` set jog step, counts in [0, turn)     ``GS00``
+``fw``/``bw``  jog forward/backward one step;        ``PO`` counts(8) when done; with step 0
+               with step 0 move until ``st``          no reply until ``st``
+``st``         stop a move, jog, search or clean     ``PO`` counts(8) where it stopped, or
+                                                     ``GS00`` (sim: the stopped command gets
+                                                     no reply of its own)
+``gv``         velocity, percent of maximum          ``GV`` percent(2 hex)
+``svXX``       set velocity, 1-100 % (sim range)     ``GS00``
+``go``         home offset                           ``HO`` counts(8)
+``soXXXXXXXX`` set home offset, counts in [0, turn)  ``GS00`` (applies at the next home)
+``caA``        change address to A                   ``GS00`` from the new address
+``us``         save user data                        ``GS00``
+``i1``/``i2``  motor 1/2 information                 ``I1``/``I2`` loop(1) motor on(1)
+                                                     current(4) ramp up(4) ramp down(4)
+                                                     forward period(4) backward period(4)
+``f1XXXX`` …   set forward/backward period of        ``GS00``; ``8FFF`` restores the factory
+``b2XXXX``     motor 1/2 (top bit is a flag)         period
+``s1``/``s2``  search motor 1/2 frequency            ``GS00`` when done (sim: 0.2 s)
+``om``/``cm``  optimize motors / clean mechanics     ``GS00`` when done (sim: 3 s; ``st`` stops)
+``isXX``/      isolate / group address: accepted by  ``GS03`` (sim: parsed with their data
+``gaA``        the ELL14, not modelled               length, not simulated)
+=============  ====================================  =========================================
+
+Errors, always exactly one ``GS`` reply: an unknown code or malformed data (not upper-case
+hex, or cut short by CR/LF) answers ``GS03`` (command error or not supported) and the parser
+drops the rest of that line: up to and including the next CR or LF, or all bytes received so
+far when none came, so no stale byte is read as a new command. A value out of its range answers
+``GS04``. A command left incomplete for 0.25 s answers ``GS01`` (communication time-out, sim).
+While a move, jog, search or clean runs, queries (``in gs gp gj gv go i1 i2``) are answered and
+``st`` stops it; any other command answers ``GS09`` (busy) and is ignored *(sim)*. Commands for
+other addresses are parsed the same way and get no reply.
+
+Moves take time: ``sim_speed_dps`` at 100 % velocity, scaled by the velocity, at most 2 s per
+move. Positions are quantized to encoder counts. Simulation-only knobs carry the ``sim_``
+prefix: a mounting offset and an angle jitter that the encoder does not see (they show only in
+the light through the polarizer, `true_angle_deg`), and fault injection.
 
 Fault kinds (probability per command, or forced for the next command with `sim_force`):
 
@@ -19,30 +78,114 @@ Every command, reply and fault is appended to ``log``.
 
 from __future__ import annotations
 
+import argparse
+import dataclasses
+import enum
+import math
 import os
 import select
+import signal
+import sys
 import threading
 import time
 import tty
+from typing import Callable
 
 import numpy as np
 
 from acquire.ell14 import decode_counts, encode_counts
+from urd.errors import DeviceError, UrdError
 
 FAULTS = ("drop", "garble", "mech_timeout", "miss", "vanish")
-DATA_LENGTH = {"in": 0, "gs": 0, "gp": 0, "ho": 1, "ma": 8}
+ADDRESSES = "0123456789ABCDEF"
+HEX_DIGITS = frozenset("0123456789ABCDEF")
+TERMINATORS = b"\r\n"
+FRAME_TIMEOUT_S = 0.25     # an incomplete command older than this answers GS01 (sim)
+MAX_MOVE_S = 2.0           # longest simulated move
+SEARCH_S = 0.2             # s1/s2 frequency search (sim; minutes-long operations scaled down)
+MAINTENANCE_S = 3.0        # om/cm (sim)
+MISS_DEG = 3.0             # how far short a ``miss`` fault stops
+MOTOR_CURRENT = 0x0230     # I1/I2 current while moving, 1866 points per ampere (sim)
+FACTORY_PERIODS = {"1": (0x00B7, 0x008D), "2": (0x00B3, 0x008B)}   # forward, backward (sim)
+RESTORE_PERIOD = 0x8FFF    # f1/b1/f2/b2 data that restores the factory period
+PERIOD_FLAG = 0x8000
+
+
+class Status(enum.IntEnum):
+    """``GS`` status codes the simulator sends (numbering of the protocol manual)."""
+
+    OK = 0
+    COMMUNICATION_TIMEOUT = 1
+    MECHANICAL_TIMEOUT = 2
+    COMMAND_ERROR = 3          # command error or not supported
+    VALUE_OUT_OF_RANGE = 4
+    BUSY = 9
+
+
+def status_reply(status: Status) -> str:
+    """``GS`` reply (without address and CR LF) for ``status``, e.g. ``GS03``."""
+    return f"GS{int(status):02X}"
+
+
+@dataclasses.dataclass(frozen=True)
+class CommandSpec:
+    """One command the ELL14 accepts: data length (characters) and whether it is a query,
+    answered even while the mount is busy."""
+
+    data_length: int
+    query: bool
+
+
+COMMANDS: dict[str, CommandSpec] = {
+    "in": CommandSpec(0, True), "gs": CommandSpec(0, True), "gp": CommandSpec(0, True),
+    "gj": CommandSpec(0, True), "gv": CommandSpec(0, True), "go": CommandSpec(0, True),
+    "i1": CommandSpec(0, True), "i2": CommandSpec(0, True),
+    "ho": CommandSpec(1, False), "ma": CommandSpec(8, False), "mr": CommandSpec(8, False),
+    "fw": CommandSpec(0, False), "bw": CommandSpec(0, False), "st": CommandSpec(0, False),
+    "sj": CommandSpec(8, False), "sv": CommandSpec(2, False), "so": CommandSpec(8, False),
+    "ca": CommandSpec(1, False), "us": CommandSpec(0, False),
+    "f1": CommandSpec(4, False), "b1": CommandSpec(4, False),
+    "f2": CommandSpec(4, False), "b2": CommandSpec(4, False),
+    "s1": CommandSpec(0, False), "s2": CommandSpec(0, False),
+    "om": CommandSpec(0, False), "cm": CommandSpec(0, False),
+    "is": CommandSpec(2, False), "ga": CommandSpec(1, False),
+}
+NOT_MODELLED = frozenset({"is", "ga"})
+
+
+class OperationKind(enum.Enum):
+    """What keeps the simulated mount busy."""
+
+    MOVE = "move"              # home, move absolute/relative, jog step: ends by itself
+    CONTINUOUS = "continuous"  # fw/bw with jog step 0: runs until st
+    MAINTENANCE = "maintenance"  # frequency search, optimize, clean: ends by itself, no motion
+
+
+@dataclasses.dataclass
+class _Operation:
+    kind: OperationKind
+    entry: dict
+    fault: str | None
+    start_s: float
+    duration_s: float | None           # None: until st
+    start_counts: int = 0
+    direction: int = 0                  # +1 forward, -1 backward
+    distance: int = 0                   # counts to travel (MOVE)
+    speed_cps: float = 0.0              # counts per second (CONTINUOUS)
+    end_counts: int = 0                 # reported position when done (MOVE)
+    new_frame: int | None = None        # frame after a home (counts of the new zero)
 
 
 class SimulatedEll14:
     """ELL14 twin on a pseudo-terminal; use as a context manager (starts and stops its thread).
 
     Args:
-        address: device address.
-        pulses_per_rev: encoder counts per revolution (reported by ``in``).
+        address: device address, '0'-'F'.
+        pulses_per_rev: encoder counts per revolution (reported by ``in``), > 0.
         sim_offset_deg: polarizer axis angle at stage zero (mounting offset), degrees.
-        sim_jitter_deg: standard deviation of the unseen angle error of each move, degrees.
-        sim_speed_dps: rotation speed, degrees per second.
-        sim_faults: fault kind → probability per command.
+        sim_jitter_deg: standard deviation of the unseen angle error of each move, degrees, ≥ 0.
+        sim_speed_dps: rotation speed at 100 % velocity, degrees per second, > 0.
+        sim_faults: fault kind → probability per command, each in [0, 1].
         sim_device_type: device type reported by ``in`` (0x0E is an ELL14).
         seed: seed of the jitter and fault draws.
     """
@@ -50,6 +193,16 @@ class SimulatedEll14:
     def __init__(self, address: str = "0", pulses_per_rev: int = 143360, sim_offset_deg: float = 0.0,
                  sim_jitter_deg: float = 0.0, sim_speed_dps: float = 2000.0,
                  sim_faults: dict[str, float] | None = None, sim_device_type: int = 0x0E, seed: int = 0):
+        if not isinstance(address, str) or len(address) != 1 or address not in ADDRESSES:
+            raise ValueError(f"expected an address '0'..'F', got {address!r}")
+        if pulses_per_rev <= 0:
+            raise ValueError(f"expected pulses_per_rev > 0, got {pulses_per_rev}")
+        if not math.isfinite(sim_offset_deg):
+            raise ValueError(f"expected a finite sim_offset_deg, got {sim_offset_deg}")
+        if not (math.isfinite(sim_jitter_deg) and sim_jitter_deg >= 0):
+            raise ValueError(f"expected sim_jitter_deg ≥ 0, got {sim_jitter_deg}")
+        if not (math.isfinite(sim_speed_dps) and sim_speed_dps > 0):
+            raise ValueError(f"expected sim_speed_dps > 0, got {sim_speed_dps}")
         unknown = set(sim_faults or {}) - set(FAULTS)
         if unknown:
             raise ValueError(f"expected fault kinds among {FAULTS}, got {sorted(unknown)}")
@@ -63,23 +216,39 @@ class SimulatedEll14:
         self.rng = np.random.default_rng(seed)
         self.counts = 0
         self.error_deg = 0.0
+        self.velocity_percent = 100
+        self.jog_step = pulses_per_rev // 72          # 5° (sim default)
+        self.home_offset = 0
+        self.periods = {motor: list(periods) for motor, periods in FACTORY_PERIODS.items()}
         self.vanished = False
         self.forced: list[str] = []
         self.log: list[dict] = []
+        self._frame = 0                # counts of the current zero from the factory home
+        self._operation: _Operation | None = None
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self.master, slave = os.openpty()
         tty.setraw(slave)
         self.port_name = os.ttyname(slave)
         self._slave = slave
-        self._thread = threading.Thread(target=self._serve, name="sim-ell14", daemon=True)
+        self._thread = threading.Thread(target=self._run, name="sim-ell14", daemon=True)
 
     def __enter__(self) -> "SimulatedEll14":
-        self._thread.start()
+        self.start()
         return self
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+    def start(self) -> None:
+        """Start serving (once; later calls do nothing)."""
+        if self._thread.ident is None and not self._stop.is_set():
+            self._thread.start()
+
+    @property
+    def serving(self) -> bool:
+        """Whether the serving thread runs."""
+        return self._thread.is_alive()
 
     def close(self) -> None:
         """Stop serving and close the pseudo-terminal."""
@@ -96,7 +265,8 @@ class SimulatedEll14:
     def true_angle_deg(self) -> float:
         """The polarizer's physical axis angle now (degrees, image-plane convention)."""
         with self._lock:
-            return self.counts * 360.0 / self.pulses_per_rev + self.sim_offset_deg + self.error_deg
+            counts = self._position(time.monotonic())
+            return (counts + self._frame) * 360.0 / self.pulses_per_rev + self.sim_offset_deg + self.error_deg
 
     def sim_force(self, kind: str) -> None:
         """Make the next command suffer fault ``kind``."""
@@ -108,33 +278,64 @@ class SimulatedEll14:
         """Bring a vanished device back."""
         self.vanished = False
 
-    # -- the device ------------------------------------------------------------------------
-    def _serve(self) -> None:
+    # -- transport ---------------------------------------------------------------------------
+    def _run(self) -> None:
         buffer = b""
+        last_rx = time.monotonic()
         while not self._stop.is_set():
-            ready, _, _ = select.select([self.master], [], [], 0.05)
-            if not ready:
-                continue
-            try:
-                buffer += os.read(self.master, 256)
-            except OSError:
-                return
-            buffer = self._consume(buffer)
+            ready, _, _ = select.select([self.master], [], [], self._poll_timeout())
+            now = time.monotonic()
+            if ready:
+                try:
+                    chunk = os.read(self.master, 1024)
+                except OSError:
+                    return
+                buffer += chunk
+                last_rx = now
+            self._advance(now)
+            buffer = self._consume(buffer, now)
+            if buffer and now - last_rx > FRAME_TIMEOUT_S:
+                self._expire(buffer, now)
+                buffer = b""
 
-    def _consume(self, buffer: bytes) -> bytes:
-        """Handle every complete command in ``buffer``; return the unparsed rest."""
-        while buffer:
-            buffer = buffer.lstrip(b"\r\n")
+    def _poll_timeout(self) -> float:
+        operation = self._operation
+        if operation is None or operation.duration_s is None:
+            return 0.05
+        return max(0.0, min(0.05, operation.start_s + operation.duration_s - time.monotonic()))
+
+    def _consume(self, buffer: bytes, now: float) -> bytes:
+        """Handle every complete command in ``buffer``; return the incomplete rest."""
+        while True:
+            buffer = buffer.lstrip(TERMINATORS)
+            if not buffer:
+                return buffer
+            if chr(buffer[0]) not in ADDRESSES:          # not a command start: skip the byte
+                buffer = buffer[1:]
+                continue
             if len(buffer) < 3:
                 return buffer
-            addr, code = chr(buffer[0]), buffer[1:3].decode("ascii", "replace")
-            length = 3 + DATA_LENGTH.get(code, 0)
-            if len(buffer) < length:
+            addr, code = chr(buffer[0]), buffer[1:3].decode("latin-1")
+            spec = COMMANDS.get(code)
+            if spec is None:                             # unknown: one reply, drop the line
+                text, buffer = _cut_line(buffer)
+                self._handle(addr, code, "", text, Status.COMMAND_ERROR, now)
+                continue
+            frame = buffer[3:3 + spec.data_length]
+            eol = next((i for i, b in enumerate(frame) if b in TERMINATORS), None)
+            if eol is not None:                          # cut short by CR/LF
+                text, buffer = buffer[:3 + eol].decode("latin-1"), buffer[3 + eol + 1:]
+                self._handle(addr, code, "", text, Status.COMMAND_ERROR, now)
+                continue
+            if len(frame) < spec.data_length:
                 return buffer
-            command, buffer = buffer[:length].decode("ascii", "replace"), buffer[length:]
-            if addr == self.address:
-                self._handle(command)
-        return buffer
+            text, buffer = buffer[:3 + spec.data_length].decode("latin-1"), buffer[3 + spec.data_length:]
+            self._handle(addr, code, text[3:], text, None, now)
+
+    def _expire(self, buffer: bytes, now: float) -> None:
+        """An incomplete command timed out: answer GS01 if it was ours."""
+        self._handle(chr(buffer[0]), buffer[1:3].decode("latin-1"), "", buffer.decode("latin-1"),
+                     Status.COMMUNICATION_TIMEOUT, now)
 
     def _draw_fault(self) -> str | None:
         if self.forced:
@@ -144,49 +345,344 @@ class SimulatedEll14:
                 return kind
         return None
 
-    def _handle(self, command: str) -> None:
-        code, data = command[1:3], command[3:]
+    def _handle(self, addr: str, code: str, data: str, text: str, error: Status | None, now: float) -> None:
+        """Answer one parsed command (``error``: answer that status instead of executing it)."""
+        if addr != self.address:
+            return
         fault = None if self.vanished else self._draw_fault()
         if fault == "vanish":
             self.vanished = True
-        entry = {"time": time.monotonic(), "command": command, "fault": fault, "reply": None}
+        entry = {"time": now, "command": text, "fault": fault, "reply": None}
         self.log.append(entry)
         if self.vanished:
             return
-        if code == "in":
-            reply = f"IN{self.sim_device_type:02X}{12345678:08d}20261701{360:04X}{self.pulses_per_rev:08X}"
-        elif code == "gs":
-            reply = "GS00"
-        elif code == "gp":
-            reply = f"PO{encode_counts(self.counts)}"
-        elif code in ("ho", "ma"):
-            target = 0 if code == "ho" else decode_counts(data) if _is_hex(data) else None
-            reply = self._move(target, fault) if target is not None else "GS04"
+        if error is not None:
+            reply = status_reply(error)
+        elif code in NOT_MODELLED:
+            reply = status_reply(Status.COMMAND_ERROR)
+        elif self._operation is not None and not COMMANDS[code].query and code != "st":
+            reply = status_reply(Status.BUSY)
         else:
-            reply = "GS03"
+            reply = getattr(self, f"_do_{code}")(data, entry, fault, now)
+        if reply is not None:
+            self._send(entry, reply, fault)
+
+    def _send(self, entry: dict, reply: str, fault: str | None) -> None:
         entry.update(reply=reply, counts=self.counts, true_angle_deg=self.true_angle_deg())
-        if fault == "drop":
+        if fault == "drop" or self.vanished:
             return
         raw = f"{self.address}{reply}\r\n".encode()
         if fault == "garble":
             raw = bytes(b ^ 0x55 if i in (1, 4) else b for i, b in enumerate(raw))
-        os.write(self.master, raw)
+        try:
+            os.write(self.master, raw)
+        except OSError:
+            pass
 
-    def _move(self, target: int, fault: str | None) -> str:
-        """Move to ``target`` counts, taking time; returns the reply."""
-        if not 0 <= target < self.pulses_per_rev:
-            return "GS04"
-        distance_deg = abs(target - self.counts) * 360.0 / self.pulses_per_rev
-        time.sleep(min(distance_deg / self.sim_speed_dps, 2.0))
-        if fault == "mech_timeout":
-            return "GS02"
-        if fault == "miss":
-            target = (target - int(self.pulses_per_rev * 3 / 360)) % self.pulses_per_rev
+    # -- motion ------------------------------------------------------------------------------
+    def _position(self, now: float) -> int:
+        """Encoder counts now, in [0, pulses_per_rev); interpolated during a move."""
+        return self._position_during(self._operation, now)
+
+    def _position_during(self, op: _Operation | None, now: float) -> int:
+        """Encoder counts at ``now`` while ``op`` runs (``None``: idle)."""
+        if op is None or op.kind is OperationKind.MAINTENANCE:
+            return self.counts
+        if op.kind is OperationKind.CONTINUOUS:
+            travelled = op.speed_cps * (now - op.start_s)
+        else:
+            fraction = 1.0 if op.duration_s <= 0 else min(1.0, (now - op.start_s) / op.duration_s)
+            travelled = op.distance * fraction
+        return (op.start_counts + op.direction * int(travelled)) % self.pulses_per_rev
+
+    def _speed_cps(self) -> float:
+        return self.sim_speed_dps * self.velocity_percent / 100.0 * self.pulses_per_rev / 360.0
+
+    def _start_move(self, entry: dict, fault: str | None, now: float, path: int, end_counts: int,
+                    new_frame: int | None = None) -> None:
+        """Move ``path`` counts (signed) from here; report ``end_counts`` when done."""
+        distance = abs(path)
+        operation = _Operation(
+            OperationKind.MOVE, entry, fault, now, min(distance / self._speed_cps(), MAX_MOVE_S),
+            start_counts=self.counts, direction=1 if path >= 0 else -1, distance=distance,
+            end_counts=end_counts % self.pulses_per_rev, new_frame=new_frame)
         with self._lock:
-            self.counts = target
+            self._operation = operation
+
+    def _advance(self, now: float) -> None:
+        """Finish the running operation if its time is up, and send its reply."""
+        op = self._operation
+        if op is None or op.duration_s is None or now < op.start_s + op.duration_s:
+            return
+        if op.kind is OperationKind.MAINTENANCE or op.fault == "mech_timeout":
+            with self._lock:
+                self._operation = None
+            status = Status.OK if op.kind is OperationKind.MAINTENANCE else Status.MECHANICAL_TIMEOUT
+            self._send(op.entry, status_reply(status), op.fault)
+            return
+        end = op.end_counts
+        if op.fault == "miss":
+            end = (end - int(self.pulses_per_rev * MISS_DEG / 360)) % self.pulses_per_rev
+        self._settle(end, op.new_frame)
+        self._send(op.entry, f"PO{encode_counts(self.counts)}", op.fault)
+
+    def _settle(self, counts: int, frame: int | None = None) -> None:
+        """End the running motion at ``counts`` (and, after a home, the new zero ``frame``)."""
+        with self._lock:
+            self._operation = None
+            self.counts = counts
+            if frame is not None:
+                self._frame = frame
             self.error_deg = float(self.rng.normal(0.0, self.sim_jitter_deg)) if self.sim_jitter_deg else 0.0
+
+    # -- commands (each returns its reply now, or None when it answers later) ----------------
+    def _do_in(self, data, entry, fault, now) -> str:
+        return f"IN{self.sim_device_type:02X}{12345678:08d}20261701{360:04X}{self.pulses_per_rev:08X}"
+
+    def _do_gs(self, data, entry, fault, now) -> str:
+        return status_reply(Status.BUSY if self._operation is not None else Status.OK)
+
+    def _do_gp(self, data, entry, fault, now) -> str:
+        return f"PO{encode_counts(self._position(now))}"
+
+    def _do_gj(self, data, entry, fault, now) -> str:
+        return f"GJ{encode_counts(self.jog_step)}"
+
+    def _do_gv(self, data, entry, fault, now) -> str:
+        return f"GV{self.velocity_percent:02X}"
+
+    def _do_go(self, data, entry, fault, now) -> str:
+        return f"HO{encode_counts(self.home_offset)}"
+
+    def _motor_info(self, motor: str) -> str:
+        moving = self._operation is not None and self._operation.kind is not OperationKind.MAINTENANCE
+        forward, backward = self.periods[motor]
+        current = MOTOR_CURRENT if moving else 0
+        return f"I{motor}1{int(moving)}{current:04X}FFFFFFFF{forward:04X}{backward:04X}"
+
+    def _do_i1(self, data, entry, fault, now) -> str:
+        return self._motor_info("1")
+
+    def _do_i2(self, data, entry, fault, now) -> str:
+        return self._motor_info("2")
+
+    def _do_ho(self, data, entry, fault, now) -> str | None:
+        if data not in ("0", "1"):
+            return status_reply(Status.VALUE_OUT_OF_RANGE)
+        target = self.home_offset - self._frame          # the new zero, in today's counts
+        self._start_move(entry, fault, now, target - self.counts, 0, new_frame=self.home_offset)
+        return None
+
+    def _do_ma(self, data, entry, fault, now) -> str | None:
+        if not _is_hex(data):
+            return status_reply(Status.COMMAND_ERROR)
+        target = decode_counts(data)
+        if not 0 <= target < self.pulses_per_rev:
+            return status_reply(Status.VALUE_OUT_OF_RANGE)
+        self._start_move(entry, fault, now, target - self.counts, target)
+        return None
+
+    def _do_mr(self, data, entry, fault, now) -> str | None:
+        if not _is_hex(data):
+            return status_reply(Status.COMMAND_ERROR)
+        delta = decode_counts(data)
+        self._start_move(entry, fault, now, delta, self.counts + delta)
+        return None
+
+    def _jog(self, direction: int, entry, fault, now) -> str | None:
+        if self.jog_step == 0:
+            operation = _Operation(OperationKind.CONTINUOUS, entry, fault, now, None, start_counts=self.counts,
+                                   direction=direction, speed_cps=self._speed_cps())
+            with self._lock:
+                self._operation = operation
+            return None
+        self._start_move(entry, fault, now, direction * self.jog_step, self.counts + direction * self.jog_step)
+        return None
+
+    def _do_fw(self, data, entry, fault, now) -> str | None:
+        return self._jog(1, entry, fault, now)
+
+    def _do_bw(self, data, entry, fault, now) -> str | None:
+        return self._jog(-1, entry, fault, now)
+
+    def _do_st(self, data, entry, fault, now) -> str:
+        op = self._operation
+        if op is None or op.kind is OperationKind.MAINTENANCE:
+            with self._lock:
+                self._operation = None
+            return status_reply(Status.OK)
+        op.entry["stopped_by"] = entry["command"]
+        self._settle(self._position_during(op, now))
         return f"PO{encode_counts(self.counts)}"
 
+    def _set_counts(self, data: str, attribute: str) -> str:
+        if not _is_hex(data):
+            return status_reply(Status.COMMAND_ERROR)
+        value = decode_counts(data)
+        if not 0 <= value < self.pulses_per_rev:
+            return status_reply(Status.VALUE_OUT_OF_RANGE)
+        setattr(self, attribute, value)
+        return status_reply(Status.OK)
 
-def _is_hex(text: str) -> bool:
-    return len(text) == 8 and all(c in "0123456789ABCDEF" for c in text)
+    def _do_sj(self, data, entry, fault, now) -> str:
+        return self._set_counts(data, "jog_step")
+
+    def _do_so(self, data, entry, fault, now) -> str:
+        return self._set_counts(data, "home_offset")
+
+    def _do_sv(self, data, entry, fault, now) -> str:
+        if not _is_hex(data, 2):
+            return status_reply(Status.COMMAND_ERROR)
+        percent = int(data, 16)
+        if not 1 <= percent <= 100:
+            return status_reply(Status.VALUE_OUT_OF_RANGE)
+        self.velocity_percent = percent
+        return status_reply(Status.OK)
+
+    def _do_ca(self, data, entry, fault, now) -> str:
+        if data not in ADDRESSES:
+            return status_reply(Status.VALUE_OUT_OF_RANGE)
+        self.address = data
+        return status_reply(Status.OK)
+
+    def _do_us(self, data, entry, fault, now) -> str:
+        return status_reply(Status.OK)
+
+    def _set_period(self, motor: str, index: int, data: str) -> str:
+        if not _is_hex(data, 4):
+            return status_reply(Status.COMMAND_ERROR)
+        value = int(data, 16)
+        period = FACTORY_PERIODS[motor][index] if value == RESTORE_PERIOD else value & ~PERIOD_FLAG
+        if period == 0:
+            return status_reply(Status.VALUE_OUT_OF_RANGE)
+        self.periods[motor][index] = period
+        return status_reply(Status.OK)
+
+    def _do_f1(self, data, entry, fault, now) -> str:
+        return self._set_period("1", 0, data)
+
+    def _do_b1(self, data, entry, fault, now) -> str:
+        return self._set_period("1", 1, data)
+
+    def _do_f2(self, data, entry, fault, now) -> str:
+        return self._set_period("2", 0, data)
+
+    def _do_b2(self, data, entry, fault, now) -> str:
+        return self._set_period("2", 1, data)
+
+    def _maintain(self, duration_s: float, entry, fault, now) -> None:
+        with self._lock:
+            self._operation = _Operation(OperationKind.MAINTENANCE, entry, fault, now, duration_s)
+
+    def _do_s1(self, data, entry, fault, now) -> None:
+        self._maintain(SEARCH_S, entry, fault, now)
+
+    def _do_s2(self, data, entry, fault, now) -> None:
+        self._maintain(SEARCH_S, entry, fault, now)
+
+    def _do_om(self, data, entry, fault, now) -> None:
+        self._maintain(MAINTENANCE_S, entry, fault, now)
+
+    def _do_cm(self, data, entry, fault, now) -> None:
+        self._maintain(MAINTENANCE_S, entry, fault, now)
+
+
+def _is_hex(text: str, length: int = 8) -> bool:
+    return len(text) == length and all(c in HEX_DIGITS for c in text)
+
+
+def _cut_line(buffer: bytes) -> tuple[str, bytes]:
+    """Split off the line at the start of ``buffer``: (its text without the terminator, the
+    bytes after the first CR or LF); all of ``buffer`` when it holds no terminator."""
+    ends = [i for i in (buffer.find(b"\r"), buffer.find(b"\n")) if i >= 0]
+    if not ends:
+        return buffer.decode("latin-1"), b""
+    end = min(ends)
+    return buffer[:end].decode("latin-1"), buffer[end + 1:]
+
+
+# -- the runnable server ---------------------------------------------------------------------
+def parse_faults(text: str) -> dict[str, float]:
+    """'drop=0.05,garble=0.01' → {'drop': 0.05, 'garble': 0.01}; '' → {}.
+
+    Kinds are among `FAULTS`, each at most once; probabilities are numbers in [0, 1].
+    Raises ValueError naming the bad item.
+    """
+    if not isinstance(text, str):
+        raise ValueError(f"expected a text like drop=0.05,garble=0.01, got {type(text).__name__}")
+    faults: dict[str, float] = {}
+    for item in (t.strip() for t in text.split(",")):
+        if not item:
+            continue
+        kind, sep, prob_text = (part.strip() for part in item.partition("="))
+        if not sep or kind not in FAULTS:
+            raise ValueError(f"expected KIND=PROBABILITY items with KIND among {', '.join(FAULTS)}, got {item!r}")
+        if kind in faults:
+            raise ValueError(f"expected each fault kind once, got {kind!r} twice")
+        try:
+            prob = float(prob_text)
+        except ValueError:
+            raise ValueError(f"expected a probability in [0, 1] for {kind}, got {prob_text!r}") from None
+        if not 0.0 <= prob <= 1.0:
+            raise ValueError(f"expected a probability in [0, 1] for {kind}, got {prob_text!r}")
+        faults[kind] = prob
+    return faults
+
+
+def serve(sim: SimulatedEll14, announce: Callable[[str], None], stop: threading.Event | None = None) -> None:
+    """Serve ``sim`` (started here if it is not yet) until ``stop`` is set, Ctrl-C, or SIGTERM.
+
+    ``announce`` gets one line with the pty path to open, e.g. ``simulated ELL14 on /dev/pts/5
+    (address 0); Ctrl-C to stop``. Called from the main thread, SIGTERM sets ``stop`` while
+    serving (the previous handler is restored on return). Returns normally on each of these;
+    DeviceError if the simulator stops serving by itself. Does not close ``sim``.
+    """
+    stop = stop or threading.Event()
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, lambda signum, frame: stop.set()) if in_main_thread else None
+    try:
+        sim.start()
+        announce(f"simulated ELL14 on {sim.port_name} (address {sim.address}); Ctrl-C to stop")
+        while not stop.wait(0.1):
+            if not sim.serving:
+                raise DeviceError(f"the simulated ELL14 on {sim.port_name} stopped serving")
+    except KeyboardInterrupt:
+        pass
+    finally:
+        if in_main_thread:
+            signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m acquire.sim_ell14``: serve a simulated ELL14 on a pty; exit status 0 after
+    Ctrl-C or SIGTERM, 1 if it fails, 2 for bad arguments."""
+    parser = argparse.ArgumentParser(
+        prog="python -m acquire.sim_ell14",
+        description="Serve a simulated Thorlabs ELL14 rotation mount on a pseudo-terminal until Ctrl-C, "
+                    "to test any Elliptec client (9600 baud, 8N1).")
+    parser.add_argument("--offset-deg", type=float, default=0.0,
+                        help="polarizer mounting offset the encoder does not see (deg, default 0)")
+    parser.add_argument("--jitter-deg", type=float, default=0.0,
+                        help="per-move angle error the encoder does not see, std (deg, default 0)")
+    parser.add_argument("--faults", default="",
+                        help=f"fault probabilities per command, e.g. drop=0.05,garble=0.01; kinds: {', '.join(FAULTS)}")
+    parser.add_argument("--address", default="0", help="device address 0-F (default 0)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of jitter and fault draws (default 0)")
+    args = parser.parse_args(argv)
+    try:
+        faults = parse_faults(args.faults)
+        sim = SimulatedEll14(args.address, sim_offset_deg=args.offset_deg, sim_jitter_deg=args.jitter_deg,
+                             sim_faults=faults, seed=args.seed)
+    except ValueError as exc:
+        parser.error(str(exc))
+    with sim:
+        try:
+            serve(sim, lambda line: print(line, flush=True))
+        except UrdError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

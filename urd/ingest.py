@@ -312,7 +312,7 @@ def _mosaic_linear(codes: np.ndarray, dtype: np.dtype, transfer: Transfer) -> np
     return x
 
 
-def ingest(source: Path, root: Path, opts: IngestOptions, mosaic=None, demosaic=None,
+def ingest(source: Path, root: Path, opts: IngestOptions, mosaic=None, demosaic="newton",
            transfer: Transfer = Transfer.LINEAR, progress: Progress | None = None) -> IngestReport:
     """The workflow of ``urd ingest``: a RAW folder (or mosaic frames) into the dataset at
     ``root``, or a captured scene / a whole dataset in place (see the module docstring)."""

@@ -1,0 +1,826 @@
+"""A static, self-contained HTML report of a dataset: a pure renderer over plain data.
+
+`write_html_report` takes `SceneView` records (filled from the dataset API by `urd.report`)
+and writes one folder that opens from disk with no server and no external assets::
+
+    OUT/index.html                    inline CSS and JS, inline SVG plots and legends
+    OUT/img/s000-NAME/shot_00.jpg     full-resolution sRGB views (JPEG, quality 95)
+    OUT/img/s000-NAME/shot_00_t.jpg   thumbnails (long side ``thumb_px``, JPEG, quality 90)
+    OUT/img/s000-NAME/m00_T_m.jpg     medium views of R̂/T̂ for the comparison slider (2 × thumb_px)
+
+Every string from the data is HTML-escaped; images are referenced by relative paths and
+load lazily. What the page shows of each scene:
+
+* the shots, S0, DoLP (viridis, legend 0..1) and AoLP (hue = AoLP over 0..180°,
+  saturation = DoLP / `AOLP_FULL_SATURATION_DOLP`, value = S0 as displayed), all computed with
+  `separate.optics` from the shots;
+* the estimated reference angle (drawn on the AoLP colour wheel) and per-shot calibration errors;
+* R̂, T̂ (and the reflection-presence map) of every method side by side, each with its
+  provenance, and a comparison slider between any two of them;
+* once per report, the Malus-law sweep behind the polarizer offset, drawn as an inline SVG plot.
+
+Display: linear values are multiplied by one gain k per scene, k = 1 / (99.5th percentile of
+S0), shots by 2k (a shot records (S0 + S1 cos 2φ + S2 sin 2φ)/2, so 2·I_φ is on S0's scale);
+then sRGB-encoded (IEC 61966-2-1) and clipped to [0, 1].
+
+The report folder is built in a fresh staging folder beside ``out_dir`` and renamed into place
+when complete; an existing folder is replaced only with ``overwrite=True`` and only when it is
+an urd HTML report (or empty).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import html
+import json
+import math
+import os
+import re
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Callable, Sequence
+
+import cv2
+import numpy as np
+
+from separate.optics import aolp, dolp, stokes_from_images
+from urd.errors import DatasetError
+
+#: Percentile of S0 mapped to white (per scene).
+EXPOSURE_PERCENTILE = 99.5
+#: DoLP at which the AoLP map reaches full saturation.
+AOLP_FULL_SATURATION_DOLP = 0.3
+#: Written into index.html; `write_html_report` replaces only folders whose index.html has it.
+GENERATOR = "urd report_html 1"
+#: JPEG quality of full-resolution views and of thumbnails.
+JPEG_QUALITY_FULL, JPEG_QUALITY_THUMB = 95, 90
+
+
+class ReportExistsError(DatasetError, FileExistsError):
+    """The report folder exists and may not be replaced."""
+
+
+@dataclasses.dataclass
+class ResultView:
+    """One separation method's output for a scene.
+
+    Attributes:
+        method: method name (any text; escaped on the page).
+        r, t: R̂ and T̂, H×W×C float32, linear, on S0's scale (R̂ + T̂ ≈ S0).
+        provenance: parameters, weights hash, urd version, time …; JSON-able values (others are
+            shown with ``str``).
+        confidence: optional H×W reflection-presence map in [0, 1].
+    """
+
+    method: str
+    r: np.ndarray
+    t: np.ndarray
+    provenance: dict
+    confidence: np.ndarray | None = None
+
+
+@dataclasses.dataclass
+class CalibrationView:
+    """A Malus-law sweep and its fit of the polarizer mounting offset (angles in degrees)."""
+
+    angles_deg: list[float]
+    intensities: list[float]
+    fit_angles_deg: list[float]
+    fit_intensities: list[float]
+    offset_deg: float
+    uncertainty_deg: float
+
+
+@dataclasses.dataclass
+class SceneView:
+    """What the report shows of one scene.
+
+    Attributes:
+        name: scene name (escaped on the page).
+        status: e.g. "ingested", "separated (network, schechner)", "incomplete (3 of 6 shots)".
+        shots: (angle_deg, H×W×C float32 linear aligned shot) pairs; may be empty.
+        reference_deg: estimated reference angle (reflection s-direction), degrees, or None.
+        shot_errors_deg: per-shot calibration errors (degrees, one per shot), or None.
+        results: one `ResultView` per separation method.
+        notes: warnings to show.
+    """
+
+    name: str
+    status: str
+    shots: list[tuple[float, np.ndarray]]
+    reference_deg: float | None
+    shot_errors_deg: list[float] | None
+    results: list[ResultView]
+    notes: list[str]
+
+
+# ---------------------------------------------------------------------------------------------
+# Pure image functions
+
+
+def srgb_encode(linear: np.ndarray) -> np.ndarray:
+    """Linear [0, 1] → sRGB-encoded [0, 1] (IEC 61966-2-1), float32; input clipped to [0, 1]."""
+    x = np.clip(np.nan_to_num(np.asarray(linear, np.float32)), 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055).astype(np.float32)
+
+
+def to_display(image: np.ndarray, gain: float) -> np.ndarray:
+    """H×W×C (C = 1 or 3) or H×W linear float image × ``gain`` → H×W×3 uint8 sRGB."""
+    x = np.asarray(image, np.float32)
+    if x.ndim == 2:
+        x = x[..., None]
+    if x.shape[-1] == 1:
+        x = np.repeat(x, 3, axis=-1)
+    return np.round(srgb_encode(x * gain) * 255.0).astype(np.uint8)
+
+
+def colormap_image(values: np.ndarray) -> np.ndarray:
+    """H×W values in [0, 1] (clipped) → H×W×3 uint8 RGB through the viridis colormap."""
+    codes = np.round(np.clip(np.nan_to_num(np.asarray(values, np.float32)), 0.0, 1.0) * 255.0).astype(np.uint8)
+    return cv2.applyColorMap(codes, cv2.COLORMAP_VIRIDIS)[..., ::-1].copy()
+
+
+def hsv_to_rgb(h: np.ndarray, s: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Hue in turns [0, 1), saturation and value in [0, 1] (arrays of one shape) → (..., 3) float32 RGB."""
+    h6 = np.mod(np.asarray(h, np.float32), 1.0) * 6.0
+    sector = np.floor(h6).astype(np.int64) % 6
+    f = h6 - np.floor(h6)
+    s, v = np.asarray(s, np.float32), np.asarray(v, np.float32)
+    p, q, t = v * (1 - s), v * (1 - f * s), v * (1 - (1 - f) * s)
+    r = np.choose(sector, [v, q, p, p, t, v])
+    g = np.choose(sector, [t, v, v, q, p, p])
+    b = np.choose(sector, [p, p, t, v, v, q])
+    return np.stack([r, g, b], axis=-1).astype(np.float32)
+
+
+def aolp_image(aolp_rad: np.ndarray, dolp_map: np.ndarray, value: np.ndarray) -> np.ndarray:
+    """AoLP as hue: H×W maps → H×W×3 uint8 RGB.
+
+    Hue = AoLP over 0..180° (0° red, 60° green, 120° blue); saturation = DoLP /
+    `AOLP_FULL_SATURATION_DOLP` (clipped); value = ``value`` in [0, 1] (the displayed S0).
+    """
+    hue = np.mod(np.asarray(aolp_rad, np.float64), np.pi) / np.pi
+    sat = np.clip(np.nan_to_num(np.asarray(dolp_map, np.float32)) / AOLP_FULL_SATURATION_DOLP, 0.0, 1.0)
+    rgb = hsv_to_rgb(hue, sat, np.clip(value, 0.0, 1.0))
+    return np.round(rgb * 255.0).astype(np.uint8)
+
+
+def polarization_maps(shots: Sequence[tuple[float, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """S0 (H×W×C), DoLP (H×W) and AoLP (H×W, rad) of aligned shots, by `separate.optics`.
+
+    DoLP and AoLP are those of the Stokes vector summed over the colour channels (the light's
+    total polarization). Raises ValueError when the angles do not determine a Stokes fit.
+    """
+    angles = np.radians([float(a) for a, _ in shots])
+    stack = np.stack([_as_hwc(image) for _, image in shots]).astype(np.float32)
+    stokes = stokes_from_images(stack, angles)                      # (3, H, W, C)
+    total = stokes.sum(axis=-1)                                     # (3, H, W)
+    return stokes[0], np.clip(dolp(total), 0.0, 1.0), aolp(total)
+
+
+def _as_hwc(image: np.ndarray) -> np.ndarray:
+    image = np.asarray(image)
+    return image[..., None] if image.ndim == 2 else image
+
+
+def _exposure_gain(s0: np.ndarray) -> float:
+    """k = 1 / (EXPOSURE_PERCENTILE-th percentile of S0), 1 when that is not positive."""
+    p = float(np.percentile(np.nan_to_num(s0), EXPOSURE_PERCENTILE)) if s0.size else 0.0
+    return 1.0 / p if math.isfinite(p) and p > 1e-12 else 1.0
+
+
+# ---------------------------------------------------------------------------------------------
+# Argument checks
+
+
+def _check_image(image, what: str, channels: bool = True) -> tuple[int, int]:
+    if not isinstance(image, np.ndarray):
+        raise TypeError(f"{what}: expected a numpy array, got {type(image).__name__}")
+    ok_shape = image.ndim == 2 or (channels and image.ndim == 3 and image.shape[-1] in (1, 3))
+    if not ok_shape or 0 in image.shape:
+        expected = "H×W×C with C = 1 or 3" if channels else "H×W"
+        raise ValueError(f"{what}: expected {expected}, got shape {image.shape}")
+    if image.dtype.kind != "f":
+        raise ValueError(f"{what}: expected float linear values, got dtype {image.dtype}")
+    return image.shape[0], image.shape[1]
+
+
+def _check_scene(scene: SceneView, index: int) -> None:
+    if not isinstance(scene, SceneView):
+        raise TypeError(f"scenes[{index}]: expected a SceneView, got {type(scene).__name__}")
+    where = f"scene {scene.name!r}"
+    sizes = set()
+    for k, (angle, image) in enumerate(scene.shots):
+        if not math.isfinite(float(angle)):
+            raise ValueError(f"{where}: expected finite shot angles (deg), got {angle} for shot {k}")
+        sizes.add(_check_image(image, f"{where}, shot {k}"))
+    for result in scene.results:
+        if not isinstance(result, ResultView):
+            raise TypeError(f"{where}: expected ResultView results, got {type(result).__name__}")
+        if not isinstance(result.provenance, dict):
+            raise TypeError(f"{where}, {result.method}: expected a provenance dict, got {type(result.provenance).__name__}")
+        sizes.add(_check_image(result.r, f"{where}, {result.method} R̂"))
+        sizes.add(_check_image(result.t, f"{where}, {result.method} T̂"))
+        if result.confidence is not None:
+            sizes.add(_check_image(result.confidence, f"{where}, {result.method} confidence", channels=False))
+    if len(sizes) > 1:
+        raise ValueError(f"{where}: expected shots and results of one size H×W, got {sorted(sizes)}")
+    if scene.shot_errors_deg is not None and scene.shots and len(scene.shot_errors_deg) != len(scene.shots):
+        raise ValueError(f"{where}: expected one calibration error per shot ({len(scene.shots)}), "
+                         f"got {len(scene.shot_errors_deg)}")
+
+
+# ---------------------------------------------------------------------------------------------
+# Files
+
+
+@dataclasses.dataclass
+class _Image:
+    """A written image: relative paths of its full, thumbnail (and medium) views, and their sizes."""
+
+    full: str
+    thumb: str
+    size: tuple[int, int]          # (width, height) of the full view
+    thumb_size: tuple[int, int]
+    mid: str | None = None
+
+
+def _resize_long_side(rgb: np.ndarray, long_side: int) -> np.ndarray:
+    scale = long_side / max(rgb.shape[:2])
+    if scale >= 1:
+        return rgb
+    size = (max(1, round(rgb.shape[1] * scale)), max(1, round(rgb.shape[0] * scale)))
+    return cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
+
+
+def _write_jpeg(path: Path, rgb: np.ndarray, quality: int) -> tuple[int, int]:
+    ok, data = cv2.imencode(".jpg", np.ascontiguousarray(rgb[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:
+        raise DatasetError(f"{path}: JPEG encoding failed")
+    path.write_bytes(data.tobytes())
+    return rgb.shape[1], rgb.shape[0]
+
+
+def _write_image(root: Path, rel_stem: str, rgb: np.ndarray, thumb_px: int, mid: bool = False) -> _Image:
+    """Write the full view and thumbnail (and a medium view) of an H×W×3 uint8 RGB image."""
+    size = _write_jpeg(root / f"{rel_stem}.jpg", rgb, JPEG_QUALITY_FULL)
+    thumb_size = _write_jpeg(root / f"{rel_stem}_t.jpg", _resize_long_side(rgb, thumb_px), JPEG_QUALITY_THUMB)
+    image = _Image(f"{rel_stem}.jpg", f"{rel_stem}_t.jpg", size, thumb_size)
+    if mid:
+        _write_jpeg(root / f"{rel_stem}_m.jpg", _resize_long_side(rgb, 2 * thumb_px), JPEG_QUALITY_FULL)
+        image.mid = f"{rel_stem}_m.jpg"
+    return image
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_-]+", "-", text).strip("-")[:40] or "x"
+
+
+def _is_report_folder(path: Path) -> bool:
+    if path.is_dir() and not any(path.iterdir()):
+        return True
+    index = path / "index.html"
+    try:
+        return index.is_file() and f'content="{GENERATOR}"' in index.read_text(encoding="utf-8", errors="replace")[:2000]
+    except OSError:
+        return False
+
+
+# ---------------------------------------------------------------------------------------------
+# HTML pieces
+
+_e = html.escape
+
+
+def _fmt(value: float, digits: int = 2) -> str:
+    return f"{value:.{digits}f}".replace("-", "−")
+
+
+def _fmt_signed(value: float, digits: int = 2) -> str:
+    return ("+" if value > 0 else "") + _fmt(value, digits)
+
+
+def _figure(image: _Image, caption: str, extra: str = "", label: str = "") -> str:
+    """A thumbnail linking to its full view; ``caption`` and ``extra`` are HTML."""
+    (w, h), (tw, th) = image.size, image.thumb_size
+    title = _e(f"{label} — {w}×{h}, click for full resolution" if label else f"{w}×{h}")
+    return (f'<figure style="flex: 0 1 {tw}px; min-width: {min(tw, 120)}px"><a class="zoom" href="{_e(image.full)}" data-caption="{_e(label)}" title="{title}">'
+            f'<img src="{_e(image.thumb)}" width="{tw}" height="{th}" loading="lazy" alt="{_e(label)}"></a>'
+            f"<figcaption>{caption}</figcaption>{extra}</figure>")
+
+
+def _colorbar(lo: str, hi: str, what: str) -> str:
+    ramp = colormap_image(np.linspace(0, 1, 9)[None, :])[0]
+    stops = ", ".join(f"rgb({r},{g},{b})" for r, g, b in ramp)
+    return (f'<div class="colorbar" role="img" aria-label="{_e(what)} legend, {lo} to {hi}">'
+            f'<div class="ramp" style="background: linear-gradient(to right, {stops})"></div>'
+            f'<div class="ticks"><span>{lo}</span><span>{_e(what)}</span><span>{hi}</span></div></div>')
+
+
+def _wheel_svg(uid: str, reference_deg: float | None, radius: int = 46) -> str:
+    """AoLP legend: a disc whose direction a (image-plane convention, counter-clockwise from +x)
+    has the hue of AoLP = a mod 180°, fading to white (unpolarized) at the centre; the
+    reference angle is drawn as a dashed diameter."""
+    c = radius + 22
+    parts = [f'<svg class="wheel" width="{2 * c}" height="{2 * c}" viewBox="0 0 {2 * c} {2 * c}" role="img" '
+             f'aria-label="AoLP colour wheel"><defs><radialGradient id="{uid}">'
+             '<stop offset="0" stop-color="#fff" stop-opacity="1"/><stop offset="1" stop-color="#fff" stop-opacity="0"/>'
+             "</radialGradient></defs>"]
+    step = 5
+    for a in range(0, 360, step):
+        hue = (2 * (a % 180)) % 360
+        a0, a1 = math.radians(a - step / 2 - 0.4), math.radians(a + step / 2 + 0.4)
+        x0, y0 = c + radius * math.cos(a0), c - radius * math.sin(a0)
+        x1, y1 = c + radius * math.cos(a1), c - radius * math.sin(a1)
+        parts.append(f'<path d="M{c},{c} L{x0:.2f},{y0:.2f} A{radius},{radius} 0 0 0 {x1:.2f},{y1:.2f} Z" '
+                     f'fill="hsl({hue},100%,50%)"/>')
+    parts.append(f'<circle cx="{c}" cy="{c}" r="{radius}" fill="url(#{uid})" stroke="#9aa3b2" stroke-width="0.8"/>')
+    for a in (0, 45, 90, 135):
+        x, y = c + (radius + 12) * math.cos(math.radians(a)), c - (radius + 12) * math.sin(math.radians(a))
+        parts.append(f'<text x="{x:.1f}" y="{y + 4:.1f}" text-anchor="middle">{a}°</text>')
+    if reference_deg is not None and math.isfinite(reference_deg):
+        r = math.radians(reference_deg)
+        dx, dy = (radius + 4) * math.cos(r), -(radius + 4) * math.sin(r)
+        parts.append(f'<line x1="{c - dx:.2f}" y1="{c - dy:.2f}" x2="{c + dx:.2f}" y2="{c + dy:.2f}" '
+                     'stroke="#111" stroke-width="1.6" stroke-dasharray="4 3"/>')
+    parts.append("</svg>")
+    return "".join(parts)
+
+
+def _nice_ticks(lo: float, hi: float, count: int = 5) -> list[float]:
+    span = hi - lo if hi > lo else 1.0
+    raw = span / count
+    mag = 10 ** math.floor(math.log10(raw))
+    step = next(m * mag for m in (1, 2, 2.5, 5, 10) if m * mag >= raw)
+    first = math.ceil(lo / step) * step
+    return [first + i * step for i in range(int((hi - first) / step + 1e-9) + 1)]
+
+
+def _calibration_svg(cal: CalibrationView) -> str:
+    """The sweep (points), the Malus-law fit (curve) and the fitted maximum ± uncertainty."""
+    width, height, left, right, top, bottom = 640, 280, 58, 16, 14, 40
+    xs = [float(a) for a in [*cal.angles_deg, *cal.fit_angles_deg]]
+    ys = [float(v) for v in [*cal.intensities, *cal.fit_intensities]]
+    x_lo, x_hi = (0.0, 180.0) if min(xs) >= 0 and max(xs) <= 180 else (min(xs), max(xs))
+    y_lo, y_hi = 0.0, max(max(ys) * 1.08, 1e-12)
+    if min(ys) < 0:
+        y_lo = min(ys) * 1.08
+
+    def px(x: float) -> float:
+        return left + (x - x_lo) / (x_hi - x_lo) * (width - left - right)
+
+    def py(y: float) -> float:
+        return height - bottom - (y - y_lo) / (y_hi - y_lo) * (height - top - bottom)
+
+    parts = [f'<svg class="plot" width="{width}" height="{height}" viewBox="0 0 {width} {height}" role="img" '
+             'aria-label="Malus-law sweep and fit">']
+    for y in _nice_ticks(y_lo, y_hi, 4):
+        parts.append(f'<line class="grid" x1="{left}" x2="{width - right}" y1="{py(y):.1f}" y2="{py(y):.1f}"/>'
+                     f'<text x="{left - 6}" y="{py(y) + 4:.1f}" text-anchor="end">{y:.3g}</text>')
+    x_ticks = np.arange(math.ceil(x_lo / 30) * 30, x_hi + 1e-9, 30.0).tolist() if x_hi - x_lo >= 90 else _nice_ticks(x_lo, x_hi, 6)
+    for x in x_ticks:
+        parts.append(f'<line class="grid" y1="{top}" y2="{height - bottom}" x1="{px(x):.1f}" x2="{px(x):.1f}"/>'
+                     f'<text x="{px(x):.1f}" y="{height - bottom + 16}" text-anchor="middle">{x:g}°</text>')
+    parts.append(f'<text x="{(left + width - right) / 2}" y="{height - 6}" text-anchor="middle">stage angle</text>'
+                 f'<text transform="translate(14,{(top + height - bottom) / 2}) rotate(-90)" text-anchor="middle">'
+                 "mean intensity</text>")
+    if cal.fit_intensities:
+        peak = float(cal.fit_angles_deg[int(np.argmax(cal.fit_intensities))])
+        u = abs(float(cal.uncertainty_deg))
+        band_lo, band_hi = max(x_lo, peak - u), min(x_hi, peak + u)
+        parts.append(f'<rect class="band" x="{px(band_lo):.1f}" y="{top}" width="{max(px(band_hi) - px(band_lo), 1):.1f}" '
+                     f'height="{height - top - bottom}"/>'
+                     f'<line class="peak" x1="{px(peak):.1f}" x2="{px(peak):.1f}" y1="{top}" y2="{height - bottom}"/>')
+        points = " ".join(f"{px(float(x)):.1f},{py(float(y)):.1f}" for x, y in zip(cal.fit_angles_deg, cal.fit_intensities))
+        parts.append(f'<polyline class="fit" points="{points}"/>')
+    for x, y in zip(cal.angles_deg, cal.intensities):
+        parts.append(f'<circle class="pt" cx="{px(float(x)):.1f}" cy="{py(float(y)):.1f}" r="3.5"/>')
+    parts.append(f'<rect class="frame" x="{left}" y="{top}" width="{width - left - right}" height="{height - top - bottom}"/>'
+                 "</svg>")
+    return "".join(parts)
+
+
+def _calibration_html(cal: CalibrationView) -> str:
+    fit_at = np.interp(np.asarray(cal.angles_deg, float), np.asarray(cal.fit_angles_deg, float),
+                       np.asarray(cal.fit_intensities, float)) if cal.fit_angles_deg else None
+    facts = [f"<dt>polarizer offset</dt><dd><b>{_fmt(cal.offset_deg, 3)}° ± {_fmt(cal.uncertainty_deg, 3)}°</b></dd>",
+             f"<dt>sweep</dt><dd>{len(cal.angles_deg)} stage angles</dd>"]
+    if cal.fit_intensities:
+        peak = float(cal.fit_angles_deg[int(np.argmax(cal.fit_intensities))])
+        facts.append(f"<dt>fit maximum</dt><dd>stage angle {_fmt(peak, 1)}° (shaded: ± the offset's uncertainty)</dd>")
+    if fit_at is not None and len(cal.intensities):
+        rms = float(np.sqrt(np.mean((np.asarray(cal.intensities, float) - fit_at) ** 2)))
+        swing = max(cal.fit_intensities) - min(cal.fit_intensities)
+        rel = f" ({100 * rms / swing:.1f}% of the modulation)" if swing > 0 else ""
+        facts.append(f"<dt>RMS residual</dt><dd>{rms:.3g}{rel}</dd>")
+    return (f'<section class="card" id="calibration"><h2>Polarizer calibration</h2>'
+            '<p class="muted">Malus-law sweep of a polarized target: measured mean intensity per stage angle (dots) '
+            "and the least-squares fit I(a) = c0 + c1·cos 2a + c2·sin 2a (line).</p>"
+            f'<div class="row"><div class="plotbox">{_calibration_svg(cal)}</div><dl class="facts">{"".join(facts)}</dl>'
+            "</div></section>")
+
+
+def _provenance_html(provenance: dict) -> str:
+    rows = []
+    for key, value in provenance.items():
+        if isinstance(value, (str, int, float, bool)) or value is None:
+            cell = _e(str(value))
+        else:
+            text = json.dumps(value, ensure_ascii=False, default=str)
+            if len(text) > 80:
+                text = json.dumps(value, indent=1, ensure_ascii=False, default=str)
+            cell = f"<pre>{_e(text)}</pre>"
+        rows.append(f"<tr><th>{_e(str(key))}</th><td>{cell}</td></tr>")
+    body = "".join(rows) or '<tr><td class="muted">none recorded</td></tr>'
+    return f'<details class="prov"><summary>provenance</summary><table class="kv">{body}</table></details>'
+
+
+_STATUS_CLASSES = ("ingested", "separated", "incomplete", "broken", "captured")
+
+
+def _status_badge(status: str) -> str:
+    word = status.split(" ", 1)[0].strip().lower()
+    kind = word if word in _STATUS_CLASSES else "other"
+    return f'<span class="badge {kind}">{_e(status)}</span>'
+
+
+# ---------------------------------------------------------------------------------------------
+# One scene
+
+
+def _scene_html(scene: SceneView, index: int, root: Path, folder: str, thumb_px: int) -> str:
+    """Write one scene's images under ``root / folder`` and return its section."""
+    (root / folder).mkdir(parents=True)
+    anchor = f"scene-{index:03d}"
+    notes = list(scene.notes)
+    s0 = maps = None
+    if len(scene.shots) >= 3:
+        try:
+            s0, dolp_map, aolp_map = polarization_maps(scene.shots)
+            maps = (dolp_map, aolp_map)
+        except ValueError as exc:
+            notes.append(f"no polarization maps: {exc}")
+    elif scene.shots:
+        notes.append(f"no polarization maps: {len(scene.shots)} shot(s), Stokes parameters need 3 or more angles")
+    if s0 is not None:
+        gain, basis = _exposure_gain(s0), "S0"
+    elif scene.shots:
+        gain, basis = _exposure_gain(2 * np.mean([_as_hwc(im) for _, im in scene.shots], axis=0)), "2 × the mean shot"
+    elif scene.results:
+        gain, basis = _exposure_gain(_as_hwc(scene.results[0].r) + _as_hwc(scene.results[0].t)), \
+            f"R̂ + T̂ of {scene.results[0].method}"
+    else:
+        gain, basis = 1.0, ""
+
+    meta = [_status_badge(scene.status)]
+    if scene.reference_deg is not None:
+        meta.append(f'<span class="fact">reference angle φ⊥ = <b>{_fmt(float(scene.reference_deg))}°</b></span>')
+    if scene.shots:
+        meta.append(f'<span class="fact">{len(scene.shots)} shots, {scene.shots[0][1].shape[1]}×{scene.shots[0][1].shape[0]} px</span>')
+    parts = [f'<section class="card scene" id="{anchor}"><div class="scene-head"><h2>{_e(scene.name)}</h2>'
+             f'<div class="meta">{"".join(meta)}</div></div>']
+    if notes:
+        parts.append('<ul class="notes">' + "".join(f"<li>{_e(str(n))}</li>" for n in notes) + "</ul>")
+    if basis:
+        parts.append(f'<p class="muted small">Exposure: S0, R̂, T̂ × {gain:.3g}, shots × {2 * gain:.3g} '
+                     f"(k = 1 / {EXPOSURE_PERCENTILE:g}th percentile of {_e(basis)} = 1 / {1 / gain:.3g}), then sRGB.</p>")
+
+    if scene.shots:
+        figs = []
+        for k, (angle, image) in enumerate(scene.shots):
+            written = _write_image(root, f"{folder}/shot_{k:02d}", to_display(image, 2 * gain), thumb_px)
+            caption = f"φ = {_fmt(float(angle), 1)}°"
+            if scene.shot_errors_deg is not None:
+                caption += f' <span class="err">calib. error {_fmt_signed(float(scene.shot_errors_deg[k]))}°</span>'
+            figs.append(_figure(written, caption, label=f"{scene.name} shot {k} at {float(angle):.1f}°"))
+        parts.append(f'<h3>Shots</h3><div class="row strip">{"".join(figs)}</div>')
+    elif scene.shot_errors_deg:
+        parts.append("<h3>Shot calibration</h3><p>errors: "
+                     + ", ".join(f"{_fmt_signed(float(e))}°" for e in scene.shot_errors_deg) + "</p>")
+
+    s0_image = None
+    if maps is not None:
+        dolp_map, aolp_map = maps
+        s0_image = _write_image(root, f"{folder}/s0", to_display(s0, gain), thumb_px, mid=bool(scene.results))
+        value = srgb_encode(s0.mean(axis=-1) * gain)
+        dolp_image = _write_image(root, f"{folder}/dolp", colormap_image(dolp_map), thumb_px)
+        aolp_written = _write_image(root, f"{folder}/aolp", aolp_image(aolp_map, dolp_map, value), thumb_px)
+        wheel_note = "dashed line: reference angle φ⊥" if scene.reference_deg is not None else ""
+        parts.append('<h3>Polarization</h3><div class="row">'
+                     + _figure(s0_image, "S0 (unpolarized intensity)", label=f"{scene.name} S0")
+                     + _figure(dolp_image, "DoLP", _colorbar("0", "1", "DoLP"), label=f"{scene.name} DoLP")
+                     + _figure(aolp_written, f"AoLP as hue; saturation DoLP / {AOLP_FULL_SATURATION_DOLP:g}, value S0",
+                               label=f"{scene.name} AoLP")
+                     + f'<figure class="legend">{_wheel_svg(f"wheel-{index}", scene.reference_deg)}'
+                     f'<figcaption>AoLP legend: hue by angle 0–180°, white centre unpolarized{"; " + wheel_note if wheel_note else ""}</figcaption></figure>'
+                     "</div>")
+
+    if scene.results:
+        rows, options = [], []
+        if s0_image is not None:
+            options.append((s0_image.mid, "S0 (input)"))
+        for m, result in enumerate(scene.results):
+            stem = f"{folder}/m{m:02d}_{_slug(result.method)}"
+            r_img = _write_image(root, f"{stem}_R", to_display(result.r, gain), thumb_px, mid=True)
+            t_img = _write_image(root, f"{stem}_T", to_display(result.t, gain), thumb_px, mid=True)
+            options += [(t_img.mid, f"{result.method} · T̂"), (r_img.mid, f"{result.method} · R̂")]
+            cells = [_figure(r_img, "R̂ (reflection)", label=f"{scene.name} {result.method} R̂"),
+                     _figure(t_img, "T̂ (transmission)", label=f"{scene.name} {result.method} T̂")]
+            if result.confidence is not None:
+                c_img = _write_image(root, f"{stem}_conf", colormap_image(result.confidence), thumb_px)
+                cells.append(_figure(c_img, "reflection presence", _colorbar("0", "1", "presence"),
+                                     label=f"{scene.name} {result.method} reflection presence"))
+            rows.append(f'<div class="method"><div class="method-name">{_e(result.method)}</div>'
+                        f'<div class="row">{"".join(cells)}</div>{_provenance_html(result.provenance)}</div>')
+        parts.append(f'<h3>Separation ({len(scene.results)} method{"s" if len(scene.results) > 1 else ""})</h3>'
+                     + "".join(rows))
+        t_first = 1 if s0_image is not None else 0                        # options: [S0], T̂, R̂ per method
+        right = t_first + 2 if len(scene.results) > 1 else (0 if s0_image is not None else t_first + 1)
+        parts.append(_compare_html(options, t_first, right, scene.results[0].t.shape[:2], anchor, thumb_px))
+    parts.append("</section>")
+    return "".join(parts)
+
+
+def _compare_html(options: list[tuple[str, str]], left: int, right: int, size: tuple[int, int], anchor: str,
+                  thumb_px: int) -> str:
+    """Two selects of (relative path, label) ``options`` showing ``left`` and ``right`` first, a stage
+    with the right image under the left one clipped at the divider, and a range input; ``size``
+    (H, W) is that of every view of the scene (checked on entry)."""
+    values = [v for v, _ in options]
+    h, w = size
+    mid_w = max(round(w * min(1.0, 2 * thumb_px / max(h, w))), 360)
+
+    def select(cls: str, chosen: int, side: str) -> str:
+        opts = "".join(f'<option value="{_e(v)}"{" selected" if i == chosen else ""}>{_e(label)}</option>'
+                       for i, (v, label) in enumerate(options))
+        return f'<label>{side} <select class="cmp-select {cls}" aria-label="{side} image">{opts}</select></label>'
+
+    return (f'<div class="compare" data-scene="{anchor}"><h3>Compare</h3><div class="cmp-controls">'
+            f'{select("cmp-left", left, "left")}{select("cmp-right", right, "right")}'
+            '<span class="muted small">drag on the image or use the slider</span></div>'
+            f'<div class="cmp-stage" style="aspect-ratio: {w} / {h}; max-width: {mid_w}px">'
+            f'<img class="cmp-b" src="{_e(values[right])}" loading="lazy" alt="right image">'
+            f'<img class="cmp-a" src="{_e(values[left])}" loading="lazy" alt="left image">'
+            '<div class="cmp-divider"></div><span class="cmp-tag left"></span><span class="cmp-tag right"></span></div>'
+            f'<input class="cmp-range" type="range" min="0" max="100" step="0.5" value="50" aria-label="divider position" '
+            f'style="max-width: {mid_w}px">'
+            "</div>")
+
+
+# ---------------------------------------------------------------------------------------------
+# The page
+
+_CSS = """
+:root { --fg:#1c2330; --muted:#5d6879; --line:#dfe3ea; --bg:#f4f5f8; --card:#fff; --accent:#2563eb; }
+* { box-sizing: border-box; }
+body { margin: 0; background: var(--bg); color: var(--fg);
+  font: 14px/1.5 system-ui, -apple-system, "Segoe UI", Roboto, "Helvetica Neue", Arial, sans-serif; }
+main { max-width: 1320px; margin: 0 auto; padding: 28px 24px 60px; }
+header h1 { font-size: 26px; margin: 0 0 2px; letter-spacing: -0.01em; }
+h2 { font-size: 19px; margin: 0; word-break: break-word; }
+h3 { font-size: 12px; font-weight: 600; text-transform: uppercase; letter-spacing: .07em; color: var(--muted);
+  margin: 22px 0 10px; }
+a { color: var(--accent); }
+.muted { color: var(--muted); } .small { font-size: 12px; }
+.card { background: var(--card); border: 1px solid var(--line); border-radius: 10px; padding: 20px 22px; margin: 18px 0;
+  box-shadow: 0 1px 2px rgba(20,30,50,.04); }
+.row { display: flex; flex-wrap: wrap; gap: 14px; align-items: flex-start; }
+.row.strip { flex-wrap: nowrap; overflow-x: auto; padding-bottom: 2px; }
+figure { margin: 0; max-width: 100%; }
+figure img { display: block; max-width: 100%; height: auto; border-radius: 4px; background: #e8ebf0; }
+figure a.zoom { display: block; cursor: zoom-in; }
+figcaption { font-size: 12px; color: var(--muted); margin-top: 5px; }
+.err { display: inline-block; margin-left: 6px; color: #8a5a00; }
+.scene-head { display: flex; flex-wrap: wrap; align-items: baseline; gap: 10px 16px; }
+.meta { display: flex; flex-wrap: wrap; gap: 8px 14px; align-items: baseline; }
+.fact { color: var(--muted); } .fact b { color: var(--fg); }
+.badge { display: inline-block; padding: 1px 9px; border-radius: 999px; font-size: 12px; font-weight: 600;
+  background: #eef0f4; color: #404a5a; border: 1px solid #dde1e8; }
+.badge.separated { background: #e7f6ec; color: #17663a; border-color: #c3e8cf; }
+.badge.ingested { background: #e8f0fe; color: #1f4fb3; border-color: #c8d8fb; }
+.badge.incomplete, .badge.captured { background: #fff5e0; color: #8a5a00; border-color: #f3dfb0; }
+.badge.broken { background: #fde8e8; color: #a12020; border-color: #f5c6c6; }
+ul.notes { margin: 12px 0 0; padding: 8px 12px 8px 30px; background: #fff8e6; border: 1px solid #f3e1b5;
+  border-radius: 6px; color: #6b4a00; }
+.colorbar { width: 100%; margin-top: 6px; }
+.colorbar .ramp { height: 10px; border-radius: 3px; border: 1px solid #cfd5de; }
+.colorbar .ticks { display: flex; justify-content: space-between; font-size: 11px; color: var(--muted); }
+figure.legend { text-align: center; margin-left: 8px; }
+figure.legend figcaption { margin: 0 auto; max-width: 170px; }
+svg text { font: 11px system-ui, sans-serif; fill: #4a5566; }
+.method { border-top: 1px solid var(--line); padding: 12px 0 4px; }
+.method:first-of-type { border-top: 0; }
+.method-name { font-weight: 600; margin-bottom: 8px; word-break: break-word; }
+details.prov { margin-top: 8px; }
+details.prov summary { cursor: pointer; color: var(--accent); font-size: 13px; }
+table.kv { border-collapse: collapse; margin-top: 6px; font-size: 12px; }
+table.kv th, table.kv td { text-align: left; vertical-align: top; padding: 3px 12px 3px 0; border-bottom: 1px solid #eef0f3; }
+table.kv th { color: var(--muted); font-weight: 500; white-space: nowrap; }
+table.kv pre { margin: 0; font-size: 11px; white-space: pre-wrap; word-break: break-word; }
+.compare { margin-top: 6px; }
+.cmp-controls { display: flex; flex-wrap: wrap; gap: 10px 18px; align-items: center; margin-bottom: 8px; }
+.cmp-controls select { font: inherit; padding: 3px 6px; border-radius: 5px; border: 1px solid #c9cfd9; background: #fff; }
+.cmp-stage { position: relative; width: 100%; overflow: hidden; border-radius: 6px; background: #e8ebf0;
+  cursor: ew-resize; touch-action: none; user-select: none; }
+.cmp-stage img { position: absolute; inset: 0; width: 100%; height: 100%; display: block; pointer-events: none; }
+.cmp-divider { position: absolute; top: 0; bottom: 0; left: 50%; width: 2px; margin-left: -1px; background: #fff;
+  box-shadow: 0 0 0 1px rgba(0,0,0,.35); pointer-events: none; }
+.cmp-divider::after { content: "\\2194"; position: absolute; top: 50%; left: 50%; transform: translate(-50%, -50%);
+  width: 26px; height: 26px; border-radius: 50%; background: #fff; color: #333; font-size: 15px; line-height: 26px;
+  text-align: center; box-shadow: 0 1px 4px rgba(0,0,0,.4); }
+.cmp-range { width: 100%; display: block; margin-top: 8px; }
+.cmp-tag { position: absolute; top: 8px; padding: 1px 8px; border-radius: 4px; font-size: 12px; color: #fff;
+  background: rgba(12,16,24,.62); pointer-events: none; max-width: 45%; overflow: hidden; text-overflow: ellipsis;
+  white-space: nowrap; }
+.cmp-tag.left { left: 8px; } .cmp-tag.right { right: 8px; }
+nav.toc table { border-collapse: collapse; width: 100%; font-size: 13px; }
+nav.toc th, nav.toc td { text-align: left; padding: 6px 10px 6px 0; border-bottom: 1px solid #eef0f3; }
+nav.toc th { color: var(--muted); font-weight: 500; }
+dl.facts { display: grid; grid-template-columns: auto 1fr; gap: 6px 14px; margin: 6px 0; align-content: start; }
+dl.facts dt { color: var(--muted); } dl.facts dd { margin: 0; }
+.plotbox { max-width: 100%; overflow-x: auto; }
+svg.plot .grid { stroke: #e6e9ef; } svg.plot .frame { fill: none; stroke: #b8c0cc; }
+svg.plot .fit { fill: none; stroke: var(--accent); stroke-width: 2; }
+svg.plot .pt { fill: #fff; stroke: #1c2330; stroke-width: 1.5; }
+svg.plot .band { fill: rgba(234,88,12,.14); } svg.plot .peak { stroke: #ea580c; stroke-dasharray: 5 4; }
+.howto ul { margin: 6px 0 0; padding-left: 20px; }
+#viewer { position: fixed; inset: 0; background: rgba(12,16,24,.92); z-index: 10; overflow: auto; display: flex;
+  flex-direction: column; align-items: center; justify-content: flex-start; padding: 44px 16px 16px; }
+#viewer[hidden] { display: none; }
+#viewer img { max-width: 96vw; max-height: calc(100vh - 90px); cursor: zoom-in; box-shadow: 0 4px 30px rgba(0,0,0,.5); }
+#viewer img.actual { max-width: none; max-height: none; cursor: zoom-out; }
+#viewer .bar { position: fixed; top: 0; left: 0; right: 0; display: flex; justify-content: space-between; align-items: center;
+  padding: 8px 14px; color: #e7ebf2; font-size: 13px; background: rgba(12,16,24,.7); }
+#viewer button { font: inherit; color: #fff; background: #2b3341; border: 1px solid #4a5466; border-radius: 5px;
+  padding: 2px 10px; cursor: pointer; }
+"""
+
+_JS = """
+(function () {
+  'use strict';
+  var viewer = document.getElementById('viewer');
+  var caption = viewer.querySelector('.caption');
+  var holder = viewer.querySelector('.holder');
+  function closeViewer() { viewer.hidden = true; holder.textContent = ''; }
+  function openViewer(href, text) {
+    holder.textContent = '';
+    var img = document.createElement('img');
+    img.alt = text; img.src = href;
+    img.addEventListener('click', function (e) { e.stopPropagation(); img.classList.toggle('actual'); });
+    holder.appendChild(img);
+    caption.textContent = text + ' (full resolution; click the image for 1:1, Esc to close)';
+    viewer.hidden = false;
+  }
+  document.addEventListener('click', function (e) {
+    var a = e.target.closest && e.target.closest('a.zoom');
+    if (!a || e.button !== 0 || e.ctrlKey || e.metaKey || e.shiftKey) return;
+    e.preventDefault();
+    openViewer(a.getAttribute('href'), a.dataset.caption || '');
+  });
+  viewer.addEventListener('click', function (e) { if (e.target === viewer || e.target === holder || e.target.closest('button')) closeViewer(); });
+  document.addEventListener('keydown', function (e) { if (e.key === 'Escape' && !viewer.hidden) closeViewer(); });
+
+  Array.prototype.forEach.call(document.querySelectorAll('.compare'), function (box) {
+    var left = box.querySelector('.cmp-left'), right = box.querySelector('.cmp-right');
+    var imgA = box.querySelector('.cmp-a'), imgB = box.querySelector('.cmp-b');
+    var stage = box.querySelector('.cmp-stage'), divider = box.querySelector('.cmp-divider');
+    var range = box.querySelector('.cmp-range');
+    var tagA = box.querySelector('.cmp-tag.left'), tagB = box.querySelector('.cmp-tag.right');
+    function labels() {
+      tagA.textContent = left.options[left.selectedIndex].text;
+      tagB.textContent = right.options[right.selectedIndex].text;
+    }
+    function update() {
+      var v = Number(range.value);
+      imgA.style.clipPath = 'inset(0 ' + (100 - v) + '% 0 0)';
+      divider.style.left = v + '%';
+    }
+    function fromPointer(e) {
+      var r = stage.getBoundingClientRect();
+      range.value = String(Math.max(0, Math.min(100, 100 * (e.clientX - r.left) / r.width)));
+      update();
+    }
+    range.addEventListener('input', update);
+    left.addEventListener('change', function () { imgA.src = left.value; labels(); });
+    right.addEventListener('change', function () { imgB.src = right.value; labels(); });
+    stage.addEventListener('pointerdown', function (e) {
+      stage.setPointerCapture(e.pointerId); fromPointer(e);
+      function move(ev) { fromPointer(ev); }
+      function up() { stage.removeEventListener('pointermove', move); stage.removeEventListener('pointerup', up); }
+      stage.addEventListener('pointermove', move); stage.addEventListener('pointerup', up);
+    });
+    labels(); update();
+  });
+})();
+"""
+
+
+def _howto_html() -> str:
+    return ('<section class="card howto"><h2>Reading this page</h2><ul>'
+            f"<li>Images are linear light shown in sRGB: per scene, S0, R̂ and T̂ are multiplied by k = 1 / "
+            f"({EXPOSURE_PERCENTILE:g}th percentile of S0), shots by 2k (a shot records "
+            "(S0 + S1 cos 2φ + S2 sin 2φ)/2), then sRGB-encoded and clipped; the factor is stated with each scene.</li>"
+            "<li>S0, DoLP and AoLP are the least-squares Stokes fit of the aligned shots; DoLP and AoLP are those of the "
+            "Stokes vector summed over the colour channels.</li>"
+            f"<li>AoLP is shown as hue (0° red, 60° green, 120° blue, over 0–180°), saturation DoLP / "
+            f"{AOLP_FULL_SATURATION_DOLP:g}, value from S0. Angles: in the image plane from +x, counter-clockwise as seen.</li>"
+            "<li>R̂ + T̂ ≈ S0 for every method. Click any thumbnail for the full-resolution view (JPEG previews; "
+            "the dataset's linear 16-bit TIFFs are the data).</li></ul></section>")
+
+
+def _toc_html(scenes: Sequence[SceneView]) -> str:
+    rows = "".join(
+        f'<tr><td><a href="#scene-{i:03d}">{_e(s.name)}</a></td><td>{_status_badge(s.status)}</td>'
+        f"<td>{len(s.shots)}</td><td>{_e(', '.join(r.method for r in s.results)) or '—'}</td>"
+        f"<td>{_fmt(float(s.reference_deg)) + '°' if s.reference_deg is not None else '—'}</td></tr>"
+        for i, s in enumerate(scenes))
+    return ('<nav class="card toc"><h2>Scenes</h2><table><thead><tr><th>scene</th><th>status</th><th>shots</th>'
+            f"<th>methods</th><th>reference angle</th></tr></thead><tbody>{rows}</tbody></table></nav>")
+
+
+def write_html_report(scenes: list[SceneView], out_dir: Path, title: str, calibration: CalibrationView | None = None,
+                      thumb_px: int = 320, progress: Callable[[int, int], None] | None = None,
+                      overwrite: bool = False) -> Path:
+    """Write the static HTML report of ``scenes`` into the folder ``out_dir``.
+
+    Args:
+        scenes: what to show, one `SceneView` per scene, in page order.
+        out_dir: the report folder; it must not exist unless ``overwrite`` (see below).
+        title: page title (escaped).
+        calibration: the Malus-law sweep behind the polarizer offset, if any.
+        thumb_px: long side of the thumbnails on the page (px, 32..4096); the comparison slider
+            uses 2 × thumb_px views, clicks open the full resolution.
+        progress: called as ``progress(done, total)`` with counts of scenes written.
+        overwrite: replace an existing report folder (one this function wrote, or an empty
+            folder); anything else is never replaced.
+
+    Returns:
+        The path of ``out_dir / "index.html"``.
+
+    Raises:
+        ReportExistsError (a FileExistsError): ``out_dir`` exists and ``overwrite`` is false, or it
+            is not an urd HTML report.
+        TypeError, ValueError: malformed views (wrong types, shapes, dtypes, non-finite angles).
+    """
+    if not isinstance(thumb_px, int) or isinstance(thumb_px, bool):
+        raise TypeError(f"thumb_px: expected an int, got {type(thumb_px).__name__}")
+    if not 32 <= thumb_px <= 4096:
+        raise ValueError(f"thumb_px: expected 32..4096 px, got {thumb_px}")
+    if calibration is not None and not isinstance(calibration, CalibrationView):
+        raise TypeError(f"calibration: expected a CalibrationView, got {type(calibration).__name__}")
+    if calibration is not None and len(calibration.angles_deg) != len(calibration.intensities):
+        raise ValueError(f"calibration: expected one intensity per angle ({len(calibration.angles_deg)}), "
+                         f"got {len(calibration.intensities)}")
+    if calibration is not None and len(calibration.fit_angles_deg) != len(calibration.fit_intensities):
+        raise ValueError(f"calibration: expected one fit intensity per fit angle ({len(calibration.fit_angles_deg)}), "
+                         f"got {len(calibration.fit_intensities)}")
+    for i, scene in enumerate(scenes):
+        _check_scene(scene, i)
+    out_dir = Path(out_dir)
+    if out_dir.exists() or out_dir.is_symlink():
+        if not overwrite:
+            raise ReportExistsError(f"{out_dir}: report folder already exists (replace it with overwrite / --force)")
+        if out_dir.is_symlink() or not _is_report_folder(out_dir):
+            raise ReportExistsError(f"{out_dir}: exists and is not an urd HTML report; refusing to replace it")
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+
+    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.staging-", dir=out_dir.parent))
+    try:
+        sections = []
+        for i, scene in enumerate(scenes):
+            if progress:
+                progress(i, len(scenes))
+            sections.append(_scene_html(scene, i, staging, f"img/s{i:03d}-{_slug(scene.name)}", thumb_px))
+        count = f"{len(scenes)} scene{'s' if len(scenes) != 1 else ''}"
+        page = ('<!doctype html>\n<html lang="en"><head><meta charset="utf-8">'
+                '<meta name="viewport" content="width=device-width, initial-scale=1">'
+                f'<meta name="generator" content="{GENERATOR}"><title>{_e(title)}</title>'
+                f'<link rel="icon" href="data:,"><style>{_CSS}</style></head><body><main>'
+                f'<header><h1>{_e(title)}</h1><p class="muted">{count}'
+                f'{" · polarizer calibrated" if calibration else ""} · static report written by urd</p></header>'
+                + _toc_html(scenes) + _howto_html()
+                + (_calibration_html(calibration) if calibration is not None else "")
+                + "".join(sections)
+                + '</main><div id="viewer" hidden><div class="bar"><span class="caption"></span>'
+                '<button type="button">close ✕</button></div><div class="holder"></div></div>'
+                f"<script>{_JS}</script></body></html>\n")
+        (staging / "index.html").write_text(page, encoding="utf-8")
+        os.chmod(staging, 0o755)
+        if out_dir.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.old-", dir=out_dir.parent))
+            os.rename(out_dir, old / "report")
+            try:
+                os.rename(staging, out_dir)
+            except BaseException:
+                os.rename(old / "report", out_dir)
+                raise
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.rename(staging, out_dir)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    if progress:
+        progress(len(scenes), len(scenes))
+    return out_dir / "index.html"
