@@ -1,8 +1,14 @@
 """The fixed synthetic benchmark: seeded patches from bsds500/test through the full synthesis
-pipeline (DR + NRD + LCG, ±4° angle noise, sensor noise), separated by each method with the
-nominal angles 0/45/90 (the true φ0 and angle errors are unknown to the methods, as in the
-paper). Figures: RMSE, PSNR and SSIM of R̂ and T̂ against the observable layers, averaged
-over patches (linear values, peak 1, PSNR floored at 60 dB per patch; see `separate.metrics`).
+pipeline (DR + NRD + LCG, ±4° angle noise, sensor noise; the paper's angles, φ⊥ within ±45°
+of φ0, ``AngleMode.CLASSIC``), separated by each method with the nominal angles 0/45/90 (the
+true φ0 and angle errors are unknown to the methods, as in the paper) and its reference policy
+("auto": φ⊥ estimated from the shots; a number forces it, 0 = the first shot, urd's rule
+before the reference was estimated). Figures: RMSE, PSNR and SSIM of R̂ and T̂ against the
+observable layers, averaged over patches (linear values, peak 1, PSNR floored at 60 dB per
+patch; see `separate.metrics`).
+
+`reshoot` renders a benchmark patch's layers again at other polarizer angles (for
+`tools/bench_reference.py`: any φ⊥, any angle set).
 """
 
 from __future__ import annotations
@@ -12,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from separate import metrics
-from separate.synthesis import SynthesisConfig, Synthesizer, default_pool
+from separate import metrics, optics
+from separate.synthesis import AngleMode, SynthesisConfig, Synthesizer, default_pool
 
 SEED = 2018
 NOMINAL = [0.0, 45.0, 90.0]
@@ -22,14 +28,32 @@ DIRECT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "urd-direct.pt"
 
 def benchmark_set(count: int, size: int) -> dict[str, np.ndarray]:
     """The benchmark patches (deterministic for ``count`` and ``size``)."""
-    return Synthesizer(default_pool("test"), SynthesisConfig(patch=size), seed=SEED).batch(count)
+    return Synthesizer(default_pool("test"), SynthesisConfig(patch=size, angles=AngleMode.CLASSIC), seed=SEED).batch(count)
 
 
-def run_benchmark(methods: list[str], count: int = 64, size: int = 256, direct_weights: Path | None = None) -> list[dict]:
+def reshoot(sample: dict[str, np.ndarray], angles: np.ndarray, rng: np.random.Generator,
+            angle_noise_deg: float = 4.0, n: float = optics.N_GLASS) -> np.ndarray:
+    """A benchmark patch's scene shot again through a polarizer at ``angles`` (rad, in the
+    frame of its ``phi_perp``), each off by U[±``angle_noise_deg``], with the synthesis
+    pipeline's sensor noise (gains drawn from ``rng``) and clipping; no new non-rigid
+    deformation. Returns (N, P, P, 3) float32 in [0, 1]."""
+    theta = sample["theta"]
+    rho = optics.expand_map(optics.reflectance(theta, n), sample["r"])
+    i_r, i_t = sample["r"] / rho, sample["t"] / (1.0 - rho)
+    true = np.asarray(angles, np.float64) + np.radians(rng.uniform(-angle_noise_deg, angle_noise_deg, len(angles)))
+    shots = np.stack([optics.render(i_r, i_t, theta, sample["phi_perp"], float(a), n) for a in true])
+    shot_gain, read_var = 10 ** rng.uniform(-4, -2.5), 10 ** rng.uniform(-7, -5)
+    shots = shots + rng.normal(0.0, 1.0, shots.shape) * np.sqrt(shot_gain * np.clip(shots, 0, None) + read_var)
+    return np.clip(shots, 0.0, 1.0).astype(np.float32)
+
+
+def run_benchmark(methods: list[str], count: int = 64, size: int = 256, direct_weights: Path | None = None,
+                  reference: str | float = "auto") -> list[dict]:
     """Score each method on the benchmark set; one row of figures per method.
 
     A method is a name of `separate.methods.METHODS`, "direct" (the network with the direct
-    variant's weights), or "LABEL=PATH": the network with the weights or checkpoint at PATH.
+    variant's weights), or "LABEL=PATH": the network with the weights or checkpoint at PATH;
+    each with the reference policy ``reference`` ("auto" or degrees in the nominal frame).
     """
     from separate.methods import get_method
 
@@ -39,12 +63,12 @@ def run_benchmark(methods: list[str], count: int = 64, size: int = 256, direct_w
     for name in methods:
         label, _, weights = name.partition("=")
         if weights:
-            run, _ = get_method("network", weights=Path(weights))
+            run, _ = get_method("network", reference, weights=Path(weights))
             name = label
         elif name == "direct":
-            run, _ = get_method("network", weights=direct_weights or DIRECT_WEIGHTS)
+            run, _ = get_method("network", reference, weights=direct_weights or DIRECT_WEIGHTS)
         else:
-            run, _ = get_method(name)
+            run, _ = get_method(name, reference)
         scores = {k: [] for k in ("rmse_r", "psnr_r", "ssim_r", "rmse_t", "psnr_t", "ssim_t")}
         started = time.perf_counter()
         for obs, r, t in zip(data["obs"], data["r"], data["t"]):

@@ -3,10 +3,23 @@
 Images of any size are processed in overlapping tiles of equal size whose origins lie on the
 network's 8-pixel grid (so strided convolutions see the same pixels as on the whole image);
 each tile's output is weighted by a ramp that is ~0 near its borders (where the receptive field
-is cut) and the weighted sum is normalized, which leaves no seams: with the default 160 px
-overlap, tiled and whole-image results agree within 1e-4 (1 MP test image; 1.2e-3 with 128 px).
-Memory is bounded by the tile size, not the image size.
-One exposure scale, mean(S0) of the whole image, is used for every tile.
+is cut) and the weights are normalized (their sum over the tiles is one at every pixel), which
+leaves no seams: with the default 160 px overlap, tiled and whole-image results agree within
+2.4e-4 in fp32 (1.7 MP test image in 2 × 2 tiles; 4.6e-3 with 128 px). Memory is bounded by the
+tile size, not the image size: besides the input stack and the two results, a tile takes about
+230-290 bytes per pixel of resident memory in bf16 and 350-430 in fp32 (measured; 0.3 and 0.45
+GB for the default 1024 px), and memory that glibc would keep after each tile is handed back.
+Tiles of 1152 px or more make a 24 MP image 6-12% faster (1.31× instead of 1.39× its pixels
+through the network) for 0.1-0.35 GB more. One exposure scale, mean(S0) of the whole image, is
+used for every tile.
+
+Speed: the separation network runs through `FusedNet`, which calls oneDNN's fused
+convolutions (convolution + ReLU, convolution + residual sum + ReLU, transposed convolution +
+ReLU) on channels-last tensors with weights converted once. On a CPU that does about twice the
+work per CPU second of the module's own forward pass, which spends ~60% of its time outside
+the convolutions (separate ReLU and sum passes, layout conversions): ~70% of the large-matmul
+rate in fp32 and in native bf16, one thread, network alone (``tools/bench_speed.py``). Other
+networks (the CEILNet baseline) run as modules, under bf16 autocast where chosen.
 
 Input handling: NaN or infinite pixels are an error; negative pixels (linear decoding noise
 below black) are clipped to 0; the angles must span at least 90°. Monochrome shots (one
@@ -17,21 +30,29 @@ averaged over them, so R̂ and T̂ are grey too (an RGB-trained network otherwis
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+import functools
 import hashlib
 import json
+import operator
+import sys
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
 
 from separate import optics
-from separate.model import build_model
+from separate.model import TARGET_MEAN, ResBlock, SeparationNet, canonical_inputs
+from separate.networks import build_model
 from separate.precision import Precision, resolve
 from urd.errors import WeightsError
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
-OVERLAP = 160  # px between tiles: tiled and whole-image results agree within 1e-4
+TILE = 1024     # px: a 6000 × 4000 image takes 7 × 5 tiles (1.39× its pixels); see the module docstring
+OVERLAP = 160   # px between tiles: tiled and whole-image results agree within 2.4e-4 (fp32)
+MIN_TILE = 128  # px: smaller tiles spend most of their pixels on the overlap
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "urd-canonical.pt"
 
 
@@ -70,10 +91,155 @@ def check_inputs(images: np.ndarray, angles_deg: list[float]) -> None:
         raise ValueError(f"expected finite pixel values, got {bad} NaN or infinite values")
 
 
+class FusedNet:
+    """A `SeparationNet`'s forward pass through oneDNN's fused convolutions, for inference.
+
+    Same arithmetic as ``model(obs, angles, scale)`` (within 1e-5 in fp32; bf16 rounds the
+    network's activations as autocast does), without the module's separate ReLU, residual-sum
+    and layout passes: activations are channels-last, each convolution carries its ReLU and,
+    in the residual blocks, the skip sum; weights are converted to ``dtype`` once, here.
+    The module is read, not changed; later changes to its weights are not seen.
+
+    Args:
+        model: a SeparationNet (any width, either variant).
+        dtype: torch.float32 or torch.bfloat16, the network's arithmetic (the optics before
+            and the mixing after it stay float32).
+    """
+
+    def __init__(self, model: SeparationNet, dtype: torch.dtype = torch.float32):
+        if not isinstance(model, SeparationNet):
+            raise TypeError(f"expected a SeparationNet, got {type(model).__name__}")
+        if dtype not in (torch.float32, torch.bfloat16):
+            raise ValueError(f"expected dtype torch.float32 or torch.bfloat16, got {dtype}")
+        self.model, self.dtype = model, dtype
+        self._weights = {}
+        for module in model.modules():
+            if isinstance(module, (torch.nn.Conv2d, torch.nn.ConvTranspose2d)):
+                self._weights[module] = (module.weight.detach().to(dtype).contiguous(memory_format=torch.channels_last),
+                                         module.bias.detach().to(dtype))
+
+    @staticmethod
+    def available() -> bool:
+        """True where torch has oneDNN's fused convolution operators (CPU builds with mkldnn)."""
+        return torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_convolution_pointwise")
+
+    def _conv(self, conv: torch.nn.Conv2d, x: torch.Tensor, unary: str = "none") -> torch.Tensor:
+        w, b = self._weights[conv]
+        return torch.ops.mkldnn._convolution_pointwise(x, w, b, conv.padding, conv.stride, conv.dilation, conv.groups,
+                                                       unary, [], "")
+
+    def _res_block(self, block: ResBlock, x: torch.Tensor) -> torch.Tensor:
+        """relu(x + conv2(relu(conv1(x)))) in two fused calls."""
+        y = self._conv(block.conv1, x, "relu")
+        conv = block.conv2
+        w, b = self._weights[conv]
+        return torch.ops.mkldnn._convolution_pointwise.binary(y, x, w, b, conv.padding, conv.stride, conv.dilation,
+                                                              conv.groups, "add", 1.0, "relu", [], "")
+
+    def _network_input(self, obs: torch.Tensor, angles: Sequence[float], gain: torch.Tensor,
+                       rows: int = 128) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The model's network input ``cat(shots, I⊥, I∥) · gain``, replicate-padded to the
+        8-px grid, as one ``dtype`` channels-last tensor, and I⊥, I∥ (float32; empty for the
+        direct variant). Built ``rows`` rows at a time (`canonical_inputs` is per pixel), so
+        its temporaries stay small."""
+        b, _, c, h, w = obs.shape
+        canonical = self.model.variant == "canonical"
+        x = torch.empty((b, c * (5 if canonical else 3), -(-h // 8) * 8, -(-w // 8) * 8), dtype=self.dtype,
+                        memory_format=torch.channels_last)
+        i_perp, i_par = (torch.empty((b, c, h, w) if canonical else (0,)) for _ in range(2))
+        for y in range(0, h, rows):
+            y1 = min(h, y + rows)
+            shots, perp, par = canonical_inputs(obs[..., y:y1, :], angles)
+            parts = [*shots.unbind(1)] + ([perp, par] if canonical else [])
+            for k, part in enumerate(parts):
+                torch.mul(part, gain, out=x[:, k * c : (k + 1) * c, y:y1, :w])
+            if canonical:
+                i_perp[..., y:y1, :], i_par[..., y:y1, :] = perp, par
+        x[:, :, h:, :w] = x[:, :, h - 1 : h, :w]
+        x[:, :, :, w:] = x[:, :, :, w - 1 : w]
+        return x, i_perp, i_par
+
+    def backbone(self, x: torch.Tensor) -> torch.Tensor:
+        """`SeparationNet.backbone` on (B, n_in, H, W) ``dtype`` channels-last, H and W
+        multiples of 8; returns (B, n_out, H, W) ``dtype`` channels-last."""
+        m = self.model
+        x = self._conv(m.head, x, "relu")
+        skips = []
+        for i, stage in enumerate(m.enc):
+            for block in stage:
+                x = self._res_block(block, x)
+            if i < len(m.down):
+                skips.append(x)
+                x = self._conv(m.down[i], x, "relu")
+        for i in reversed(range(len(m.up))):
+            up = m.up[i]
+            w, b = self._weights[up]
+            x = torch.ops.mkldnn._convolution_transpose_pointwise(x, w, b, up.padding, up.output_padding, up.stride,
+                                                                  up.dilation, up.groups, "relu", [], "")
+            x += skips.pop()
+            for block in m.dec[i]:
+                x = self._res_block(block, x)
+        return self._conv(m.tail, x)
+
+    def __call__(self, obs: torch.Tensor, angles: Sequence[float], scale: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """`SeparationNet.forward`: (B, N, C, H, W) float32 linear shots at ``angles`` (rad)
+        and (B,) exposure scale → (R̂, T̂), each (B, C, H, W) float32 (channels-last strides).
+        Pass ``obs`` as a temporary to let its memory go once the network's input is built."""
+        gain = (TARGET_MEAN / scale.float()).view(-1, 1, 1, 1)
+        c, h, w = obs.shape[-3:]
+        x, i_perp, i_par = self._network_input(obs.float(), angles, gain)
+        del obs
+        held = [x]
+        del x
+        _release_freed_memory()                              # the input's temporaries (saves ~50 B/px of peak)
+        out = self.backbone(held.pop())[..., :h, :w]         # the only reference: x goes after the first layer
+        canonical = self.model.variant == "canonical"
+        if not canonical:
+            return out[:, :c].float() / gain, out[:, c : 2 * c].float() / gain
+        xi = torch.sigmoid(out[:, 2 * c :].float())          # ξ∥, ξ⊥
+        r_hat = torch.lerp(i_perp - i_par, out[:, c : 2 * c].float() / gain, xi[:, 1:])   # ξ⊥·R̃ + (1 − ξ⊥)·B_R
+        del i_perp
+        t_hat = torch.lerp(2.0 * i_par, out[:, :c].float() / gain, xi[:, :1])             # ξ∥·T̃ + (1 − ξ∥)·B_T
+        return r_hat, t_hat
+
+
+def runner(model: torch.nn.Module, precision: str | Precision = "auto") -> Callable:
+    """The fastest way to run ``model(obs, angles, scale)`` for inference at ``precision``
+    (`separate.precision.resolve`), returning float32 (R̂, T̂): `FusedNet` for a SeparationNet
+    where oneDNN is there, the module itself (under bf16 autocast where chosen) otherwise."""
+    bf16 = resolve(precision) is Precision.BF16
+    if isinstance(model, SeparationNet) and FusedNet.available():
+        return FusedNet(model, torch.bfloat16 if bf16 else torch.float32)
+
+    def run(obs: torch.Tensor, angles: Sequence[float], scale: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            r_hat, t_hat = model(obs, angles, scale)[:2]
+        return r_hat.float(), t_hat.float()
+
+    return run
+
+
+def check_tiling(tile: int, overlap: int) -> tuple[int, int]:
+    """Validate tile size and overlap (px); return the tile rounded down to the 8-px grid and
+    the overlap. ValueError unless tile ≥ `MIN_TILE` and ≥ 2·overlap, and overlap ≥ 0."""
+    try:
+        tile, overlap = operator.index(tile), operator.index(overlap)
+    except TypeError:
+        raise TypeError(f"expected integer tile and overlap (px), got {tile!r} and {overlap!r}") from None
+    if overlap < 0:
+        raise ValueError(f"expected an overlap of at least 0 px, got {overlap}")
+    if tile // 8 * 8 < max(MIN_TILE, 2 * overlap):
+        raise ValueError(f"expected a tile of at least {max(MIN_TILE, 2 * overlap)} px (≥ {MIN_TILE} and ≥ 2 × "
+                         f"overlap {overlap}, rounded down to a multiple of 8), got {tile}")
+    return tile // 8 * 8, overlap
+
+
 def _ramp(length: int, overlap: int, at_start: bool, at_end: bool) -> np.ndarray:
     """1-D blending weight at a border shared with another tile: ~0 over the first half of
     ``overlap`` (pixels whose receptive field is cut by the tile border), then a linear rise."""
     w = np.ones(length, np.float32)
+    if overlap == 0:
+        return w
     margin = overlap // 2
     ramp = np.clip((np.arange(overlap, dtype=np.float32) + 0.5 - margin) / (overlap - margin), 1e-6, 1.0)
     if not at_start:
@@ -81,6 +247,16 @@ def _ramp(length: int, overlap: int, at_start: bool, at_end: bool) -> np.ndarray
     if not at_end:
         w[-overlap:] = np.minimum(w[-overlap:], ramp[::-1])
     return w
+
+
+def _blend_weights(spans: list[tuple[int, int]], size: int, overlap: int) -> list[np.ndarray]:
+    """Each span's ramp (`_ramp`) divided by the sum of all spans' ramps at each pixel, so that
+    the weights of the tiles covering a pixel sum to one (the 2-D weights are products)."""
+    ramps = [_ramp(end - start, overlap, start == 0, end == size) for start, end in spans]
+    total = np.zeros(size, np.float32)
+    for (start, end), ramp in zip(spans, ramps):
+        total[start:end] += ramp
+    return [ramp / total[start:end] for (start, end), ramp in zip(spans, ramps)]
 
 
 def tile_spans(size: int, tile: int, overlap: int) -> list[tuple[int, int]]:
@@ -96,10 +272,11 @@ def tile_spans(size: int, tile: int, overlap: int) -> list[tuple[int, int]]:
     return [(start, min(size, start + length)) for start in starts]
 
 
-@torch.no_grad()
-def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[float], tile: int = 768,
+@torch.inference_mode()
+def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[float], tile: int = TILE,
                    overlap: int = OVERLAP, precision: str = "auto",
-                   progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   progress: Callable[[int, int], None] | None = None,
+                   reference_deg: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Separate an aligned stack into (R̂, T̂), each H×W×C float32 linear.
 
     Args:
@@ -107,50 +284,96 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
         images: (N, H, W, C) linear shots, N ≥ 3, C = ``model.channels`` or 1; monochrome
             stacks give monochrome results (module docstring).
         angles_deg: polarizer angles of the shots (deg), spanning at least 90°.
-        tile, overlap: tile size and overlap (px); tile is rounded to a multiple of 8.
+        tile, overlap: tile size and overlap (px), `check_tiling`: tile ≥ 128 and ≥ 2·overlap,
+            rounded down to a multiple of 8; overlap ≥ 0.
         precision: "auto", "fp32" or "bf16" (`separate.precision.resolve`: auto takes bf16
             only where the CPU runs it natively).
         progress: called with (tiles done, tiles total).
+        reference_deg: if given, the network sees the shots presented at this reference + 0/45/90°
+            (`separate.reference.present`), rendered tile by tile: the same results as
+            presenting the stack first, without a second stack in memory.
     """
     check_inputs(images, angles_deg)
-    bf16 = resolve(precision) is Precision.BF16
+    tile, overlap = check_tiling(tile, overlap)
     n, h, w, c = images.shape
     if c not in (1, model.channels):
         raise ValueError(f"expected shots with 1 or {model.channels} channels for this network, got {c}")
-    mono = all(np.array_equal(shot[..., 0], shot[..., k]) for shot in images for k in range(1, c))
-    tile = max(64, tile // 8 * 8)
-    overlap = min(overlap, tile // 2)
+    if reference_deg is not None and not np.isfinite(reference_deg):
+        raise ValueError(f"expected a finite reference angle (deg) or None, got {reference_deg}")
+    run = runner(model, precision)
+    mono = c == 1 or _equal_channels(images)
     angles = [float(a) for a in np.radians(angles_deg)]
-    shot_means = np.array([np.clip(shot, 0.0, None).mean(dtype=np.float64) for shot in images])  # mean(S0) is linear in them
+    shot_means = np.array([_clipped_mean(shot) for shot in images])      # mean(S0) is linear in them
     s0_mean = float(np.linalg.pinv(optics.stokes_matrix(angles))[0] @ shot_means)
     scale = torch.tensor([max(s0_mean, 1e-6)])
-    r_sum = np.zeros((h, w, c), np.float32)
-    t_sum = np.zeros((h, w, c), np.float32)
-    weight = np.zeros((h, w, 1), np.float32)
+    if reference_deg is not None:
+        from separate.reference import present, presented_angles_deg
+
+        angles = [float(a) for a in np.radians(presented_angles_deg(reference_deg))]
+
+    def patch(y: int, y1: int, x: int, x1: int) -> torch.Tensor:
+        """(1, N, C, h, w) float32 shots of a tile, presented if asked, negatives clipped."""
+        shots = images[:, y:y1, x:x1]
+        if reference_deg is not None:
+            shots = present(shots, angles_deg, reference_deg)[0]
+        out = torch.from_numpy(np.clip(shots, 0.0, None, dtype=np.float32)).permute(0, 3, 1, 2)[None]
+        return out.expand(-1, -1, model.channels, -1, -1) if c == 1 else out
+
+    r_out = np.zeros((h, w, c), np.float32)
+    t_out = np.zeros((h, w, c), np.float32)
     rows, cols = tile_spans(h, tile, overlap), tile_spans(w, tile, overlap)
+    row_weights, col_weights = _blend_weights(rows, h, overlap), _blend_weights(cols, w, overlap)
     done, total = 0, len(rows) * len(cols)
-    for y, y1 in rows:
-        for x, x1 in cols:
-            patch = np.clip(images[:, y:y1, x:x1], 0.0, None, dtype=np.float32).transpose(0, 3, 1, 2)
-            patch = torch.from_numpy(np.ascontiguousarray(patch))[None]
-            if c == 1:
-                patch = patch.expand(-1, -1, model.channels, -1, -1)
-            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-                r_hat, t_hat = model(patch, angles, scale)
-            if mono:
-                r_hat, t_hat = (o.float().mean(dim=1, keepdim=True).expand(-1, c, -1, -1) for o in (r_hat, t_hat))
-            wy = _ramp(y1 - y, overlap, y == 0, y1 == h)
-            wx = _ramp(x1 - x, overlap, x == 0, x1 == w)
-            wt = (wy[:, None] * wx[None, :])[..., None]
-            r_sum[y:y1, x:x1] += r_hat[0].float().numpy().transpose(1, 2, 0) * wt
-            t_sum[y:y1, x:x1] += t_hat[0].float().numpy().transpose(1, 2, 0) * wt
-            weight[y:y1, x:x1] += wt
+    for (y, y1), wy in zip(rows, row_weights):
+        for (x, x1), wx in zip(cols, col_weights):
+            r_hat, t_hat = run(patch(y, y1, x, x1), angles, scale)      # a temporary: freed inside once used
+            weight = torch.from_numpy(wy[:, None, None] * wx[None, :, None])
+            for out, hat in ((r_out, r_hat), (t_out, t_hat)):
+                hat = hat[0].permute(1, 2, 0)                            # (h, w, C); contiguous from FusedNet
+                if mono:
+                    hat = hat.mean(dim=-1, keepdim=True)
+                out[y:y1, x:x1] += (hat * weight).numpy()
+            del r_hat, t_hat
+            _release_freed_memory()
             done += 1
             if progress:
                 progress(done, total)
-    r_sum /= weight
-    t_sum /= weight
-    return r_sum, t_sum
+    return r_out, t_out
+
+
+@functools.cache
+def _malloc_trim() -> Callable[[int], int] | None:
+    """glibc's ``malloc_trim``, or None where the C library is another."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return None
+
+
+def _release_freed_memory() -> None:
+    """Give the memory freed by a tile back to the system where the C library is glibc: it
+    keeps freed blocks below its (adaptive, up to 32 MB) mmap threshold, which a tile's 10-30 MB
+    temporaries are, and a 24 MP image's resident memory otherwise grows by ~0.3 GB over its
+    tiles (measured: 1.91 GB after the network without, 1.63 GB with, at no measurable cost in time)."""
+    trim = _malloc_trim()
+    if trim is not None:
+        trim(0)
+
+
+def _equal_channels(images: np.ndarray) -> bool:
+    """True if every shot's colour channels are equal (a coarse sample first, as most are not)."""
+    coarse = images[:, ::61, ::67]
+    if not all(np.array_equal(coarse[..., 0], coarse[..., k]) for k in range(1, images.shape[-1])):
+        return False
+    return all(np.array_equal(shot[..., 0], shot[..., k]) for shot in images for k in range(1, images.shape[-1]))
+
+
+def _clipped_mean(shot: np.ndarray, rows: int = 256) -> float:
+    """mean(max(shot, 0)) in float64, a block of rows at a time (no copy of the whole shot)."""
+    total = sum(np.clip(shot[y : y + rows], 0.0, None).sum(dtype=np.float64) for y in range(0, shot.shape[0], rows))
+    return float(total / shot.size)
 
 
 def match_histograms(estimate: np.ndarray, reference: np.ndarray, quantiles: int = 1024) -> np.ndarray:

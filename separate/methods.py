@@ -1,32 +1,83 @@
 """Separation methods by name: the network and the classical baselines share one interface.
 
-``get_method(name, **options)`` returns ``(run, info)``: ``run(images, angles_deg)`` maps an
-aligned stack (N, H, W, C) float32 linear and its polarizer angles (deg) to (R̂, T̂), each
-H×W×C float32 linear; ``info`` describes the method and parameters for the manifest.
+``get_method(name, reference="auto", **options)`` returns ``(run, info)``:
+``run(images, angles_deg, reference_deg=None)`` maps an aligned stack (N, H, W, C) float32
+linear and its N ≥ 3 polarizer angles (deg) to (R̂, T̂), each H×W×C float32 linear; ``info``
+describes the method, its parameters and its reference policy for the manifest.
+
+Reference policy of the polarization methods (network, schechner, kong, farid): the shots are
+re-rendered at reference + 0/45/90° (`separate.reference.present`, from the least-squares
+Stokes fit of all N shots; the network's tiles are presented one by one inside
+`separate.infer.separate_stack`) and the method reads φ⊥ within ±45° of the reference. The reference
+is ``reference_deg`` when ``run`` is given one; otherwise the method's ``reference`` option:
+"auto" estimates the glass's s-direction from the shots (`separate.reference.
+estimate_reference_deg`), a number (deg) forces it. The methods that see only the unpolarized
+image S0 (none, li-brown, arvanitopoulos, ceilnet) take and ignore the reference: S0 is the
+same for every presentation, so they skip it (and its full-resolution copy).
 """
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
-Run = Callable[[np.ndarray, list[float]], tuple[np.ndarray, np.ndarray]]
+from separate.reference import estimate_reference_deg, present
+
+Run = Callable[..., tuple[np.ndarray, np.ndarray]]
+Reference = str | float
 
 
-def network(weights: Path | None = None, tile: int = 768, precision: str = "auto",
-            colour_match: bool = False, progress=None) -> tuple[Run, dict]:
-    """The paper's network (`separate.model`) with shipped or given weights."""
-    from separate.infer import OVERLAP, load_model, match_histograms, separate_stack
+def check_reference(reference: Reference) -> Reference:
+    """``reference`` as "auto" or a finite float (deg); ValueError otherwise."""
+    if isinstance(reference, str):
+        if reference == "auto":
+            return reference
+        raise ValueError(f"expected reference 'auto' or an angle in degrees, got {reference!r}")
+    if isinstance(reference, bool) or not isinstance(reference, (int, float)) or not math.isfinite(reference):
+        raise ValueError(f"expected reference 'auto' or a finite angle in degrees, got {reference!r}")
+    return float(reference)
 
+
+def reference_policy(reference: Reference) -> str:
+    """The reference policy of a polarization method, as recorded in its ``info``."""
+    if reference == "auto":
+        return "auto: the glass's s-direction estimated from the shots (separate.reference); shots presented at it + 0/45/90 deg"
+    return f"fixed: {reference:g} deg; shots presented at it + 0/45/90 deg"
+
+
+def chooser(reference: Reference) -> Callable[[np.ndarray, list[float], float | None], float]:
+    """A function (images, angles_deg, reference_deg) → the reference (deg) to present at:
+    ``reference_deg`` if given, else ``reference`` ("auto": estimated; module docstring)."""
+    reference = check_reference(reference)
+
+    def choose(images: np.ndarray, angles_deg: list[float], reference_deg: float | None) -> float:
+        if reference_deg is not None:
+            return float(reference_deg)
+        return estimate_reference_deg(images, angles_deg) if reference == "auto" else float(reference)
+
+    return choose
+
+
+def network(weights: Path | None = None, tile: int | None = None, precision: str = "auto", colour_match: bool = False,
+            progress=None, reference: Reference = "auto", uses_reference: bool = True) -> tuple[Run, dict]:
+    """The paper's network (`separate.model`) with shipped or given weights, tiled
+    (`separate.infer.separate_stack`, ``tile`` px, default `separate.infer.TILE`); the shots
+    presented at the reference unless ``uses_reference`` is False (a network that sees only S0)."""
+    from separate.infer import OVERLAP, TILE, load_model, match_histograms, separate_stack
     from separate.precision import resolve
 
+    tile = TILE if tile is None else tile
     model, weights_info = load_model(weights)
     chosen = resolve(precision).value
+    choose = chooser(reference)
 
-    def run(images: np.ndarray, angles_deg: list[float]) -> tuple[np.ndarray, np.ndarray]:
-        r_hat, t_hat = separate_stack(model, images, angles_deg, tile, OVERLAP, chosen, progress)
+    def run(images: np.ndarray, angles_deg: list[float], reference_deg: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        # separate_stack presents the shots tile by tile (no second full-size stack)
+        chosen_deg = choose(images, angles_deg, reference_deg) if uses_reference else None
+        r_hat, t_hat = separate_stack(model, images, list(angles_deg), tile, OVERLAP, chosen, progress, reference_deg=chosen_deg)
         if colour_match:
             darkest = int(np.argmin([shot.mean(dtype=np.float64) for shot in images]))
             t_hat = match_histograms(t_hat, images[darkest])
@@ -34,37 +85,42 @@ def network(weights: Path | None = None, tile: int = 768, precision: str = "auto
 
     info = {"weights": {"file": Path(weights_info["file"]).name, "sha256": weights_info["sha256"],
                         "config": weights_info["config"]},
-            "parameters": {"tile": tile, "overlap": OVERLAP, "precision": chosen, "colour_match": colour_match}}
+            "parameters": {"tile": tile, "overlap": OVERLAP, "precision": chosen, "colour_match": colour_match},
+            "reference_policy": reference_policy(check_reference(reference)) if uses_reference else "not used: S0 only"}
     return run, info
 
 
-def ceilnet(weights: Path | None = None, **options) -> tuple[Run, dict]:
+def ceilnet(weights: Path | None = None, reference: Reference = "auto", **options) -> tuple[Run, dict]:
     """The CEILNet baseline (`separate.baselines.ceilnet`), run like the network: tiled, with
-    the same options, its weights hash in the manifest."""
+    the same options, its weights hash in the manifest; it sees only S0."""
     from separate.baselines import ceilnet as module
 
-    run, info = network(weights or module.WEIGHTS, **options)
+    check_reference(reference)
+    run, info = network(weights or module.WEIGHTS, uses_reference=False, **options)
     if info["weights"]["config"].get("variant") != "ceilnet":
         raise ValueError(f"weights {weights} hold a {info['weights']['config'].get('variant')} network, not CEILNet")
-    return run, {**info, "reference": module.__doc__.strip().splitlines()[0]}
+    return run, {**info, "paper": module.__doc__.strip().splitlines()[0]}
 
 
-def no_separation() -> tuple[Run, dict]:
+def no_separation(reference: Reference = "auto") -> tuple[Run, dict]:
     """The reference point: T̂ = S0 (the unpolarized image), R̂ = 0."""
     from separate import optics
 
-    def run(images: np.ndarray, angles_deg: list[float]) -> tuple[np.ndarray, np.ndarray]:
+    check_reference(reference)
+
+    def run(images: np.ndarray, angles_deg: list[float], reference_deg: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         s0 = optics.stokes_from_images(images, np.radians(angles_deg))[0]
         return np.zeros_like(s0), s0
 
-    return run, {"parameters": {}}
+    return run, {"parameters": {}, "reference_policy": "not used: S0 only"}
 
 
-def baseline(module_name: str) -> Callable[..., tuple[Run, dict]]:
+def baseline(module_name: str, s0_only: bool) -> Callable[..., tuple[Run, dict]]:
     """A factory for the baseline in ``separate.baselines.<module_name>``; options are its
-    keyword parameters (paper defaults when omitted)."""
+    keyword parameters (paper defaults when omitted) and ``reference``. Polarization baselines
+    get the shots presented at the reference; S0-only ones get them as they are."""
 
-    def make(**params) -> tuple[Run, dict]:
+    def make(reference: Reference = "auto", **params) -> tuple[Run, dict]:
         import importlib
         import inspect
 
@@ -73,11 +129,16 @@ def baseline(module_name: str) -> Callable[..., tuple[Run, dict]]:
         unknown = sorted(set(params) - set(accepted))
         if unknown:
             raise ValueError(f"unknown parameters {unknown} for {module_name}; expected some of {accepted}")
+        choose = chooser(reference)
 
-        def run(images: np.ndarray, angles_deg: list[float]) -> tuple[np.ndarray, np.ndarray]:
-            return module.separate(images, angles_deg, **params)
+        def run(images: np.ndarray, angles_deg: list[float], reference_deg: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+            if s0_only:
+                return module.separate(images, list(angles_deg), **params)
+            shots, angles = present(images, angles_deg, choose(images, angles_deg, reference_deg))
+            return module.separate(shots, angles, **params)
 
-        return run, {"parameters": params, "reference": module.__doc__.strip().splitlines()[0]}
+        policy = "not used: S0 only" if s0_only else reference_policy(check_reference(reference))
+        return run, {"parameters": params, "paper": module.__doc__.strip().splitlines()[0], "reference_policy": policy}
 
     return make
 
@@ -85,17 +146,18 @@ def baseline(module_name: str) -> Callable[..., tuple[Run, dict]]:
 METHODS: dict[str, Callable[..., tuple[Run, dict]]] = {
     "network": network,
     "none": no_separation,
-    "schechner": baseline("schechner"),
-    "kong": baseline("kong"),
-    "farid": baseline("farid"),
-    "li-brown": baseline("li_brown"),
-    "arvanitopoulos": baseline("arvanitopoulos"),
+    "schechner": baseline("schechner", s0_only=False),
+    "kong": baseline("kong", s0_only=False),
+    "farid": baseline("farid", s0_only=False),
+    "li-brown": baseline("li_brown", s0_only=True),
+    "arvanitopoulos": baseline("arvanitopoulos", s0_only=True),
     "ceilnet": ceilnet,
 }
 
 
-def get_method(name: str, **options) -> tuple[Run, dict]:
-    """The method called ``name`` with its options; ValueError naming the known methods."""
+def get_method(name: str, reference: Reference = "auto", **options) -> tuple[Run, dict]:
+    """The method called ``name`` with its options and reference policy ("auto" or degrees);
+    ValueError naming the known methods, or the bad reference."""
     if name not in METHODS:
         raise ValueError(f"unknown method {name!r}; expected one of {sorted(METHODS)}")
-    return METHODS[name](**options)
+    return METHODS[name](reference=check_reference(reference), **options)

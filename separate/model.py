@@ -14,6 +14,7 @@ I⊥, I∥ are half the scale of the transmission target. The "direct" variant i
 fed the three shots alone, predicting R̂ and T̂ with no projection and no residual.
 
 Inputs of any exposure are scaled so that mean(S0) = 0.25 before the network and back after.
+`separate.networks.build_model` makes a network from its config.
 """
 
 from __future__ import annotations
@@ -49,7 +50,9 @@ def canonical_inputs(obs: torch.Tensor, angles: Sequence[float] = NOMINAL_ANGLES
     Returns:
         shots (B, 3, C, H, W) at angles[0] + 0/45/90° (re-rendered from the Stokes fit unless
         the input already is exactly that), I⊥ and I∥ (B, C, H, W) with φ⊥ within ±45° of
-        angles[0].
+        angles[0]. `separate.methods` (and training data in ``AngleMode.ANY``) hand the network
+        shots presented at the estimated s-direction (`separate.reference.present`), so
+        angles[0] is φ⊥ itself.
     """
     check_obs(obs)
     stokes = optics.stokes_from_images(obs.transpose(0, 1), angles)
@@ -155,13 +158,3 @@ class SeparationNet(nn.Module):
         """The paper's ℓ2 loss on R̂ and T̂ (``outputs`` of ``forward``) against R and T."""
         r_hat, t_hat = outputs
         return torch.mean((r_hat - r) ** 2) + torch.mean((t_hat - t) ** 2)
-
-
-def build_model(config: dict) -> nn.Module:
-    """A network from its ``config()``: SeparationNet, or the CEILNet baseline for variant
-    "ceilnet" (`separate.baselines.ceilnet`)."""
-    if config.get("variant") == "ceilnet":
-        from separate.baselines.ceilnet import CEILNet
-
-        return CEILNet(**{k: v for k, v in config.items() if k != "variant"})
-    return SeparationNet(**config)

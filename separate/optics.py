@@ -25,6 +25,8 @@ import numpy as np
 
 #: Refractive index of window glass used by default (the paper's value).
 N_GLASS = 1.474
+#: Display gamma assumed for 8-bit photos (the paper's inverse gamma 2.2).
+GAMMA = 2.2
 
 Array = Any  # numpy.ndarray or torch.Tensor
 
@@ -84,6 +86,22 @@ def reflectance(theta: Array, n: float = N_GLASS) -> Array:
     return (r_s + r_p) / 2
 
 
+def dolp_limits(theta: Array, n: float = N_GLASS) -> tuple[Array, Array]:
+    """Largest DoLP of light from a pane at incidence ``theta`` (rad), unpolarized layers.
+
+    A pixel's linear polarization is Δ·(I_R − I_T) along φ⊥ over S0 = ρ·I_R + (1−ρ)·I_T
+    (ρ = (R_s+R_p)/2, Δ = (R_s−R_p)/2). Where the transmission dominates (I_T > I_R) it points
+    along φ⊥ + 90° with DoLP at most Δ/(1−ρ) (reached where I_R = 0); where the reflection
+    dominates, along φ⊥ with DoLP at most Δ/ρ (where I_T = 0).
+
+    Returns:
+        (transmission_max, reflection_max) = (Δ/(1−ρ), Δ/ρ), the shape of ``theta``.
+    """
+    r_s, r_p = fresnel_reflectance(theta, n)
+    rho, delta = (r_s + r_p) / 2, (r_s - r_p) / 2
+    return delta / (1.0 - rho), delta / rho
+
+
 def mixing_alpha(theta: Array, phi_perp: Array, phi: Array, n: float = N_GLASS) -> Array:
     """Mixing coefficient α = R_s·cos²(φ−φ⊥) + R_p·sin²(φ−φ⊥) of the paper's Eq. 1.
 
@@ -141,6 +159,33 @@ def observable_layers(
     """
     rho = expand_map(reflectance(theta, n), i_r)
     return rho * i_r, (1.0 - rho) * i_t
+
+
+def to_linear(img_u8: np.ndarray) -> np.ndarray:
+    """Gamma-2.2 8-bit image (any shape, uint8) to linear float32 in [0, 1]."""
+    return (img_u8.astype(np.float32) / 255.0) ** GAMMA
+
+
+def parabola_aoi(
+    theta_c: float, distance: float, length: float, sagitta: float, convexity: int, t: np.ndarray
+) -> np.ndarray:
+    """Angle of incidence (rad) along a parabolic glass profile, in closed form.
+
+    In the plane of incidence the camera is at the origin looking along +y; the surface point
+    P_S = (0, d) is seen at incidence ``theta_c``. The profile is x(t) = P_S + t·τ + κt²·ν with
+    tangent τ = (cos θc, sin θc), normal ν = (sin θc, −cos θc) and κ = ±4·sagitta/ℓ², over
+    t ∈ [−ℓ/2, ℓ/2] (``t`` given in units of ℓ, in [−½, ½]). At each point the normal is
+    ν − 2κt·τ and the angle of incidence is the angle between it and the viewing ray.
+    A flat pane is ``sagitta`` = 0; ``convexity`` is ±1.
+    """
+    tau = np.array([np.cos(theta_c), np.sin(theta_c)])
+    nu = np.array([np.sin(theta_c), -np.cos(theta_c)])
+    kappa = convexity * 4.0 * sagitta / length**2
+    tt = t * length
+    points = np.array([0.0, distance])[:, None] + tau[:, None] * tt + nu[:, None] * kappa * tt**2
+    normals = nu[:, None] - 2.0 * kappa * tt * tau[:, None]
+    cos_aoi = np.abs((points * normals).sum(0)) / (np.linalg.norm(points, axis=0) * np.linalg.norm(normals, axis=0))
+    return np.arccos(np.clip(cos_aoi, 0.0, 1.0))
 
 
 def stokes_matrix(angles: Sequence[float]) -> np.ndarray:
@@ -218,8 +263,9 @@ def canonical_projection(stokes: Array, phi_ref: float = 0.0) -> tuple[Array, Ar
 
     I_φ = I⊥·cos²(φ−φ⊥) + I∥·sin²(φ−φ⊥). The fit determines φ⊥ only up to 90°: swapping φ⊥
     and φ∥ swaps I⊥ and I∥. Like the paper, urd resolves it by taking φ⊥ within ±45° of the
-    reference ``phi_ref`` (the first polarizer angle by convention), so I⊥ may be darker than
-    I∥ (it is whenever the transmission outshines the reflection).
+    reference ``phi_ref``: the glass's s-direction estimated from the shots
+    (`separate.reference`), which the methods present as their first angle. I⊥ may be darker
+    than I∥ (it is wherever the transmission outshines the reflection).
 
     Args:
         stokes: (3, ...) stack S0, S1, S2.

@@ -8,7 +8,14 @@ From two natural photos, in linear light (inverse gamma 2.2):
    offsets with a per-patch σ, interpolated to a smooth warp, drawn anew for each shot;
 4. surface geometry: uniform angle of incidence (LCG off), or (LCG on) a flat or parabolic
    pane seen from a camera at a finite distance, the angle of incidence in closed form;
-5. polarizer angles φ0 + i·45° with ±4° error per shot, rendered with the optics core;
+5. polarizer angles with ±4° error per shot, rendered with the optics core:
+   ``AngleMode.CLASSIC`` (the paper's, and the benchmark's): φ0 + i·45°, i = 0, 1, 2, with φ⊥
+   within ±45° of φ0, the three shots as rendered;
+   ``AngleMode.ANY``: an angle set drawn from `ANGLE_SETS_DEG` at φ0 ~ U[0°, 180°), and the
+   network's input made exactly as at inference: φ⊥ estimated from the noisy shots with the
+   nominal angles (`separate.reference.estimate_reference_deg`) and the shots re-rendered at
+   it + 0/45/90° from their Stokes fit (`separate.reference.present`), clipped below at 0 as
+   `separate.infer` does;
 6. exposure, shot and read noise, and rejection of flat, dark or saturated patches.
 
 Every step has a switch in `SynthesisConfig`; a generator seeded with the same seed yields
@@ -18,22 +25,38 @@ the same patches.
 from __future__ import annotations
 
 import dataclasses
+import enum
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from separate import optics
+from separate.optics import parabola_aoi, to_linear
+from separate.reference import estimate_reference_deg, present
 
-GAMMA = 2.2
 SHARED_NATURAL = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "natural"
 #: scikit-image photos that ship with the package (no download): the fallback image pool.
 BUNDLED_PHOTOS = ("astronaut", "chelsea", "coffee", "rocket", "camera", "coins", "moon", "page", "text", "brick", "grass", "gravel")
 
 
+#: Angle sets (deg from the first shot) that ``AngleMode.ANY`` draws from, equally often:
+#: the rotating polarizer's three and four angles, 60° steps, and six angles (30° steps).
+ANGLE_SETS_DEG = ((0.0, 45.0, 90.0), (0.0, 60.0, 120.0), (0.0, 45.0, 90.0, 135.0),
+                  (0.0, 30.0, 60.0, 90.0, 120.0, 150.0))
+
+
+class AngleMode(enum.Enum):
+    """How the polarizer angles are drawn and the shots handed to the network (step 5)."""
+
+    CLASSIC = "classic"
+    ANY = "any"
+
+
 @dataclasses.dataclass
 class SynthesisConfig:
-    """Switches and ranges of the synthesis pipeline (defaults: the paper's full pipeline)."""
+    """Switches and ranges of the synthesis pipeline (defaults: the paper's full pipeline,
+    with the paper's angles, ``AngleMode.CLASSIC``)."""
 
     patch: int = 128
     dynamic_range: bool = True
@@ -48,10 +71,18 @@ class SynthesisConfig:
     angle_noise_deg: float = 4.0
     noise: bool = True
     n: float = optics.N_GLASS
+    angles: AngleMode = AngleMode.CLASSIC
+    angle_sets_deg: tuple[tuple[float, ...], ...] = ANGLE_SETS_DEG
+
+    def __post_init__(self):
+        self.angles = AngleMode(self.angles)
+        if not self.angle_sets_deg or any(len(a) < 3 for a in self.angle_sets_deg):
+            raise ValueError(f"expected angle sets of at least 3 angles each, got {self.angle_sets_deg}")
 
     @classmethod
-    def ablation(cls, name: str, patch: int = 128) -> "SynthesisConfig":
-        """The paper's ablation settings: 'DR', 'DR+NRD' or 'DR+NRD+LCG' (the full pipeline)."""
+    def ablation(cls, name: str, patch: int = 128, angles: AngleMode | str = AngleMode.CLASSIC) -> "SynthesisConfig":
+        """The paper's ablation settings: 'DR', 'DR+NRD' or 'DR+NRD+LCG' (the full pipeline),
+        with the given angle mode."""
         settings = {
             "DR": dict(nrd_prob=0.0, curvature=False),
             "DR+NRD": dict(curvature=False),
@@ -59,7 +90,7 @@ class SynthesisConfig:
         }
         if name not in settings:
             raise ValueError(f"expected one of {sorted(settings)}, got {name!r}")
-        return cls(patch=patch, **settings[name])
+        return cls(patch=patch, angles=AngleMode(angles), **settings[name])
 
 
 def load_image_pool(folders: list[Path] | None = None, max_side: int = 512) -> list[np.ndarray]:
@@ -104,11 +135,6 @@ def _shrink(img: np.ndarray, max_side: int) -> np.ndarray:
     return cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
 
 
-def to_linear(img_u8: np.ndarray) -> np.ndarray:
-    """Gamma-2.2 8-bit image to linear float32 in [0, 1]."""
-    return (img_u8.astype(np.float32) / 255.0) ** GAMMA
-
-
 def random_crop(rng: np.random.Generator, img: np.ndarray, size: int) -> np.ndarray:
     """A random crop of ``size``² at a random scale in [1, 2], randomly flipped; uint8 in, uint8 out."""
     h, w = img.shape[:2]
@@ -125,27 +151,6 @@ def smooth_warp_field(rng: np.random.Generator, size: int, grid: int, sigma_px: 
     dy = cv2.resize(offsets[1], (size, size), interpolation=cv2.INTER_CUBIC)
     ys, xs = np.mgrid[0:size, 0:size].astype(np.float32)
     return xs + dx, ys + dy
-
-
-def parabola_aoi(
-    theta_c: float, distance: float, length: float, sagitta: float, convexity: int, t: np.ndarray
-) -> np.ndarray:
-    """Angle of incidence (rad) along a parabolic glass profile, in closed form.
-
-    In the plane of incidence the camera is at the origin looking along +y; the surface point
-    P_S = (0, d) is seen at incidence ``theta_c``. The profile is x(t) = P_S + t·τ + κt²·ν with
-    tangent τ = (cos θc, sin θc), normal ν = (sin θc, −cos θc) and κ = ±4·sagitta/ℓ², over
-    t ∈ [−ℓ/2, ℓ/2] (``t`` given in units of ℓ, in [−½, ½]). At each point the normal is
-    ν − 2κt·τ and the angle of incidence is the angle between it and the viewing ray.
-    """
-    tau = np.array([np.cos(theta_c), np.sin(theta_c)])
-    nu = np.array([np.sin(theta_c), -np.cos(theta_c)])
-    kappa = convexity * 4.0 * sagitta / length**2
-    tt = t * length
-    points = np.array([0.0, distance])[:, None] + tau[:, None] * tt + nu[:, None] * kappa * tt**2
-    normals = nu[:, None] - 2.0 * kappa * tt * tau[:, None]
-    cos_aoi = np.abs((points * normals).sum(0)) / (np.linalg.norm(points, axis=0) * np.linalg.norm(normals, axis=0))
-    return np.arccos(np.clip(cos_aoi, 0.0, 1.0))
 
 
 def surface_maps(rng: np.random.Generator, cfg: SynthesisConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -170,9 +175,12 @@ def surface_maps(rng: np.random.Generator, cfg: SynthesisConfig) -> tuple[np.nda
 class Synthesizer:
     """Draws training samples from an image pool; deterministic for a seed.
 
-    A sample is a dict of float32 arrays: ``obs`` 3×P×P×3 (shots at φ0, φ0+45°, φ0+90°),
-    ``r`` and ``t`` P×P×3 (the observable layers R_obs, T_obs), ``theta`` and ``phi_perp``
-    P×P, and ``angles`` (3,) the true polarizer angles (rad).
+    A sample is a dict of float32 arrays: ``obs`` 3×P×P×3 (the network's input: CLASSIC, the
+    shots at φ0, φ0+45°, φ0+90°; ANY, the shots presented at the estimated reference), ``r`` and
+    ``t`` P×P×3 (the observable layers R_obs, T_obs), ``theta`` and ``phi_perp`` P×P, ``angles``
+    (3,) the angles of ``obs`` (rad; CLASSIC: the true polarizer angles; ANY: reference +
+    0/45/90° in the nominal angles' frame, which is φ⊥'s frame), and ``shots`` () the number
+    of shots taken (3 in CLASSIC).
     """
 
     def __init__(self, pool: list[np.ndarray], cfg: SynthesisConfig, seed: int):
@@ -209,9 +217,14 @@ class Synthesizer:
         if rng.random() < cfg.abrupt_prob:
             refl = np.where(refl.mean(axis=2, keepdims=True) < (refl + trans).mean(), 0.0, refl).astype(np.float32)
         theta, phi_perp = surface_maps(rng, cfg)
-        phi0 = phi_perp[0, 0] - rng.uniform(-np.pi / 4, np.pi / 4)
-        noise = np.radians(rng.uniform(-cfg.angle_noise_deg, cfg.angle_noise_deg, 3))
-        angles = (phi0 + np.radians([0.0, 45.0, 90.0]) + noise).astype(np.float32)
+        if cfg.angles is AngleMode.CLASSIC:
+            phi0 = phi_perp[0, 0] - rng.uniform(-np.pi / 4, np.pi / 4)
+            nominal = phi0 + np.radians([0.0, 45.0, 90.0])
+        else:
+            offsets = cfg.angle_sets_deg[int(rng.integers(len(cfg.angle_sets_deg)))]
+            nominal = rng.uniform(0.0, np.pi) + np.radians(offsets)
+        noise = np.radians(rng.uniform(-cfg.angle_noise_deg, cfg.angle_noise_deg, len(nominal)))
+        angles = (nominal + noise).astype(np.float32)
         deform = rng.random() < cfg.nrd_prob
         sigma = rng.uniform(0.0, cfg.nrd_sigma_max_px) * p / 128
         shots = []
@@ -231,11 +244,17 @@ class Synthesizer:
             obs = obs + rng.normal(0.0, 1.0, obs.shape).astype(np.float32) * np.sqrt(shot_gain * obs + read_var)
         if (obs > 1.0).mean() > 0.01 or (r_obs + t_obs).mean() < 0.02 or t_obs.std() < 0.01:
             return None
+        obs = np.clip(obs, 0.0, 1.0).astype(np.float32)
+        if cfg.angles is AngleMode.ANY:
+            nominal_deg = np.degrees(nominal)
+            obs, presented_deg = present(obs, nominal_deg, estimate_reference_deg(obs, nominal_deg))
+            obs, angles = np.maximum(obs, 0.0), np.radians(presented_deg).astype(np.float32)
         return {
-            "obs": np.clip(obs, 0.0, 1.0).astype(np.float32),
+            "obs": obs.astype(np.float32),
             "r": r_obs.astype(np.float32),
             "t": t_obs.astype(np.float32),
             "theta": theta,
             "phi_perp": phi_perp,
             "angles": angles,
+            "shots": np.float32(len(nominal)),
         }

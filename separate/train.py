@@ -23,9 +23,9 @@ import torch
 import torch.distributed as dist
 
 from separate import metrics
-from separate.model import build_model
+from separate.networks import build_model
 from separate.precision import Precision, resolve
-from separate.synthesis import SynthesisConfig, Synthesizer, default_pool
+from separate.synthesis import AngleMode, SynthesisConfig, Synthesizer, default_pool
 from urd.dataset import atomic_path
 from urd.errors import WeightsError
 
@@ -35,7 +35,10 @@ class TrainConfig:
     """A training run. Defaults are the paper's (Adam, lr 5e-3, batch 32, 128² patches).
 
     ``variant`` is "canonical" (the paper's network), "direct", or "ceilnet" (the CEILNet
-    baseline, with ``blocks`` residual blocks per stage).
+    baseline, with ``blocks`` residual blocks per stage). ``angles`` is the synthesis angle mode
+    of the training and validation data (`separate.synthesis.AngleMode`): "classic" (the
+    paper's φ0 + 0/45/90° near φ⊥, the shipped weights' first three stages) or "any" (random
+    angle sets, shots presented at the estimated reference, as `urd separate` does).
     """
 
     variant: str = "canonical"
@@ -55,6 +58,7 @@ class TrainConfig:
     ckpt_every: int = 100
     precision: str = "auto"
     threads: int = 0
+    angles: str = "classic"
 
     @classmethod
     def from_toml(cls, path: Path) -> "TrainConfig":
@@ -64,6 +68,9 @@ class TrainConfig:
         unknown = sorted(set(data) - names)
         if unknown:
             raise ValueError(f"{path}: unknown config keys {unknown}; expected some of {sorted(names)}")
+        modes = [m.value for m in AngleMode]
+        if data.get("angles", "classic") not in modes:
+            raise ValueError(f"{path}: expected angles in {modes}, got {data['angles']!r}")
         return cls(**data)
 
     def to_toml(self) -> str:
@@ -82,8 +89,9 @@ def to_tensors(batch: dict[str, np.ndarray], device: torch.device) -> tuple[torc
 
 
 def validation_set(cfg: TrainConfig) -> dict[str, np.ndarray]:
-    """The fixed validation patches: bsds500/val (bundled photos when absent), seed 1234."""
-    synth = Synthesizer(default_pool("val"), SynthesisConfig.ablation("DR+NRD+LCG", cfg.patch), seed=1234)
+    """The fixed validation patches: bsds500/val (bundled photos when absent), seed 1234, full
+    pipeline with the run's angle mode."""
+    synth = Synthesizer(default_pool("val"), SynthesisConfig.ablation("DR+NRD+LCG", cfg.patch, cfg.angles), seed=1234)
     return synth.batch(cfg.val_samples)
 
 
@@ -173,7 +181,7 @@ def train(cfg: TrainConfig, run_dir: Path, init: Path | None = None, progress=No
     if rank == 0:
         (run_dir / "config.toml").write_text(cfg.to_toml())
     ddp = torch.nn.parallel.DistributedDataParallel(model) if distributed else model
-    synth = Synthesizer(default_pool("train"), SynthesisConfig.ablation(cfg.pipeline, cfg.patch), seed=cfg.seed * 1000 + rank + 7919 * step)
+    synth = Synthesizer(default_pool("train"), SynthesisConfig.ablation(cfg.pipeline, cfg.patch, cfg.angles), seed=cfg.seed * 1000 + rank + 7919 * step)
     val = validation_set(cfg) if rank == 0 else None
     per_rank = cfg.batch // world
     micro = max(1, min(cfg.micro_batch, per_rank))

@@ -1,7 +1,8 @@
-"""Baselines, each on synthetic data that meets its own assumptions."""
+"""Baselines, each on synthetic data that meets its own assumptions, against doing nothing (T̂ = S0)."""
 
 import subprocess
 import sys
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -13,7 +14,6 @@ from separate import metrics, optics
 from separate.baselines import arvanitopoulos, farid, kong, li_brown, schechner
 from separate.baselines.common import canonical
 from separate.methods import METHODS
-from separate.synthesis import to_linear
 from urd.dataset import Dataset
 from urd.ingest import IngestOptions, ingest_scene
 
@@ -21,8 +21,8 @@ ANGLES = [0.0, 45.0, 90.0]
 
 
 def layers(size=256):
-    refl = to_linear(cv2.resize(skimage.data.astronaut(), (size, size), interpolation=cv2.INTER_AREA))
-    trans = to_linear(cv2.resize(skimage.data.coffee()[:, 100:500], (size, size), interpolation=cv2.INTER_AREA))
+    refl = optics.to_linear(cv2.resize(skimage.data.astronaut(), (size, size), interpolation=cv2.INTER_AREA))
+    trans = optics.to_linear(cv2.resize(skimage.data.coffee()[:, 100:500], (size, size), interpolation=cv2.INTER_AREA))
     return refl.astype(np.float32), trans.astype(np.float32)
 
 
@@ -30,8 +30,14 @@ def shots(refl, trans, theta, phi_perp=np.radians(10.0)):
     return np.stack([optics.render(refl, trans, theta, phi_perp, np.radians(a)) for a in ANGLES]).astype(np.float32)
 
 
+def no_separation_psnr(refl, trans, theta):
+    """PSNR of T̂ = S0 = R_obs + T_obs against T_obs: what doing nothing scores."""
+    r_true, t_true = optics.observable_layers(refl, trans, theta)
+    return metrics.psnr(r_true + t_true, t_true)
+
+
 def test_schechner_recovers_layers_and_angle_with_a_uniform_aoi():
-    refl, trans = layers()
+    refl, trans = layers(128)
     theta = np.radians(37.0)
     stack = shots(refl, trans, theta)
     r_true, t_true = optics.observable_layers(refl, trans, theta)
@@ -39,51 +45,79 @@ def test_schechner_recovers_layers_and_angle_with_a_uniform_aoi():
     estimate = schechner.estimate_theta(i_perp, i_par, np.arange(2.0, 88.0, 0.5))
     assert abs(np.degrees(estimate) - 37.0) <= 2.0
     r_hat, t_hat = schechner.separate(stack, ANGLES)
-    assert metrics.psnr(t_hat, t_true) >= 30 and metrics.psnr(r_hat, r_true) >= 30
+    # measured: T̂ 60.0 dB (exact up to the PSNR floor), no separation 36.1 dB
+    assert metrics.psnr(t_hat, t_true) >= no_separation_psnr(refl, trans, theta) + 15
+    assert metrics.psnr(r_hat, r_true) >= 30
 
 
 def test_farid_separates_two_independent_sources_up_to_scale():
-    refl, trans = layers()
-    stack = shots(refl, trans, np.radians(50.0))
+    refl, trans = layers(128)
+    theta = np.radians(50.0)
+    stack = shots(refl, trans, theta)
     r_hat, t_hat = farid.separate(stack, ANGLES)
-    r_true, t_true = optics.observable_layers(refl, trans, np.radians(50.0))
+    r_true, t_true = optics.observable_layers(refl, trans, theta)
     assert abs(np.corrcoef(t_hat.ravel(), t_true.ravel())[0, 1]) >= 0.95
     assert abs(np.corrcoef(r_hat.ravel(), r_true.ravel())[0, 1]) >= 0.95
+    # with the scale fixed by R̂ + T̂ ≈ S0, measured: T̂ 60.0 dB, no separation 33.6 dB (53.2 and 33.4 at 256²)
+    assert metrics.psnr(t_hat, t_true) >= no_separation_psnr(refl, trans, theta) + 10
 
 
 def test_kong_handles_a_varying_angle_of_incidence_better_than_one_global_angle():
-    refl, trans = layers()
-    theta = np.broadcast_to(np.radians(np.linspace(25, 70, 256))[None, :], (256, 256)).astype(np.float32)
+    refl, trans = layers(128)
+    theta = np.broadcast_to(np.radians(np.linspace(25, 70, 128))[None, :], (128, 128)).astype(np.float32)
     stack = shots(refl, trans, theta)
     r_true, t_true = optics.observable_layers(refl, trans, theta)
-    none = metrics.psnr(r_true + t_true, t_true)
     kong_t = metrics.psnr(kong.separate(stack, ANGLES)[1], t_true)
     global_t = metrics.psnr(schechner.separate(stack, ANGLES)[1], t_true)
-    assert kong_t > none + 3 and kong_t > global_t
+    # measured: Kong 41.9 dB, Schechner's one global angle 32.1 dB, no separation 31.3 dB
+    assert kong_t >= no_separation_psnr(refl, trans, theta) + 6 and kong_t >= global_t + 5
 
 
+# T̂'s PSNR minus no separation's, measured with a σ = 4 px blurred reflection (the single-image methods' own
+# assumption) at two strengths: 0.5 × — Li & Brown +0.83 dB, Arvanitopoulos +0.21 dB (not much worse than
+# nothing is asked); 0.8 × — +0.99 dB and +1.40 dB (the reflection must be reduced).
 @pytest.mark.parametrize("module", [li_brown, arvanitopoulos])
-def test_single_image_methods_remove_a_blurred_reflection_better_than_nothing(module):
+@pytest.mark.parametrize("strength,margin_db", [(0.5, -0.3), (0.8, 0.5)])
+def test_single_image_methods_remove_a_blurred_reflection(module, strength, margin_db):
     refl, trans = layers()
-    blurred = cv2.GaussianBlur(refl, (0, 0), 4) * 0.5
-    image = (trans * 0.7 + blurred).astype(np.float32)
+    image = (trans * 0.7 + cv2.GaussianBlur(refl, (0, 0), 4) * strength).astype(np.float32)
     stack = np.stack([image / 2] * 3)                  # unpolarized: every shot is S0/2
-    stack[1] = image / 2                               # (angles still well-posed)
     r_hat, t_hat = module.separate(stack, ANGLES)
-    assert metrics.psnr(t_hat, trans * 0.7) > metrics.psnr(image, trans * 0.7) + 0.1
+    assert metrics.psnr(t_hat, trans * 0.7) > metrics.psnr(image, trans * 0.7) + margin_db
     np.testing.assert_allclose(r_hat + t_hat, image, atol=1e-4)
 
 
-@pytest.mark.parametrize("method", [m for m in METHODS if m != "network"])
-def test_each_method_runs_through_urd_separate(tmp_path, method):
-    ds = Dataset.open_or_create(tmp_path / "ds")
+# T̂'s PSNR minus no separation's on the virtual camera's scene below (a curved pane, θ ≈ 30–70° across it,
+# a strong sharp reflection), measured through `urd separate` (reference estimated) for capture seeds 1/2/3:
+# Kong +0.28/+0.41/+0.51 dB, Schechner +0.20/+0.19/+0.47 (one global θ), Farid −1.59/−0.02/−0.15 (one global
+# mixing cannot fit a varying θ), CEILNet +0.04/−0.01/0.00, Li & Brown −4.9/−5.1/−5.1 and Arvanitopoulos
+# −6.9/−7.1/−7.0 (they expect a blurred reflection; this one is sharp). Their own data: the tests above.
+MARGIN_DB = {"none": -0.01, "kong": 0.1, "schechner": 0.0, "farid": -2.5, "ceilnet": -0.5, "li-brown": -6.0,
+             "arvanitopoulos": -8.0}
+
+
+@pytest.fixture(scope="module")
+def virtual_scene(tmp_path_factory):
+    """One captured and ingested scene that every method separates (into its own results folder)."""
+    ds = Dataset.open_or_create(tmp_path_factory.mktemp("methods") / "ds")
     scene, _ = capture_virtual(ds, size=(256, 192), shake_px=2, shake_deg=0.2, seed=1)
     ingest_scene(scene, IngestOptions())
-    out = subprocess.run([sys.executable, "-m", "urd.cli", "separate", "scene_01", "--dataset", str(tmp_path / "ds"),
+    return scene, ds.root
+
+
+# Kong's and Farid's optimizations take most of their ~10 s here: slow (both run fast in the tests above, and
+# Kong through `urd separate` in the parameters test below).
+@pytest.mark.parametrize("method", [pytest.param(m, marks=pytest.mark.slow) if m in ("kong", "farid") else m
+                                    for m in METHODS if m != "network"])
+def test_each_method_runs_through_urd_separate(virtual_scene, method):
+    scene, root = virtual_scene
+    out = subprocess.run([sys.executable, "-m", "urd.cli", "separate", "scene_01", "--dataset", str(root),
                           "--method", method], capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr
     entry = scene.load()["results"][method]
-    assert len(entry["files"]) == 4 and entry["truth_metrics"]["T"]["psnr_db"] > 10
+    figures = entry["truth_metrics"]
+    assert {"R.tiff", "T.tiff", "R_preview.png", "T_preview.png"} <= {Path(f["file"]).name for f in entry["files"]}
+    assert figures["T"]["psnr_db"] > figures["T_no_separation"]["psnr_db"] + MARGIN_DB[method]
 
 
 def test_baseline_parameters_from_the_command_line(tmp_path):

@@ -68,6 +68,7 @@ def test_four_angles_leave_one_direction_unobservable_and_five_determine_all():
             np.testing.assert_allclose(found - nominal, errors, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_per_shot_errors_on_the_virtual_rig_and_their_effect_on_the_stokes_fit(tmp_path, capsys):
     ds = Dataset.open_or_create(tmp_path / "ds")
     angles = (0, 30, 60, 90, 120, 150)

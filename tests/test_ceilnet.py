@@ -1,6 +1,7 @@
 """The CEILNet baseline: edge map, the two-stage network, training through `urd train`'s code."""
 
 import hashlib
+import shutil
 
 import cv2
 import numpy as np
@@ -12,7 +13,7 @@ from separate import metrics
 from separate.baselines.ceilnet import WEIGHTS, CEILNet, edge_map
 from separate.infer import DEFAULT_WEIGHTS, load_model
 from separate.methods import get_method
-from separate.train import TrainConfig, train
+from separate.train import TrainConfig, lr_at, train
 
 
 def test_edge_map_closed_form():
@@ -35,12 +36,46 @@ def test_ceilnet_sees_only_the_unpolarized_image():
     assert len(model(obs)) == 3 and model(obs)[2].shape == (2, 1, 21, 30)
 
 
-def test_ceilnet_trains_and_resumes(tmp_path):
+class Interrupted(Exception):
+    """Raised from the progress callback: the run stops as if killed after that step."""
+
+
+def test_ceilnet_training_resumes_from_last_pt_with_its_weights_and_optimizer(tmp_path):
     cfg = TrainConfig(variant="ceilnet", width=8, blocks=1, patch=32, batch=8, micro_batch=8, lr=2e-3, steps=6,
                       val_samples=8, val_every=3, ckpt_every=3, precision="fp32", threads=1)
-    record = train(cfg, tmp_path)
-    assert record["step"] == 6 and np.isfinite(record["psnr_t"])
-    model, info = load_model(tmp_path / "best.pt")
+
+    def stop_at_3(record):
+        if record["step"] == 3:
+            raise Interrupted
+
+    run = tmp_path / "run"
+    with pytest.raises(Interrupted):
+        train(cfg, run, progress=stop_at_3)
+    saved = torch.load(run / "last.pt", weights_only=True)
+    assert saved["step"] == 3
+    # a copy of the stopped run whose checkpoint holds other weights (same step, same optimizer state)
+    shift = 0.05
+    tampered = tmp_path / "tampered"
+    shutil.copytree(run, tampered)
+    torch.save({**saved, "model": {k: v + shift for k, v in saved["model"].items()}}, tampered / "last.pt")
+
+    steps = []
+    record = train(cfg, run, progress=lambda r: steps.append(r["step"]))
+    train(cfg, tampered)
+    # the step count continues: only steps 4..6 run, the learning rate follows the schedule from there
+    assert steps == [4, 5, 6] and record["step"] == 6 and record["lr"] == lr_at(cfg, 6) and np.isfinite(record["psnr_t"])
+    resumed = torch.load(run / "last.pt", weights_only=True)
+    assert resumed["step"] == 6
+    # Adam's own step counters went on from the checkpoint's 3 (a fresh optimizer would stand at 3 now)
+    assert {int(s["step"]) for s in saved["optim"]["state"].values()} == {3}
+    assert {int(s["step"]) for s in resumed["optim"]["state"].values()} == {6}
+    # the weights went on from the checkpoint's: with the warm-up's small learning rate three Adam steps move
+    # each weight by < 1e-3, so the resumed run ends near the checkpoint and the tampered one near its shifted copy
+    tampered_end = torch.load(tampered / "last.pt", weights_only=True)["model"]
+    for name, start in saved["model"].items():
+        assert (resumed["model"][name] - start).abs().max() < 1e-3, name
+        assert (tampered_end[name] - (start + shift)).abs().max() < 1e-3, name
+    model, info = load_model(run / "best.pt")
     assert isinstance(model, CEILNet) and info["config"]["blocks"] == 1
 
 

@@ -1,5 +1,6 @@
 """Synthesis, model, training loop, inference and `urd separate`."""
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -16,7 +17,7 @@ from rig import capture_virtual
 from separate import optics
 from separate.infer import DEFAULT_WEIGHTS, load_model, match_histograms, separate_stack, tile_spans
 from separate.model import NOMINAL_ANGLES, SeparationNet, canonical_inputs
-from separate.synthesis import SynthesisConfig, Synthesizer, load_image_pool, parabola_aoi
+from separate.synthesis import SynthesisConfig, Synthesizer, load_image_pool
 from separate.train import TrainConfig, train
 from urd.dataset import Dataset
 from urd.errors import WeightsError
@@ -42,24 +43,79 @@ def test_synthesis_is_deterministic_and_physically_consistent():
         np.testing.assert_allclose(s0, r + t, atol=2e-5)
 
 
-@pytest.mark.parametrize("name,deforms,curved", [("DR", False, False), ("DR+NRD", True, False), ("DR+NRD+LCG", True, True)])
-def test_ablation_switches(name, deforms, curved):
-    cfg = SynthesisConfig.ablation(name, patch=64)
-    assert (cfg.nrd_prob > 0) == deforms and cfg.curvature == curved
-    sample = Synthesizer(POOL, cfg, seed=0).sample()
-    assert (np.ptp(sample["theta"]) > 0) == curved or not curved
+def tan2_quadratic_fit(theta: np.ndarray, phi_perp: float) -> tuple[float, float]:
+    """How far a P×P angle-of-incidence map is from a flat pane seen from a point.
+
+    For a flat pane, ±tan θ is an affine function of the position along the plane of incidence
+    (`test_parabola_aoi_closed_form`), so of the pixel coordinates: tan²θ is an exact quadratic in
+    them whose curvature lies along the plane of incidence only, none along the s-direction φ⊥.
+    Returns the quadratic fit's largest residual relative to max tan²θ, and |H·s|/|H| for its
+    Hessian H and the unit s-direction s (x right, y up: the optics convention). Pixels clamped
+    at 85° are left out.
+    """
+    p = theta.shape[0]
+    rows, cols = np.mgrid[0:p, 0:p].astype(np.float64) / (p - 1)
+    keep = theta < np.radians(84.9)
+    x, y = cols[keep], -rows[keep]
+    design = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], axis=1)
+    tan2 = np.tan(theta[keep].astype(np.float64)) ** 2
+    coef, *_ = np.linalg.lstsq(design, tan2, rcond=None)
+    hessian = np.array([[2 * coef[3], coef[4]], [coef[4], 2 * coef[5]]])
+    s_dir = np.array([np.cos(phi_perp), np.sin(phi_perp)])
+    return float(np.abs(design @ coef - tan2).max() / tan2.max()), float(np.linalg.norm(hessian @ s_dir) / np.linalg.norm(hessian))
+
+
+@pytest.mark.parametrize("name", ["DR", "DR+NRD", "DR+NRD+LCG"])
+def test_ablation_switches(name):
+    deforms, lcg = name != "DR", name.endswith("LCG")
+    cfg = SynthesisConfig.ablation(name, patch=32)
+    assert (cfg.nrd_prob > 0) == deforms and cfg.curvature == lcg
+    batch = Synthesizer(POOL, dataclasses.replace(cfg, noise=False), seed=0).batch(12)
+    low, high = np.radians(cfg.aoi_deg)
+    flat, deformed = 0, 0
+    for obs, r, t, theta, phi_perp, angles in zip(*(batch[k] for k in ("obs", "r", "t", "theta", "phi_perp", "angles"))):
+        assert np.ptp(phi_perp) == 0                                   # one plane of incidence per patch
+        if lcg:                                                        # a pane at a finite distance: θ varies
+            assert np.ptp(theta) > np.radians(0.1) and theta.max() <= np.radians(85.0) + 1e-6
+            flat += max(tan2_quadratic_fit(theta, phi_perp[0, 0])) < 1e-4
+        else:                                                          # closed form without LCG: θ ≡ θc
+            assert np.ptp(theta) == 0 and low <= theta[0, 0] <= high
+        # without noise, undeformed shots are Eq. 1 of the layers, S0 = R_obs + T_obs, except where a shot clips
+        # at white (≤ 3% of values: the synthesizer rejects patches with more); NRD moves ≥ 48% (measured)
+        deformed += (np.abs(optics.stokes_from_images(obs, angles)[0] - (r + t)) > 1e-4).mean() > 0.1
+    assert 0 < deformed < 12 if deforms else deformed == 0             # NRD deforms half the samples
+    assert 0 < flat < 12 if lcg else flat == 0                         # LCG curves half the panes
+
+
+@pytest.mark.parametrize("curved_prob", [0.0, 1.0])
+def test_synthesized_panes_follow_the_flat_pane_closed_form_unless_curved(curved_prob):
+    # measured on these 10 patches: flat panes fit within 1e-6 (residual) and 1.1e-5 (Hessian along φ⊥);
+    # curved ones miss the quadratic by 2e-3 to 0.19
+    batch = Synthesizer(POOL, SynthesisConfig(patch=32, curved_prob=curved_prob), seed=0).batch(10)
+    fits = [tan2_quadratic_fit(theta, phi_perp[0, 0]) for theta, phi_perp in zip(batch["theta"], batch["phi_perp"])]
+    if curved_prob == 0.0:
+        assert all(residual < 1e-5 and along_s < 1e-4 for residual, along_s in fits)
+    else:
+        assert all(residual > 1e-3 for residual, _ in fits)
 
 
 def test_parabola_aoi_closed_form():
     t = np.linspace(-0.5, 0.5, 11)
-    flat = parabola_aoi(np.radians(40), 2.0, 1.0, 0.0, 1, t)
+    flat = optics.parabola_aoi(np.radians(40), 2.0, 1.0, 0.0, 1, t)
     assert flat[5] == pytest.approx(np.radians(40))
     # a flat pane seen from a point: tan θ grows linearly along it
     x = t * 1.0
     expected = np.arctan((2.0 * np.sin(np.radians(40)) + x) / (2.0 * np.cos(np.radians(40))))
     np.testing.assert_allclose(flat, expected, atol=1e-9)
-    bent = parabola_aoi(np.radians(40), 2.0, 1.0, 0.05, 1, t)
+    bent = optics.parabola_aoi(np.radians(40), 2.0, 1.0, 0.05, 1, t)
+    assert bent[5] == pytest.approx(np.radians(40))                   # the vertex's tangent is the flat pane's
     assert np.abs(bent - flat).max() > np.radians(1)
+    # seen head-on at the vertex (θc = 0, d = 2, ℓ = 1): the profile is (t, d − κt²) with normal (−2κt, −1),
+    # so cos θ = (d + κt²) / √((t² + (d − κt²)²)(1 + 4κ²t²)), symmetric in t, κ = ±4·sagitta/ℓ²
+    for convexity in (1, -1):
+        kappa = convexity * 4 * 0.05
+        cos = (2.0 + kappa * t**2) / np.sqrt((t**2 + (2.0 - kappa * t**2) ** 2) * (1 + 4 * kappa**2 * t**2))
+        np.testing.assert_allclose(optics.parabola_aoi(0.0, 2.0, 1.0, 0.05, convexity, t), np.arccos(cos), atol=1e-12)
 
 
 def test_model_shapes_residual_and_canonical_layer():
@@ -79,17 +135,23 @@ def test_model_shapes_residual_and_canonical_layer():
     assert direct.head.in_channels == 9 and model.head.in_channels == 15
 
 
-def test_training_runs_resumes_and_improves(tmp_path):
-    cfg = TrainConfig(width=8, patch=32, batch=8, micro_batch=4, lr=2e-3, steps=30, val_samples=16, val_every=15,
+def test_training_improves_the_validation_psnr(tmp_path):
+    # a high peak learning rate, so that the 200-step warm-up still moves a 20-step run; measured with seed 0:
+    # validation PSNR of T̂ 23.5 dB after 5 steps, 26.4 dB after 20 (+2.9 dB; seeds 1–3 gain 1.4–2.0 dB)
+    cfg = TrainConfig(width=8, patch=32, batch=8, micro_batch=4, lr=0.1, steps=20, val_samples=16, val_every=5,
                       ckpt_every=10, precision="fp32", threads=1)
-    first = train(TrainConfig(**{**cfg.__dict__, "steps": 15}), tmp_path)
-    assert first["step"] == 15 and (tmp_path / "last.pt").is_file()
-    last = train(cfg, tmp_path)
-    assert last["step"] == 30
-    logged = [line for line in (tmp_path / "log.jsonl").read_text().splitlines() if "psnr_t" in line]
-    assert len(logged) == 2
+    records = []
+    last = train(cfg, tmp_path, progress=records.append)
+    psnr = [r["psnr_t"] for r in records if "psnr_t" in r]
+    assert [r["step"] for r in records] == list(range(1, 21)) and last["step"] == 20 and len(psnr) == 4
+    assert psnr[-1] > psnr[0] + 1.0
+    best = torch.load(tmp_path / "best.pt", weights_only=True)
+    assert best["best_psnr_t"] == max(psnr) and torch.load(tmp_path / "last.pt", weights_only=True)["step"] == 20
+    logged = [json.loads(line) for line in (tmp_path / "log.jsonl").read_text().splitlines()]
+    assert [r["psnr_t"] for r in logged] == psnr
 
 
+@pytest.mark.slow
 def test_ddp_with_two_gloo_processes(tmp_path):
     cfg = tmp_path / "ddp.toml"
     cfg.write_text('width = 8\npatch = 32\nbatch = 8\nmicro_batch = 4\nsteps = 4\nval_samples = 8\nval_every = 4\nprecision = "fp32"\nthreads = 1\n')
@@ -106,9 +168,9 @@ def test_ddp_with_two_gloo_processes(tmp_path):
     assert torch.load(tmp_path / "run" / "last.pt", weights_only=True)["step"] == 4
 
 
+@pytest.mark.slow
 def test_tiled_inference_matches_whole_image_on_one_megapixel():
     model, _ = load_model()
-    rng = np.random.default_rng(0)
     from acquire.virtual_camera import make_glass_scene
     scene = make_glass_scene(1224, 816)
     stack = np.stack([scene.render(np.radians(a)) * 0.6 for a in (0, 45, 90)]).astype(np.float32)
@@ -139,12 +201,16 @@ def test_bad_inputs(stack, angles, message):
         separate_stack(model, stack.astype(np.float32), angles)
 
 
-def test_negative_pixels_are_clipped_not_propagated():
+def test_negative_pixels_are_clipped_to_zero():
+    # separate.infer: negative pixels (decoding noise below black) are clipped to 0, in the exposure scale too
     model, _ = load_model()
-    stack = np.random.default_rng(0).random((3, 32, 32, 3)).astype(np.float32) * 0.5
-    stack[0, :4] = -0.01
-    r_hat, t_hat = separate_stack(model, stack, [0, 45, 90])
-    assert np.isfinite(r_hat).all() and np.isfinite(t_hat).all()
+    stack = np.random.default_rng(0).random((3, 32, 40, 3)).astype(np.float32) * 0.5
+    stack[0, :4] = -0.05
+    stack[2, :, :3] = -0.2
+    r_hat, t_hat = separate_stack(model, stack, [0, 45, 90], precision="fp32")
+    r_clip, t_clip = separate_stack(model, np.clip(stack, 0.0, None), [0, 45, 90], precision="fp32")
+    np.testing.assert_array_equal(r_hat, r_clip)
+    np.testing.assert_array_equal(t_hat, t_clip)
 
 
 def test_monochrome_shots_give_grey_layers_for_one_or_three_equal_channels():
@@ -173,6 +239,7 @@ def test_missing_and_corrupt_weights(tmp_path):
         load_model(bad)
 
 
+@pytest.mark.slow
 def test_urd_separate_on_a_simulated_scene_beats_no_separation(tmp_path):
     ds = Dataset.open_or_create(tmp_path / "ds")
     scene, _ = capture_virtual(ds, size=(512, 384), shake_px=4, shake_deg=0.5, seed=7)
@@ -180,7 +247,8 @@ def test_urd_separate_on_a_simulated_scene_beats_no_separation(tmp_path):
     out = urd("separate", "scene_01", "--dataset", tmp_path / "ds")
     assert out.returncode == 0, out.stderr
     entry = scene.load()["results"]["network"]
-    assert entry["weights"]["sha256"] and len(entry["files"]) == 4
+    assert entry["weights"]["sha256"]
+    assert {"R.tiff", "T.tiff", "R_preview.png", "T_preview.png"} <= {Path(f["file"]).name for f in entry["files"]}
     figures = entry["truth_metrics"]
     assert figures["T"]["psnr_db"] > figures["T_no_separation"]["psnr_db"] + 3
     out = urd("separate", "scene_01", "--dataset", tmp_path / "ds")
@@ -190,9 +258,10 @@ def test_urd_separate_on_a_simulated_scene_beats_no_separation(tmp_path):
     out = urd("separate", *args, "--out", tmp_path / "files")
     assert out.returncode == 0 and (tmp_path / "files" / "T.tiff").is_file()
     out = urd("separate", *args[:4], "--out", tmp_path / "two")
-    assert out.returncode == 1 and "at least 3" in out.stderr
+    assert out.returncode == 1 and re.search(r"at least 3|one angle per image \(2 images\)", out.stderr)
 
 
+@pytest.mark.slow
 def test_training_continues_from_the_shipped_weights(tmp_path):
     cfg = TrainConfig(width=16, patch=32, batch=4, micro_batch=4, steps=1, val_samples=8, val_every=1, threads=1)
     scratch = train(cfg, tmp_path / "scratch")

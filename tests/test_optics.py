@@ -9,13 +9,16 @@ from separate import optics
 RNG = np.random.default_rng(7)
 
 
-def test_brewster_angle_is_atan_n_and_rp_vanishes_there():
-    for n in (1.33, 1.474, 1.5, 1.7):
-        theta_b = optics.brewster_angle(n)
-        assert theta_b == pytest.approx(np.arctan(n))
-        r_s, r_p = optics.fresnel_reflectance(np.array(theta_b), n)
-        assert r_p == pytest.approx(0.0, abs=1e-15)
-        assert r_s > 0.05
+@pytest.mark.parametrize("n", [1.33, 1.474, 1.5, 1.7])
+def test_brewster_angle_is_atan_n_and_rp_vanishes_there(n):
+    theta_b = optics.brewster_angle(n)
+    assert theta_b == pytest.approx(np.arctan(n), rel=1e-12)
+    r_s, r_p = optics.fresnel_reflectance(np.array(theta_b), n)
+    assert r_p == pytest.approx(0.0, abs=1e-15)
+    # at Brewster θt = 90° − θB, so r_s = (1 − n²)/(1 + n²)
+    assert r_s == pytest.approx(((n**2 - 1) / (n**2 + 1)) ** 2, rel=1e-12)
+    # and nowhere else: R_p > 0 a degree either side
+    assert min(optics.fresnel_reflectance(np.array([theta_b - 0.0175, theta_b + 0.0175]), n)[1]) > 1e-5
 
 
 def test_fresnel_textbook_values_at_45_deg_for_n_1_5():
@@ -24,12 +27,18 @@ def test_fresnel_textbook_values_at_45_deg_for_n_1_5():
     assert r_s == pytest.approx(0.092, abs=2e-4)
     assert r_p == pytest.approx(0.00847, abs=1e-4)
     assert r_p == pytest.approx(r_s**2, rel=1e-9)
+    # closed form at 45°: n·cos θt = √(n² − ½), so r_s = (1 − √(2n² − 1)) / (1 + √(2n² − 1))
+    root = np.sqrt(2 * 1.5**2 - 1)
+    assert r_s == pytest.approx(((1 - root) / (1 + root)) ** 2, rel=1e-12)
 
 
-def test_normal_incidence_and_grazing():
-    r_s, r_p = optics.fresnel_reflectance(np.array(0.0), 1.5)
-    assert r_s == pytest.approx(0.04) and r_p == pytest.approx(0.04)
-    r_s, r_p = optics.fresnel_reflectance(np.array(np.pi / 2 - 1e-9), 1.5)
+@pytest.mark.parametrize("n", [1.33, 1.474, 1.5, 1.7])
+def test_normal_incidence_and_grazing(n):
+    r_s, r_p = optics.fresnel_reflectance(np.array(0.0), n)
+    expected = ((n - 1) / (n + 1)) ** 2                 # 0.04 for n = 1.5
+    assert r_s == pytest.approx(expected, rel=1e-12) and r_p == pytest.approx(expected, rel=1e-12)
+    assert optics.reflectance(np.array(0.0), n) == pytest.approx(expected, rel=1e-12)
+    r_s, r_p = optics.fresnel_reflectance(np.array(np.pi / 2 - 1e-9), n)
     assert r_s == pytest.approx(1.0, abs=1e-6) and r_p == pytest.approx(1.0, abs=1e-6)
 
 
@@ -47,7 +56,27 @@ def test_energy_conservation_reflected_plus_transmitted():
 
 
 def test_snell():
-    assert optics.snell(np.radians(30.0), 1.5) == pytest.approx(np.arcsin(0.5 / 1.5))
+    assert optics.snell(np.radians(30.0), 1.5) == pytest.approx(np.arcsin(0.5 / 1.5), rel=1e-12)
+    theta = np.linspace(0, np.pi / 2, 7)
+    np.testing.assert_allclose(1.474 * np.sin(optics.snell(theta, 1.474)), np.sin(theta), atol=1e-15)
+
+
+def test_malus_law_behind_an_ideal_polarizer():
+    # fully polarized light of intensity 1 at angle ψ: I(φ) = cos²(φ − ψ); unpolarized light: I = S0/2 at every φ
+    psi = np.radians(23.0)
+    phi = np.radians(np.arange(0.0, 180.0, 15.0))
+    polarized = np.array([1.0, np.cos(2 * psi), np.sin(2 * psi)])
+    np.testing.assert_allclose([optics.intensity_from_stokes(polarized, a) for a in phi], np.cos(phi - psi) ** 2, atol=1e-15)
+    np.testing.assert_allclose([optics.intensity_from_stokes(np.array([2.0, 0.0, 0.0]), a) for a in phi], 1.0, atol=1e-15)
+    # the reflection of unpolarized light, seen through the polarizer: R_s·cos² + R_p·sin² of (φ − φ⊥), over two;
+    # at Brewster only the s-component is reflected, so the reflection vanishes with the polarizer across φ⊥
+    theta, phi_perp = np.radians(55.0), np.radians(10.0)
+    r_s, r_p = optics.fresnel_reflectance(theta, 1.5)
+    seen = [optics.render(1.0, 0.0, theta, phi_perp, a, 1.5) for a in phi]
+    np.testing.assert_allclose(seen, (r_s * np.cos(phi - phi_perp) ** 2 + r_p * np.sin(phi - phi_perp) ** 2) / 2, atol=1e-15)
+    theta_b = optics.brewster_angle(1.5)
+    assert optics.render(1.0, 0.0, theta_b, phi_perp, phi_perp + np.pi / 2, 1.5) == pytest.approx(0.0, abs=1e-15)
+    assert optics.render(1.0, 0.0, theta_b, phi_perp, phi_perp, 1.5) == pytest.approx(((1.5**2 - 1) / (1.5**2 + 1)) ** 2 / 2)
 
 
 def test_rendering_sums_to_the_unpolarized_image():
@@ -95,10 +124,12 @@ def test_least_squares_with_five_nonuniform_angles_matches_the_closed_form():
     angles = np.radians([3.0, 31.0, 70.0, 118.0, 161.0])
     stack = np.stack([optics.intensity_from_stokes(s_true, a) for a in angles])
     np.testing.assert_allclose(optics.stokes_from_images(stack, angles), s_true, atol=1e-12)
-    # closed form for 0/45/90/135 from the same scene
+    # the textbook closed forms for 0/45/90/135 and 0/45/90, from the same scene
     i0, i45, i90, i135 = (optics.intensity_from_stokes(s_true, np.radians(a)) for a in (0, 45, 90, 135))
-    closed = np.stack([(i0 + i45 + i90 + i135) / 2, i0 - i90, i45 - i135])
-    np.testing.assert_allclose(closed, s_true, atol=1e-12)
+    four = optics.stokes_from_images(np.stack([i0, i45, i90, i135]), np.radians([0, 45, 90, 135]))
+    np.testing.assert_allclose(four, np.stack([(i0 + i45 + i90 + i135) / 2, i0 - i90, i45 - i135]), atol=1e-12)
+    three = optics.stokes_from_images(np.stack([i0, i45, i90]), np.radians([0, 45, 90]))
+    np.testing.assert_allclose(three, np.stack([i0 + i90, i0 - i90, 2 * i45 - i0 - i90]), atol=1e-12)
 
 
 def test_dolp_and_aolp_of_a_known_state():

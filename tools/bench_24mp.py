@@ -2,9 +2,11 @@
 
 Captures a scene of three DNG shots with the simulated rig (not timed), then runs
 ``urd ingest`` (decode + align + write) and ``urd separate`` (load + network + write) each in
-its own process, timing the wall clock and reading the process's peak resident memory.
+its own process, timing the wall clock and reading the process's peak resident memory; the
+network runs at ``--precision`` (auto: bf16 where the CPU runs it natively, else fp32), the
+precision the CLI reports is printed.
 
-    python tools/bench_24mp.py [--size 6000x4000] [--folder /tmp/urd-bench]
+    python tools/bench_24mp.py [--size 6000x4000] [--folder /tmp/urd-bench] [--precision auto] [--tile N]
 """
 
 import argparse
@@ -21,27 +23,33 @@ WRAPPER = ("import resource, subprocess, sys; done = subprocess.run(sys.argv[1:]
            "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss, file=sys.stderr); sys.exit(done.returncode)")
 
 
-def run(args: list[str]) -> tuple[float, float]:
-    """Run ``python -m urd.cli ARGS`` in a child; return (seconds, peak RSS in GB)."""
+def run(args: list[str]) -> tuple[float, float, str]:
+    """Run ``python -m urd.cli ARGS`` in a child; return (seconds, peak RSS in GB, its stderr)."""
     started = time.perf_counter()
     done = subprocess.run([sys.executable, "-c", WRAPPER, sys.executable, "-m", "urd.cli", *args],
                           capture_output=True, text=True)
     elapsed = time.perf_counter() - started
     if done.returncode:
         sys.exit(f"urd {' '.join(args)} failed:\n{done.stderr}")
-    return elapsed, int(done.stderr.strip().splitlines()[-1]) / 1024**2
+    lines = done.stderr.strip().splitlines()
+    return elapsed, int(lines[-1]) / 1024**2, "\n".join(lines[:-1])
 
 
 parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
 parser.add_argument("--size", default="6000x4000")
 parser.add_argument("--folder", default="/tmp/urd-bench-24mp")
+parser.add_argument("--precision", default="auto", choices=["auto", "fp32", "bf16"])
+parser.add_argument("--tile", type=int, default=None, help="network tile (px); default: the CLI's")
 args = parser.parse_args()
 shutil.rmtree(args.folder, ignore_errors=True)
 subprocess.run([sys.executable, "-m", "urd.cli", "capture", args.folder, "--stage", "sim", "--camera", "virtual",
                 "--sim-size", args.size, "--sim-shake", "8"], check=True, capture_output=True)
 scene = os.path.join(args.folder, "scene_01")
-ingest_s, ingest_gb = run(["ingest", scene])
-separate_s, separate_gb = run(["separate", "scene_01", "--dataset", args.folder])
-print(f"scene {args.size}, 3 shots, {os.cpu_count()} CPU cores")
-print(f"urd ingest   (decode + align + write): {ingest_s:6.1f} s, peak memory {ingest_gb:.2f} GB")
-print(f"urd separate (load + network bf16 + write): {separate_s:6.1f} s, peak memory {separate_gb:.2f} GB")
+ingest_s, ingest_gb, _ = run(["ingest", scene])
+separate_args = ["separate", "scene_01", "--dataset", args.folder, "--precision", args.precision]
+separate_s, separate_gb, log = run(separate_args + (["--tile", str(args.tile)] if args.tile else []))
+precision = next((line.split(":", 1)[1].strip() for line in log.splitlines() if line.startswith("precision:")), args.precision)
+print(f"scene {args.size}, 3 shots, {os.cpu_count()} CPU cores; network precision {precision}"
+      + (f", tile {args.tile} px" if args.tile else ""))
+print(f"urd ingest   (decode + align + write):  {ingest_s:6.1f} s, peak memory {ingest_gb:.2f} GB")
+print(f"urd separate (load + network + write):  {separate_s:6.1f} s, peak memory {separate_gb:.2f} GB")

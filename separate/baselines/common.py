@@ -8,7 +8,8 @@ from separate import optics
 
 
 def canonical(images: np.ndarray, angles_deg: list[float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """I⊥, I∥ (H×W×C) and φ⊥ (rad, H×W×C) of a stack, φ⊥ within ±45° of the first angle."""
+    """I⊥, I∥ (H×W×C) and φ⊥ (rad, H×W×C) of a stack, φ⊥ within ±45° of the first angle
+    (`separate.methods` presents the shots with the estimated s-direction first)."""
     stokes = optics.stokes_from_images(images, np.radians(angles_deg))
     return optics.canonical_projection(stokes, np.radians(angles_deg[0]))
 

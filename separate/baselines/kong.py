@@ -20,7 +20,13 @@ colour channel with the final θ map.
 Deviations: single-interface Fresnel coefficients (urd's optics core; Kong et al. model both
 surfaces of the pane), and Adam on the penalized energy rather than their solver.
 Defaults: λ = 1 (chosen on 32 patches of urd's synthetic benchmark: 0.05 overfits noise and
-misalignment, 0.5–2 are within 0.1 dB), 150 Adam steps per level, coarsest side ≥ 32 px, θ in [2°, 88°].
+misalignment, 0.5–2 are within 0.1 dB), 150 Adam steps per level, coarsest side ≥ 32 px.
+
+θ range (urd's choice, as for `separate.baselines.schechner`, after collapses on real scenes):
+θ in [10°, 80°]. Below 10° R_s ≈ R_p and the inversion amplifies noise by hundreds; towards
+grazing incidence every layer becomes "reflection". If the coarsest level's grid search ends
+on either bound, the optimization starts from Brewster's angle instead (the best-conditioned
+mixture, R_p = 0), and the bounds keep every pixel's θ inside the range.
 """
 
 from __future__ import annotations
@@ -66,9 +72,16 @@ def _pyramid(image: np.ndarray, min_side: int) -> list[np.ndarray]:
     return levels
 
 
+#: The θ range (deg) every pixel's angle of incidence is held in.
+BOUNDS_DEG = (10.0, 80.0)
+
+
 def theta_map(i_perp: np.ndarray, i_par: np.ndarray, smoothness: float = 1.0, steps: int = 150,
-              min_side: int = 32, bounds_deg: tuple[float, float] = (2.0, 88.0)) -> np.ndarray:
-    """Per-pixel angle of incidence (rad, H×W) from the coarse-to-fine constrained optimization."""
+              min_side: int = 32, bounds_deg: tuple[float, float] = BOUNDS_DEG) -> np.ndarray:
+    """Per-pixel angle of incidence (rad, H×W) in ``bounds_deg`` from the coarse-to-fine
+    constrained optimization (module docstring)."""
+    if not 0.0 < bounds_deg[0] < bounds_deg[1] < 90.0:
+        raise ValueError(f"expected bounds (lo, hi) with 0 < lo < hi < 90 deg, got {bounds_deg}")
     lo, hi = np.radians(bounds_deg)
     perp_levels = _pyramid(luminance(i_perp).astype(np.float32), min_side)
     par_levels = _pyramid(luminance(i_par).astype(np.float32), min_side)
@@ -77,7 +90,9 @@ def theta_map(i_perp: np.ndarray, i_par: np.ndarray, smoothness: float = 1.0, st
     with torch.no_grad():
         scores = [float(_energy(torch.full(coarse_perp.shape, t, dtype=torch.float64), coarse_perp.double(),
                                 coarse_par.double(), smoothness)) for t in grid]
-    theta = np.full(perp_levels[-1].shape, grid[int(np.argmin(scores))], np.float32)
+    best = int(np.argmin(scores))
+    start = optics.brewster_angle() if best in (0, grid.size - 1) else grid[best]
+    theta = np.full(perp_levels[-1].shape, start, np.float32)
     for perp, par in zip(reversed(perp_levels), reversed(par_levels)):
         theta = cv2.resize(theta, (perp.shape[1], perp.shape[0]), interpolation=cv2.INTER_LINEAR)
         u = np.clip((theta - lo) / (hi - lo), 1e-4, 1 - 1e-4)

@@ -1,0 +1,372 @@
+"""The reference angle: the glass's s-direction φ⊥, estimated from the shots themselves.
+
+Every polarization method (the network, Schechner, Kong, Farid) reads the shots at the
+canonical angles φ⊥ and φ⊥ + 90°. The Stokes fit gives φ⊥ only up to 90°, so urd used to take
+it within ±45° of the first shot's angle, which only works when the photographer starts near
+φ⊥ (a mosaic camera always starts at 0°). This module finds φ⊥ from the images instead, and
+re-renders any N ≥ 3 shots at φ⊥ + 0/45/90° (`present`), the input every method then sees.
+
+Physics (unpolarized layers, one pane): with ρ = (R_s+R_p)/2 and Δ = (R_s−R_p)/2,
+
+    I_φ = [ρ·I_R + (1−ρ)·I_T]/2 + Δ·(I_R − I_T)·cos 2(φ−φ⊥)/2,
+
+so a pixel is polarized along φ⊥ where the reflected radiance exceeds the transmitted one
+(I_R > I_T) and along φ⊥ + 90° elsewhere. Its DoLP is at most Δ/ρ on the first side and at
+most Δ/(1−ρ) on the second (`separate.optics.dolp_limits`): 1.0 and 0.074 at Brewster's angle,
+0.38 and 0.235 at 80°. Both sides share the axis, which `estimate_reference` takes from the
+DoLP-weighted axial mean of 4·AoLP (no 90° ambiguity on the axis); the side is chosen by the
+bound:
+
+* both orientations occur (``Basis.TAILS``): the one reaching the higher DoLP is the
+  reflection's (Δ/ρ > Δ/(1−ρ) below ~82°);
+* one orientation, more polarized than transmitted light can be (DoLP above
+  `TRANSMISSION_DOLP_MAX`; ``Basis.STRONG``): the reflection's;
+* one orientation, weakly polarized (``Basis.TRANSMISSION``): ambiguous in principle (a
+  transmission-dominated view at a steep angle, or a reflection-dominated one nearly head-on
+  look the same). urd assumes the transmission dominates, so φ⊥ is the other orientation.
+  The network, given the wrong side, ruins a clean transmission-dominated photo (T̂ 34 → 12 dB
+  on synthetic scenes at 60°) but leaves a reflection-dominated one about as it was (T̂ ≈ S0).
+  `polarization_warnings` says so;
+* no usable polarization (``Basis.NONE``): the first shot's angle (nothing to separate).
+
+All statistics use the luminance reduced to at most `MAX_SIDE` px (area averaging, which
+commutes with the linear Stokes fit) and box-filtered over `BLUR` px (sensor noise otherwise
+gives dark pixels a random, strong polarization); pixels near saturation (any shot ≥
+`SATURATION` × white), on the strongest edges (where misregistration between the shots fakes a
+polarization) and with DoLP > 1 (impossible for light) are ignored. The thresholds were chosen
+on synthetic patches (bsds500 val and test, the benchmark's pipeline, 414 patches), where the
+side is right on 85–90% of them and the network's T̂ comes within 0.5 dB of what the true φ⊥
+gives; the misses are mostly scenes with little polarization, where either side is a guess.
+
+Functions take stacks (N, H, W, C) float32 linear (1.0 = sensor white) and the N polarizer
+angles in degrees, urd's image-plane convention (`separate.optics`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+from typing import Sequence
+
+import cv2
+import numpy as np
+
+from separate import optics
+
+#: Long side (px) of the reduced luminance used for the statistics.
+MAX_SIDE = 512
+#: Box filter (px, on the reduced image) against noise and misregistration.
+BLUR = 5
+#: Percentile (and 100 − it) taken as the robust extremes of the signed DoLP.
+TAIL_PERCENT = 0.5
+#: Percentage of the usable pixels kept by flatness: the rest, with the strongest edges relative to
+#: S0, are where misregistration between the shots fakes a polarization.
+FLAT_PERCENT = 75
+#: A shot value at or above this fraction of white counts as saturated.
+SATURATION = 0.98
+#: DoLP that transmission-dominated light does not exceed for θ ≤ 80° (0.235), with a margin.
+TRANSMISSION_DOLP_MAX = 0.3
+#: Below this ratio of the lighter to the heavier orientation's polarized mass, one orientation.
+ONE_SIDED = 0.1
+#: A scene whose 98th-percentile DoLP is below this shows too little polarization to separate.
+WEAK_DOLP = 0.02
+#: Shots whose mean absolute difference is below this fraction of their mean are "identical".
+IDENTICAL = 0.002
+#: Offsets (deg) of the presented shots from the reference.
+PRESENTED_OFFSETS_DEG = (0.0, 45.0, 90.0)
+
+
+class Basis(enum.Enum):
+    """How the side of φ⊥ (versus φ⊥ + 90°) was decided (module docstring)."""
+
+    TAILS = "tails"
+    STRONG = "strong"
+    TRANSMISSION = "transmission"
+    NONE = "none"
+
+
+@dataclasses.dataclass(frozen=True)
+class ReferenceEstimate:
+    """The estimated s-direction and the evidence behind it.
+
+    Attributes:
+        reference_deg: φ⊥ (deg) in [0, 180), in the frame of the given angles.
+        axis_strength: resultant length in [0, 1] of the DoLP-weighted mean of 4·AoLP; near 1
+            when every polarized pixel agrees on the axis, near 0 for noise.
+        basis: how the side was chosen.
+        dolp_range: robust (1st, 99th percentile) signed DoLP along φ⊥ of the well-exposed
+            pixels: negative where the transmission dominates, positive where the reflection does.
+    """
+
+    reference_deg: float
+    axis_strength: float
+    basis: Basis
+    dolp_range: tuple[float, float]
+
+
+def check_stack(images: np.ndarray, angles_deg: Sequence[float]) -> np.ndarray:
+    """Validate a stack and its angles; return the angles in radians (float64).
+
+    Raises TypeError unless ``images`` is a numpy array, ValueError unless it is (N, H, W, C)
+    with N ≥ 3, one angle per shot, angles that determine S0, S1, S2, and finite values.
+    """
+    if not isinstance(images, np.ndarray):
+        raise TypeError(f"expected images as a numpy array, got {type(images).__name__}")
+    if images.ndim != 4 or images.shape[0] < 3:
+        raise ValueError(f"expected a stack of shape (N>=3, H, W, C), got {images.shape}")
+    angles = np.asarray(angles_deg, dtype=np.float64)
+    if angles.ndim != 1 or angles.size != images.shape[0]:
+        raise ValueError(f"expected {images.shape[0]} angles (one per shot), got {np.asarray(angles_deg).tolist()}")
+    phi = optics.check_angles(np.radians(angles))
+    if not np.isfinite(images.sum(dtype=np.float64)):
+        raise ValueError("expected finite pixel values, got NaN or infinite values")
+    return phi
+
+
+def _reduce_stack(images: np.ndarray, white: float) -> tuple[np.ndarray, np.ndarray]:
+    """The stack's luminance area-averaged to at most `MAX_SIDE` px on the long side, (N, h, w)
+    float64 (averaging commutes with the Stokes fit), and where a reduced pixel covers a shot
+    value at or above `SATURATION` × white, h×w bool."""
+    n, h, w = images.shape[:3]
+    scale = min(1.0, MAX_SIDE / max(h, w))
+    size = (max(1, round(w * scale)), max(1, round(h * scale)))
+    lum, saturated = np.empty((n, size[1], size[0])), np.zeros((size[1], size[0]), bool)
+    for k, shot in enumerate(images):
+        small = shot.astype(np.float32, copy=False)
+        hits = (shot >= SATURATION * white).view(np.uint8) * np.uint8(255)      # 255 keeps one pixel in 500 visible
+        if scale < 1:
+            small = cv2.resize(small, size, interpolation=cv2.INTER_AREA)
+            hits = cv2.resize(hits, size, interpolation=cv2.INTER_AREA)
+        lum[k] = small.reshape(size[1], size[0], -1).mean(axis=-1)
+        saturated |= hits.reshape(size[1], size[0], -1).max(axis=-1) > 0
+    return lum, saturated
+
+
+def _statistics(images: np.ndarray, phi: np.ndarray, white: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The reduced luminance (N, h, w), its filtered Stokes images (3, h, w) float64 and their
+    usable pixels (h×w bool: no saturated shot nearby, S0 > 0, not among the strongest edges,
+    DoLP ≤ 1)."""
+    lum, saturated = _reduce_stack(images, white)
+    stokes = optics.stokes_from_images(lum, phi)
+    edge = np.hypot(*np.gradient(stokes[0])) / np.maximum(stokes[0], 1e-12)
+    stokes = np.stack([cv2.blur(s, (BLUR, BLUR)) for s in stokes])
+    usable = (cv2.blur(saturated.astype(np.float32), (BLUR, BLUR)) == 0) & (stokes[0] > 0)
+    if usable.any():
+        edge = cv2.blur(edge, (BLUR, BLUR))
+        usable &= edge <= np.percentile(edge[usable], FLAT_PERCENT)
+    usable &= np.hypot(stokes[1], stokes[2]) <= stokes[0]                 # DoLP > 1: not light, an artefact
+    return lum, stokes, usable
+
+
+def _signed_dolp(stokes: np.ndarray, phi_perp: float) -> np.ndarray:
+    """Signed DoLP along ``phi_perp`` (rad): (S1 cos 2φ⊥ + S2 sin 2φ⊥)/S0."""
+    along = stokes[1] * np.cos(2 * phi_perp) + stokes[2] * np.sin(2 * phi_perp)
+    return along / np.maximum(stokes[0], 1e-12)
+
+
+def estimate_reference(images: np.ndarray, angles_deg: Sequence[float], white: float = 1.0) -> ReferenceEstimate:
+    """Estimate the glass's s-direction φ⊥ from a stack (module docstring).
+
+    Args:
+        images: (N, H, W, C) float linear shots, N ≥ 3.
+        angles_deg: the N polarizer angles (deg).
+        white: the sensor's white level in the units of ``images`` (for saturation).
+
+    Returns:
+        A `ReferenceEstimate`; ``reference_deg`` is in [0, 180).
+    """
+    phi = check_stack(images, angles_deg)
+    _, stokes, usable = _statistics(images, phi, white)
+    return _estimate(stokes, usable, float(np.mod(np.degrees(phi[0]), 180.0)))
+
+
+def _estimate(stokes: np.ndarray, usable: np.ndarray, fallback_deg: float) -> ReferenceEstimate:
+    """`estimate_reference` on reduced Stokes images (3, h, w) and their usable pixels."""
+    s0, s1, s2 = (s[usable] for s in stokes)
+    lin = np.hypot(s1, s2)
+    dolp = np.clip(lin / np.maximum(s0, 1e-12), 0.0, 1.0)
+    weight = dolp**2 * s0
+    total = weight.sum()
+    if s0.size == 0 or total <= 0:
+        return ReferenceEstimate(fallback_deg, 0.0, Basis.NONE, (0.0, 0.0))
+    unit4 = ((s1**2 - s2**2) + 2j * s1 * s2) / np.maximum(lin, 1e-30) ** 2       # exp(4i·AoLP)
+    resultant = (weight * unit4).sum() / total
+    axis = float(np.angle(resultant)) / 4
+    signed = (s1 * np.cos(2 * axis) + s2 * np.sin(2 * axis)) / np.maximum(s0, 1e-12)
+    lo, hi = (float(q) for q in np.percentile(signed, [TAIL_PERCENT, 100 - TAIL_PERCENT]))
+    mass_pos = float((s0 * np.maximum(signed, 0) ** 2).sum())
+    mass_neg = float((s0 * np.maximum(-signed, 0) ** 2).sum())
+    if max(mass_pos, mass_neg) <= 0 or max(hi, -lo) < WEAK_DOLP / 2:
+        return ReferenceEstimate(fallback_deg, float(abs(resultant)), Basis.NONE, (lo, hi))
+    if min(mass_pos, mass_neg) >= ONE_SIDED * max(mass_pos, mass_neg):
+        basis, positive = Basis.TAILS, hi >= -lo
+    elif (hi if mass_pos > mass_neg else -lo) > TRANSMISSION_DOLP_MAX:
+        basis, positive = Basis.STRONG, mass_pos > mass_neg
+    else:
+        basis, positive = Basis.TRANSMISSION, mass_pos < mass_neg
+    phi_perp = axis if positive else axis + np.pi / 2
+    dolp_range = (lo, hi) if positive else (-hi, -lo)
+    return ReferenceEstimate(float(np.mod(np.degrees(phi_perp), 180.0)), float(abs(resultant)), basis, dolp_range)
+
+
+def estimate_reference_deg(images: np.ndarray, angles_deg: Sequence[float], white: float = 1.0) -> float:
+    """The estimated s-direction φ⊥ (deg, in [0, 180)) of a stack (N, H, W, C) float32 linear
+    shot at ``angles_deg``; see `estimate_reference`."""
+    return estimate_reference(images, angles_deg, white).reference_deg
+
+
+def presented_angles_deg(reference_deg: float) -> list[float]:
+    """The angles (deg) `present` renders at: reference + 0/45/90°, reference taken mod 180."""
+    ref = float(np.mod(reference_deg, 180.0))
+    return [ref + offset for offset in PRESENTED_OFFSETS_DEG]
+
+
+def present(images: np.ndarray, angles_deg: Sequence[float], reference_deg: float,
+            rows: int = 256) -> tuple[np.ndarray, list[float]]:
+    """Re-render a stack at reference + 0/45/90° from its least-squares Stokes fit.
+
+    Exact for the ideal linear-polarizer model (I_φ = (S0 + S1 cos 2φ + S2 sin 2φ)/2) and it
+    uses every shot: with N > 3 the fit averages their noise. The fit (as
+    `separate.optics.stokes_from_images`) and the rendering are applied as one 3×N matrix. A stack already at those angles
+    (three shots, equal modulo 180°) is returned as it is, not copied.
+
+    Args:
+        images: (N, H, W, C) float linear shots, N ≥ 3.
+        angles_deg: the N polarizer angles (deg).
+        reference_deg: the reference φ⊥ (deg), usually `estimate_reference_deg`.
+        rows: image rows processed at a time (bounds the temporary memory).
+
+    Returns:
+        (images3, angles3_deg): (3, H, W, C) float32 shots and their angles, reference (mod
+        180°) + 0/45/90°. Noisy input can give slightly negative values.
+    """
+    phi = check_stack(images, angles_deg)
+    if not np.isfinite(reference_deg):
+        raise ValueError(f"expected a finite reference angle (deg), got {reference_deg}")
+    angles3 = presented_angles_deg(reference_deg)
+    phi3 = np.radians(angles3)
+    if images.shape[0] == 3:
+        gap = np.mod(np.degrees(phi) - angles3 + 90.0, 180.0) - 90.0
+        if np.all(np.abs(gap) < 1e-9):
+            return images, angles3
+    # fit then render in one linear map: shots3 = A(φ3) · pinv(A(φ)) · shots, A = optics.stokes_matrix
+    mixing = (optics.stokes_matrix(phi3) @ np.linalg.pinv(optics.stokes_matrix(phi))).astype(np.float32)
+    out = np.empty((3,) + images.shape[1:], np.float32)
+    for y in range(0, images.shape[1], rows):
+        out[:, y : y + rows] = np.tensordot(mixing, images[:, y : y + rows].astype(np.float32, copy=False), axes=1)
+    return out, angles3
+
+
+def presence_map(images: np.ndarray, angles_deg: Sequence[float], reference_deg: float | None = None,
+                 white: float = 1.0) -> np.ndarray:
+    """Per-pixel share of reflected light, R_obs/S0, estimated from the polarization alone.
+
+    With one angle of incidence θ, a pixel's signed DoLP along φ⊥, v = (I⊥ − I∥)/S0, is linear
+    in its reflected share: R_obs/S0 = (v + c_T)/(c_R + c_T), c_T = Δ/(1−ρ), c_R = Δ/ρ
+    (`separate.optics.dolp_limits`). θ is taken as the smallest angle whose limits cover the
+    image's robust DoLP range (`feasible_theta_deg`), so the most transmission-like pixels read
+    0. The map is computed on the reduced, filtered luminance (module docstring) and resized
+    bilinearly, so it is smooth (and unreliable on saturated pixels). 1 means "this is all
+    reflection", 0 "no reflection"; it is a confidence map, not a separation.
+
+    Args:
+        images: (N, H, W, C) float linear shots, N ≥ 3.
+        angles_deg: the N polarizer angles (deg).
+        reference_deg: φ⊥ (deg); estimated when None.
+        white: the sensor's white level.
+
+    Returns:
+        H×W float32 in [0, 1].
+    """
+    phi = check_stack(images, angles_deg)
+    _, stokes, usable = _statistics(images, phi, white)
+    if reference_deg is None:
+        reference_deg = _estimate(stokes, usable, float(np.mod(np.degrees(phi[0]), 180.0))).reference_deg
+    ref = float(reference_deg)
+    signed = _signed_dolp(stokes, np.radians(ref))
+    lo, hi = (np.percentile(signed[usable], [TAIL_PERCENT, 100 - TAIL_PERCENT]) if usable.any() else (0.0, 0.0))
+    theta_lo, _ = feasible_theta_deg(float(lo), float(hi))
+    c_t, c_r = optics.dolp_limits(np.radians(theta_lo))
+    share = np.clip((signed + c_t) / (c_r + c_t), 0.0, 1.0).astype(np.float32)
+    h, w = images.shape[1:3]
+    return np.clip(cv2.resize(share, (w, h), interpolation=cv2.INTER_LINEAR), 0.0, 1.0)
+
+
+def feasible_theta_deg(dolp_lo: float, dolp_hi: float, bounds_deg: tuple[float, float] = (10.0, 80.0),
+                       step_deg: float = 0.25, n: float = optics.N_GLASS) -> tuple[float, float]:
+    """The range of angles of incidence (deg) that explain an observed signed-DoLP range.
+
+    Transmission-dominated pixels reach −Δ/(1−ρ) at most, reflection-dominated ones Δ/ρ
+    (`separate.optics.dolp_limits`); θ is feasible when −``dolp_lo`` ≤ Δ/(1−ρ) and ``dolp_hi``
+    ≤ Δ/ρ, searched within ``bounds_deg``. When no θ there is feasible (noise, misregistration
+    or polarized light from the scene itself exceed the limits), the θ with the smallest
+    violation is returned as a one-point range.
+
+    Args:
+        dolp_lo, dolp_hi: robust extremes of the signed DoLP along φ⊥ (negative: the
+            transmission dominates).
+        bounds_deg: the physically sensible search range (deg).
+
+    Returns:
+        (lo, hi) in degrees, lo ≤ hi.
+    """
+    if not bounds_deg[0] < bounds_deg[1]:
+        raise ValueError(f"expected bounds (lo, hi) with lo < hi in degrees, got {bounds_deg}")
+    grid = np.arange(bounds_deg[0], bounds_deg[1] + step_deg / 2, step_deg)
+    c_t, c_r = optics.dolp_limits(np.radians(grid), n)
+    violation = np.maximum(np.maximum(-dolp_lo - c_t, 0.0), np.maximum(dolp_hi - c_r, 0.0))
+    feasible = violation <= 0
+    if not feasible.any():
+        best = float(grid[int(np.argmin(violation))])
+        return best, best
+    return float(grid[feasible].min()), float(grid[feasible].max())
+
+
+def polarization_warnings(images: np.ndarray, angles_deg: Sequence[float], white: float = 1.0) -> list[str]:
+    """Scene-level warnings about a stack, each naming the likely cause.
+
+    * two shots bitwise identical: the same file given twice;
+    * all shots identical within `IDENTICAL` (mean absolute difference over mean, on the
+      reduced, filtered luminance): the polarizer is not turning (or not in the light path);
+    * otherwise, 98% of the pixels below DoLP `WEAK_DOLP`: too little polarization to separate
+      anything (no glass in view, glass seen nearly head-on, or no polarizer);
+    * a weak polarization with one orientation (`Basis.TRANSMISSION`): the side of φ⊥ is
+      assumed, and the way to override it.
+
+    Args:
+        images: (N, H, W, C) float linear shots, N ≥ 3.
+        angles_deg: the N polarizer angles (deg).
+        white: the sensor's white level.
+
+    Returns:
+        Warnings as sentences; empty for a normal scene.
+    """
+    phi = check_stack(images, angles_deg)
+    n = images.shape[0]
+    warnings = []
+    for i in range(n):
+        for j in range(i + 1, n):
+            if np.array_equal(images[i], images[j]):
+                warnings.append(f"shots {i} and {j} ({angles_deg[i]:g} and {angles_deg[j]:g} deg) are identical: "
+                                "the same file given twice?")
+    lum, stokes, usable = _statistics(images, phi, white)
+    lum = np.stack([cv2.blur(shot, (BLUR, BLUR)) for shot in lum])
+    mean = max(float(lum.mean()), 1e-12)
+    spread = max(float(np.abs(lum[i] - lum[j]).mean()) / mean for i in range(n) for j in range(i + 1, n))
+    if spread < IDENTICAL:
+        warnings.append(f"the {n} shots are identical within {100 * spread:.2f}% although their angles differ: "
+                        "the polarizer is not turning (or not in the light path); nothing can be separated")
+        return warnings
+    dolp = np.hypot(stokes[1], stokes[2]) / np.maximum(stokes[0], 1e-12)
+    level = float(np.percentile(dolp[usable], 98)) if usable.any() else 0.0
+    if level < WEAK_DOLP:
+        warnings.append(f"the shots show too little polarization to separate anything (98% of pixels below DoLP "
+                        f"{level:.3f}): no glass in view, glass seen nearly head-on, or no polarizer")
+        return warnings
+    estimate = _estimate(stokes, usable, float(np.mod(np.degrees(phi[0]), 180.0)))
+    if estimate.basis is Basis.TRANSMISSION:
+        other = np.mod(estimate.reference_deg + 90.0, 180.0)
+        warnings.append(f"the polarization is weak and has one orientation: urd assumes the transmission dominates "
+                        f"(reference {estimate.reference_deg:.1f} deg); if the reflection dominates the photo, "
+                        f"pass --reference {other:.1f}")
+    return warnings

@@ -1,0 +1,106 @@
+"""separate.infer: tile and overlap checks, tiling at the default tile size, the fused network."""
+
+import numpy as np
+import pytest
+import torch
+
+from separate.infer import OVERLAP, TILE, FusedNet, load_model, runner, separate_stack, tile_spans
+from separate.model import SeparationNet
+
+SMALL = np.random.default_rng(0).random((3, 40, 48, 3)).astype(np.float32)
+
+
+@pytest.mark.parametrize("tile,overlap,message", [
+    (64, 16, "expected a tile of at least 128 px"),
+    (0, 0, "expected a tile of at least 128 px"),
+    (-256, 0, "expected a tile of at least 128 px"),
+    (300, 160, r"expected a tile of at least 320 px .* got 300"),
+    (143, 70, r"expected a tile of at least 140 px .*multiple of 8\), got 143"),   # 136 after rounding, < 2 × 70
+    (512, -1, "expected an overlap of at least 0 px, got -1"),
+])
+def test_bad_tile_or_overlap_is_a_value_error(tile, overlap, message):
+    model, _ = load_model()
+    with pytest.raises(ValueError, match=message):
+        separate_stack(model, SMALL, [0, 45, 90], tile=tile, overlap=overlap, precision="fp32")
+
+
+def test_non_integer_tile_is_a_type_error():
+    model, _ = load_model()
+    with pytest.raises(TypeError, match="expected integer tile and overlap"):
+        separate_stack(model, SMALL, [0, 45, 90], tile=512.5, precision="fp32")
+
+
+def test_smallest_tile_and_no_overlap_are_accepted():
+    model, _ = load_model()
+    stack = np.random.default_rng(1).random((3, 300, 280, 3)).astype(np.float32) * 0.5
+    for tile, overlap in ((128, 64), (128, 0), (131, 0)):
+        r_hat, t_hat = separate_stack(model, stack, [0, 45, 90], tile=tile, overlap=overlap, precision="fp32")
+        assert r_hat.shape == t_hat.shape == stack.shape[1:] and np.isfinite(r_hat).all() and np.isfinite(t_hat).all()
+
+
+def test_tiled_matches_whole_image_at_the_default_tile():
+    # 1296 × 1301 px takes 2 × 2 default tiles (the last column not on the 8-px grid: padded);
+    # measured: 2.4e-4 (R̂) and 2.2e-4 (T̂) apart (128 px overlap: 4.6e-3)
+    from acquire.virtual_camera import make_glass_scene
+
+    h, w = 1296, 1301
+    assert len(tile_spans(h, TILE, OVERLAP)) == len(tile_spans(w, TILE, OVERLAP)) == 2
+    model, _ = load_model()
+    scene = make_glass_scene(w + 1, h)                                 # the virtual camera's sizes are even
+    stack = np.stack([scene.render(np.radians(a))[:, :w] * 0.6 for a in (0, 45, 90)]).astype(np.float32)
+    r_whole, t_whole = separate_stack(model, stack, [0, 45, 90], tile=1312, precision="fp32")
+    r_tiled, t_tiled = separate_stack(model, stack, [0, 45, 90], precision="fp32")
+    assert max(np.abs(r_whole - r_tiled).max(), np.abs(t_whole - t_tiled).max()) < 1e-3
+
+
+@pytest.mark.parametrize("variant", ["canonical", "direct"])
+def test_fused_network_matches_the_module(variant):
+    # FusedNet repeats SeparationNet.forward with oneDNN's fused convolutions: it must give the same
+    # numbers (measured: 8e-7 in fp32 with the shipped weights), at an odd size and with four shots
+    torch.manual_seed(0)
+    model = load_model()[0] if variant == "canonical" else SeparationNet(width=8, variant="direct").eval()
+    obs = torch.rand(1, 4, 3, 61, 83)
+    angles = list(np.radians([10, 55, 100, 145]))
+    scale = torch.tensor([0.4])
+    with torch.inference_mode():
+        expected = model(obs, angles, scale)
+        fp32 = FusedNet(model)(obs, angles, scale)
+        bf16 = FusedNet(model, torch.bfloat16)(obs, angles, scale)
+    for want, got, rounded in zip(expected, fp32, bf16):
+        assert got.shape == want.shape and got.dtype == torch.float32
+        torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
+        assert (rounded - want).abs().max() < 0.03 * want.abs().max()   # bf16 rounding of the activations
+
+
+def test_runner_falls_back_to_the_module_for_other_networks():
+    class Halves(torch.nn.Module):
+        channels = 3
+
+        def forward(self, obs, angles, scale):
+            s0 = obs[:, 0] + obs[:, 2]
+            return s0 / 2, s0 / 2
+
+    run = runner(Halves(), "fp32")
+    assert not isinstance(run, FusedNet)
+    r_hat, t_hat = separate_stack(Halves(), SMALL, [0, 45, 90], precision="fp32")
+    np.testing.assert_allclose(r_hat, (SMALL[0] + SMALL[2]) / 2, atol=1e-6)
+    with pytest.raises(TypeError, match="expected a SeparationNet"):
+        FusedNet(Halves())
+
+
+def test_presenting_tile_by_tile_matches_presenting_the_stack():
+    from separate.reference import present
+
+    model, _ = load_model()
+    rng = np.random.default_rng(2)
+    s0, dolp, aolp = rng.random((3, 200, 180, 3))                  # physical shots: none negative
+    angles = [5.0, 50.0, 95.0, 140.0]
+    stack = np.stack([s0 * (1 + dolp * np.cos(2 * (np.radians(a) - np.pi * aolp))) / 4 for a in angles]).astype(np.float32)
+    shots, angles3 = present(stack, angles, 30.0)
+    r_want, t_want = separate_stack(model, shots, angles3, tile=128, overlap=32, precision="fp32")
+    r_got, t_got = separate_stack(model, stack, angles, tile=128, overlap=32, precision="fp32", reference_deg=30.0)
+    # one exposure scale, from the shots as given: the same as from presented ones where nothing is clipped
+    np.testing.assert_allclose(r_got, r_want, atol=1e-5)
+    np.testing.assert_allclose(t_got, t_want, atol=1e-5)
+    with pytest.raises(ValueError, match="expected a finite reference angle"):
+        separate_stack(model, stack, angles, reference_deg=float("nan"))
