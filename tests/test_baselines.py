@@ -62,6 +62,7 @@ def test_farid_separates_two_independent_sources_up_to_scale():
     assert metrics.psnr(t_hat, t_true) >= no_separation_psnr(refl, trans, theta) + 10
 
 
+@pytest.mark.slow
 def test_kong_handles_a_varying_angle_of_incidence_better_than_one_global_angle():
     refl, trans = layers(128)
     theta = np.broadcast_to(np.radians(np.linspace(25, 70, 128))[None, :], (128, 128)).astype(np.float32)
@@ -120,6 +121,7 @@ def test_each_method_runs_through_urd_separate(virtual_scene, method):
     assert figures["T"]["psnr_db"] > figures["T_no_separation"]["psnr_db"] + MARGIN_DB[method]
 
 
+@pytest.mark.slow
 def test_baseline_parameters_from_the_command_line(tmp_path):
     ds = Dataset.open_or_create(tmp_path / "ds")
     scene, _ = capture_virtual(ds, size=(128, 96), shake_px=1, shake_deg=0.1, seed=2)

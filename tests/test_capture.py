@@ -69,6 +69,7 @@ def capture_until_complete(ds, name, sim, angles, attempts=40):
     raise AssertionError(f"capture never completed: {errors[-3:]}")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", FAULTS)
 def test_fault_injection_never_loses_duplicates_or_mislabels_shots(tmp_path, kind):
     angles = [0.0, 45.0, 90.0, 135.0]

@@ -5,6 +5,8 @@ import re
 import subprocess
 import sys
 
+import pytest
+
 COMMANDS = ("capture", "sim-stage", "ingest", "calibrate", "separate", "train", "bench", "report", "verify", "demo")
 
 
@@ -22,6 +24,7 @@ def test_help_lists_every_command_with_a_line_of_help():
         assert match, f"no help line for {name}"
 
 
+@pytest.mark.slow
 def test_bench_prints_the_table_and_the_paired_gain_of_the_network_over_direct():
     out = urd("bench", "--count", "3", "--size", "64", "--methods", "none,direct,network")
     assert out.returncode == 0, out.stderr

@@ -96,6 +96,7 @@ def test_argument_checks_say_what_was_expected():
         get_method("schechner", reference="east")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("angles", ANGLE_SETS)
 def test_results_do_not_depend_on_where_the_angles_start(angles):
     # a pane whose angle of incidence runs from 40° to 70° across the image (Schechner's single

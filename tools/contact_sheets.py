@@ -1,6 +1,6 @@
 """Contact sheets of every real capture in ../shared/data/polarization, per method.
 
-    python tools/contact_sheets.py [--out docs/contact] [--size 512] [--methods none,network,schechner,kong]
+    python tools/contact_sheets.py [--out contact-sheets] [--size 512] [--methods none,network,schechner,kong]
 
 One PNG per capture: a row per method with S0 | T̂ | R̂ | DoLP | AoLP (hue = AoLP over 0-180°,
 brightness = DoLP) and the presence map, all sRGB-encoded with one white point per capture
@@ -22,7 +22,7 @@ from urd import samples
 from urd.separation import srgb_encode
 
 parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-parser.add_argument("--out", type=Path, default=Path("docs/contact"))
+parser.add_argument("--out", type=Path, default=Path("contact-sheets"))
 parser.add_argument("--size", type=int, default=512, help="long side of the reduced captures (px)")
 parser.add_argument("--methods", default="none,network,schechner,kong")
 args = parser.parse_args()
