@@ -26,8 +26,6 @@ On a busy machine wall-clock figures fall with the load; the one-thread figures 
 from __future__ import annotations
 
 import argparse
-import contextlib
-import platform
 import time
 from pathlib import Path
 
@@ -37,18 +35,10 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from separate.infer import OVERLAP, TILE, FusedNet, load_model, separate_stack, tile_spans
 from separate.precision import Precision, describe, native_bf16, resolve
+from separate.evaluate import cpu_model
 
 ANGLES = [float(a) for a in np.radians([0.0, 45.0, 90.0])]
 SCALE = torch.tensor([0.5])
-
-
-def cpu_name() -> str:
-    """The CPU's model name from /proc/cpuinfo, else what platform reports."""
-    with contextlib.suppress(OSError):
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    return platform.processor() or "unknown CPU"
 
 
 def best_seconds(fn, repeat: int) -> tuple[float, float]:
@@ -202,7 +192,7 @@ def main() -> None:
     model, _ = load_model(args.weights)
     caps = torch.cpu.get_capabilities() if hasattr(torch.cpu, "get_capabilities") else {}
     flags = [k for k in ("avx2", "avx512_f", "avx512_bf16", "avx512_vnni", "amx_bf16") if caps.get(k)]
-    print(f"CPU: {cpu_name()}, {threads} threads; torch {torch.__version__}, "
+    print(f"CPU: {cpu_model()}, {threads} threads; torch {torch.__version__}, "
           f"oneDNN {'yes' if torch.backends.mkldnn.is_available() else 'no'}; flags: {' '.join(flags) or 'unknown'}")
     print(f"precision auto → {describe(resolve('auto'))}")
     rates = {Precision.FP32: matmul_gflops(torch.float32, args.repeat)}
