@@ -7,11 +7,14 @@ is cut) and the weights are normalized (their sum over the tiles is one at every
 leaves no seams: with the default 160 px overlap, tiled and whole-image results agree within
 2.4e-4 in fp32 (1.7 MP test image in 2 × 2 tiles; 4.6e-3 with 128 px). Memory is bounded by the
 tile size, not the image size: besides the input stack and the two results, a tile takes about
-230-290 bytes per pixel of resident memory in bf16 and 350-430 in fp32 (measured; 0.3 and 0.45
-GB for the default 1024 px), and memory that glibc would keep after each tile is handed back.
-Tiles of 1152 px or more make a 24 MP image 6-12% faster (1.31× instead of 1.39× its pixels
-through the network) for 0.1-0.35 GB more. One exposure scale, mean(S0) of the whole image, is
-used for every tile.
+230 bytes per pixel of resident memory in bf16 and 310 in fp32 (measured on a 24 MP scene,
+whose 2048 px tiles are 1632×1456: 0.51 and 0.69 GiB; 0.16 and 0.26 GiB with 1024 px tiles),
+and memory that glibc would keep after each tile is handed back. The default 2048 px tiles put
+a 24 MP image through the network as 1.19× its pixels (1.39× with 1024 px tiles; 3072 px gave
+no further gain): bf16 23.2 s instead of 26.3 s, fp32 38.4 s instead of 43.9 s on the
+development machine (2-core AMD EPYC with AVX-512 BF16). A stack of uint16 codes (as scenes are
+stored) is converted to float a tile at a time. One exposure scale, mean(S0) of the whole image,
+is used for every tile.
 
 Speed: the separation network runs through `FusedNet`, which calls oneDNN's fused
 convolutions (convolution + ReLU, convolution + residual sum + ReLU, transposed convolution +
@@ -50,7 +53,7 @@ from separate.precision import Precision, resolve
 from urd.errors import WeightsError
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
-TILE = 1024     # px: a 6000 × 4000 image takes 7 × 5 tiles (1.39× its pixels); see the module docstring
+TILE = 2048     # px: a 6000 × 4000 image takes 4 × 3 tiles (1.19× its pixels); see the module docstring
 OVERLAP = 160   # px between tiles: tiled and whole-image results agree within 2.4e-4 (fp32)
 MIN_TILE = 128  # px: smaller tiles spend most of their pixels on the overlap
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "urd-canonical.pt"
@@ -80,13 +83,15 @@ def load_model(path: Path | None = None) -> tuple[torch.nn.Module, dict]:
 
 
 def check_inputs(images: np.ndarray, angles_deg: list[float]) -> None:
-    """Validate a stack (N, H, W, C) and its angles (deg) without copying the stack."""
+    """Validate a stack (N, H, W, C), float or codes (`separate.optics.code_scale`), and its
+    angles (deg) without copying the stack."""
     if images.ndim != 4 or images.shape[0] < 3 or images.shape[-1] not in (1, 3):
         raise ValueError(f"expected at least 3 shots stacked as (N>=3, H, W, C in 1,3), got {images.shape}")
     if len(angles_deg) != images.shape[0]:
         raise ValueError(f"expected {images.shape[0]} angles (one per image), got {len(angles_deg)}")
     optics.check_angles(np.radians(angles_deg), min_span=np.radians(90.0))
-    if not np.isfinite(images.sum(dtype=np.float64)):                  # NaN and inf propagate to the sum
+    optics.code_scale(images)                                           # float or unsigned codes
+    if images.dtype.kind == "f" and not np.isfinite(images.sum(dtype=np.float64)):   # NaN and inf propagate
         bad = sum(int((~np.isfinite(shot)).sum()) for shot in images)
         raise ValueError(f"expected finite pixel values, got {bad} NaN or infinite values")
 
@@ -282,7 +287,9 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
     Args:
         model: the network (``model.channels`` colour channels).
         images: (N, H, W, C) linear shots, N ≥ 3, C = ``model.channels`` or 1; monochrome
-            stacks give monochrome results (module docstring).
+            stacks give monochrome results (module docstring). Float, or uint16 codes
+            (65535 = 1.0, `separate.optics.code_scale`): converted a tile at a time, so a
+            stack of codes takes half the memory of float32 shots.
         angles_deg: polarizer angles of the shots (deg), spanning at least 90°.
         tile, overlap: tile size and overlap (px), `check_tiling`: tile ≥ 128 and ≥ 2·overlap,
             rounded down to a multiple of 8; overlap ≥ 0.
@@ -303,7 +310,8 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
     run = runner(model, precision)
     mono = c == 1 or _equal_channels(images)
     angles = [float(a) for a in np.radians(angles_deg)]
-    shot_means = np.array([_clipped_mean(shot) for shot in images])      # mean(S0) is linear in them
+    unit = optics.code_scale(images)
+    shot_means = np.array([_clipped_mean(shot) for shot in images]) * unit   # mean(S0) is linear in them
     s0_mean = float(np.linalg.pinv(optics.stokes_matrix(angles))[0] @ shot_means)
     scale = torch.tensor([max(s0_mean, 1e-6)])
     if reference_deg is not None:
@@ -313,7 +321,7 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
 
     def patch(y: int, y1: int, x: int, x1: int) -> torch.Tensor:
         """(1, N, C, h, w) float32 shots of a tile, presented if asked, negatives clipped."""
-        shots = images[:, y:y1, x:x1]
+        shots = optics.to_float(images[:, y:y1, x:x1])
         if reference_deg is not None:
             shots = present(shots, angles_deg, reference_deg)[0]
         out = torch.from_numpy(np.clip(shots, 0.0, None, dtype=np.float32)).permute(0, 3, 1, 2)[None]
@@ -371,7 +379,10 @@ def _equal_channels(images: np.ndarray) -> bool:
 
 
 def _clipped_mean(shot: np.ndarray, rows: int = 256) -> float:
-    """mean(max(shot, 0)) in float64, a block of rows at a time (no copy of the whole shot)."""
+    """mean(max(shot, 0)) in float64 (in the shot's units), a block of rows at a time (no copy
+    of the whole shot)."""
+    if shot.dtype.kind == "u":
+        return float(shot.mean(dtype=np.float64))
     total = sum(np.clip(shot[y : y + rows], 0.0, None).sum(dtype=np.float64) for y in range(0, shot.shape[0], rows))
     return float(total / shot.size)
 

@@ -2,7 +2,9 @@
 
 ``get_method(name, reference="auto", **options)`` returns ``(run, info)``:
 ``run(images, angles_deg, reference_deg=None)`` maps an aligned stack (N, H, W, C) float32
-linear and its N ≥ 3 polarizer angles (deg) to (R̂, T̂), each H×W×C float32 linear; ``info``
+linear, or its uint16 codes (`separate.optics.code_scale`; the network converts them a tile at a
+time, the baselines all at once), and its N ≥ 3 polarizer angles (deg) to (R̂, T̂), each H×W×C
+float32 linear; ``info``
 describes the method, its parameters and its reference policy for the manifest.
 
 Reference policy of the polarization methods (network, schechner, kong, farid): the shots are
@@ -24,6 +26,7 @@ from typing import Callable
 
 import numpy as np
 
+from separate import optics
 from separate.reference import estimate_reference_deg, present
 
 Run = Callable[..., tuple[np.ndarray, np.ndarray]]
@@ -80,7 +83,7 @@ def network(weights: Path | None = None, tile: int | None = None, precision: str
         r_hat, t_hat = separate_stack(model, images, list(angles_deg), tile, OVERLAP, chosen, progress, reference_deg=chosen_deg)
         if colour_match:
             darkest = int(np.argmin([shot.mean(dtype=np.float64) for shot in images]))
-            t_hat = match_histograms(t_hat, images[darkest])
+            t_hat = match_histograms(t_hat, optics.to_float(images[darkest]))
         return r_hat, t_hat
 
     info = {"weights": {"file": Path(weights_info["file"]).name, "sha256": weights_info["sha256"],
@@ -104,12 +107,10 @@ def ceilnet(weights: Path | None = None, reference: Reference = "auto", **option
 
 def no_separation(reference: Reference = "auto") -> tuple[Run, dict]:
     """The reference point: T̂ = S0 (the unpolarized image), R̂ = 0."""
-    from separate import optics
-
     check_reference(reference)
 
     def run(images: np.ndarray, angles_deg: list[float], reference_deg: float | None = None) -> tuple[np.ndarray, np.ndarray]:
-        s0 = optics.stokes_from_images(images, np.radians(angles_deg))[0]
+        s0 = optics.stokes_from_images(optics.to_float(images), np.radians(angles_deg))[0]
         return np.zeros_like(s0), s0
 
     return run, {"parameters": {}, "reference_policy": "not used: S0 only"}
@@ -133,7 +134,7 @@ def baseline(module_name: str, s0_only: bool) -> Callable[..., tuple[Run, dict]]
 
         def run(images: np.ndarray, angles_deg: list[float], reference_deg: float | None = None) -> tuple[np.ndarray, np.ndarray]:
             if s0_only:
-                return module.separate(images, list(angles_deg), **params)
+                return module.separate(optics.to_float(images), list(angles_deg), **params)
             shots, angles = present(images, angles_deg, choose(images, angles_deg, reference_deg))
             return module.separate(shots, angles, **params)
 

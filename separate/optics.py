@@ -6,6 +6,9 @@ synthesizer, the virtual camera, calibration, the network and the baselines all 
 Conventions (stated once, here and in the README):
 
 * images are float32, linear, H×W×C (or any shape whose leading axis stacks the shots);
+  where a function says it takes *codes*, an unsigned-integer stack stands for linear values
+  code / (the dtype's maximum), as urd stores aligned shots (uint16: 65535 = 1.0), so a 24 MP
+  stack stays in half the memory until a block of it is needed (`code_scale`, `to_float`);
 * angles are radians inside the code (degrees only at the CLI and in manifests);
 * a polarizer angle φ is measured in the image plane from the +x axis (towards increasing
   column), counter-clockwise as the viewer sees the image (towards row 0);
@@ -29,6 +32,23 @@ N_GLASS = 1.474
 GAMMA = 2.2
 
 Array = Any  # numpy.ndarray or torch.Tensor
+
+
+def code_scale(images: np.ndarray) -> float:
+    """The linear value of one code of a stack: 1/max for unsigned integers (uint16: 1/65535),
+    1 for floats. TypeError for other dtypes (signed integers, bool)."""
+    if np.issubdtype(images.dtype, np.floating):
+        return 1.0
+    if np.issubdtype(images.dtype, np.unsignedinteger):
+        return 1.0 / float(np.iinfo(images.dtype).max)
+    raise TypeError(f"expected float or unsigned-integer images, got {images.dtype}")
+
+
+def to_float(images: np.ndarray) -> np.ndarray:
+    """Linear float32 values of float images or codes (`code_scale`); float32 is returned as is."""
+    if images.dtype == np.float32:
+        return images
+    return np.multiply(images, np.float32(code_scale(images)), dtype=np.float32)
 
 
 def _xp(x: Array):

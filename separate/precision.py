@@ -2,14 +2,22 @@
 
 bfloat16 is about 2-3× faster than float32 where the hardware has it (CUDA GPUs with bf16,
 CPUs with AVX-512 BF16 or AMX), and 15-60× slower where torch has to emulate it (AVX2-only
-CPUs). ``auto`` therefore takes bf16 only where torch reports native support.
+CPUs). ``auto`` therefore takes bf16 only where torch reports native support, and where
+oneDNN (which runs the network's convolutions) is not capped below it by ``ONEDNN_MAX_CPU_ISA``
+(or its older name ``DNNL_MAX_CPU_ISA``): with ``ONEDNN_MAX_CPU_ISA=AVX2`` an AVX-512 machine
+runs the network as an AVX2-only CPU would, which is how urd's AVX2 figures were measured.
 """
 
 from __future__ import annotations
 
 import enum
+import os
 
 import torch
+
+#: oneDNN ISA caps (``ONEDNN_MAX_CPU_ISA``) at which bf16 convolutions run in hardware.
+BF16_ISAS = {"AVX512_CORE_BF16", "AVX512_CORE_FP16", "AVX10_1_512", "AVX512_CORE_AMX", "AVX10_1_512_AMX",
+             "AVX512_CORE_AMX_FP16", "AVX10_1_512_AMX_FP16", "ALL", "DEFAULT"}
 
 
 class Precision(str, enum.Enum):
@@ -22,10 +30,14 @@ class Precision(str, enum.Enum):
 
 def native_bf16(device: torch.device | str = "cpu") -> bool:
     """True where bfloat16 runs in hardware on ``device``: a CUDA device with bf16 support, or
-    a CPU that torch reports with AVX-512 BF16 or AMX-BF16."""
+    a CPU that torch reports with AVX-512 BF16 or AMX-BF16, unless oneDNN is capped below
+    them (module docstring)."""
     device = torch.device(device)
     if device.type == "cuda":
         return torch.cuda.is_available() and torch.cuda.is_bf16_supported()
+    cap = os.environ.get("ONEDNN_MAX_CPU_ISA") or os.environ.get("DNNL_MAX_CPU_ISA")
+    if cap and cap.strip().upper() not in BF16_ISAS:
+        return False
     caps = torch.cpu.get_capabilities()
     return bool(caps.get("avx512_bf16") or caps.get("amx_bf16"))
 

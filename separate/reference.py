@@ -38,8 +38,9 @@ on synthetic patches (bsds500 val and test, the benchmark's pipeline, 414 patche
 side is right on 85–90% of them and the network's T̂ comes within 0.5 dB of what the true φ⊥
 gives; the misses are mostly scenes with little polarization, where either side is a guess.
 
-Functions take stacks (N, H, W, C) float32 linear (1.0 = sensor white) and the N polarizer
-angles in degrees, urd's image-plane convention (`separate.optics`).
+Functions take stacks (N, H, W, C) float32 linear (1.0 = sensor white), or their codes
+(uint16, 65535 = 1.0; `separate.optics.code_scale`), and the N polarizer angles in degrees,
+urd's image-plane convention (`separate.optics`).
 """
 
 from __future__ import annotations
@@ -112,13 +113,14 @@ def check_stack(images: np.ndarray, angles_deg: Sequence[float]) -> np.ndarray:
     """
     if not isinstance(images, np.ndarray):
         raise TypeError(f"expected images as a numpy array, got {type(images).__name__}")
+    optics.code_scale(images)
     if images.ndim != 4 or images.shape[0] < 3:
         raise ValueError(f"expected a stack of shape (N>=3, H, W, C), got {images.shape}")
     angles = np.asarray(angles_deg, dtype=np.float64)
     if angles.ndim != 1 or angles.size != images.shape[0]:
         raise ValueError(f"expected {images.shape[0]} angles (one per shot), got {np.asarray(angles_deg).tolist()}")
     phi = optics.check_angles(np.radians(angles))
-    if not np.isfinite(images.sum(dtype=np.float64)):
+    if images.dtype.kind == "f" and not np.isfinite(images.sum(dtype=np.float64)):
         raise ValueError("expected finite pixel values, got NaN or infinite values")
     return phi
 
@@ -131,13 +133,14 @@ def _reduce_stack(images: np.ndarray, white: float) -> tuple[np.ndarray, np.ndar
     scale = min(1.0, MAX_SIDE / max(h, w))
     size = (max(1, round(w * scale)), max(1, round(h * scale)))
     lum, saturated = np.empty((n, size[1], size[0])), np.zeros((size[1], size[0]), bool)
+    unit = optics.code_scale(images)
     for k, shot in enumerate(images):
-        small = shot.astype(np.float32, copy=False)
-        hits = (shot >= SATURATION * white).view(np.uint8) * np.uint8(255)      # 255 keeps one pixel in 500 visible
+        small = shot if shot.dtype == np.uint16 else shot.astype(np.float32, copy=False)    # cv2 takes both
+        hits = (shot >= SATURATION * white / unit).view(np.uint8) * np.uint8(255)    # 255 keeps one pixel in 500 visible
         if scale < 1:
             small = cv2.resize(small, size, interpolation=cv2.INTER_AREA)
             hits = cv2.resize(hits, size, interpolation=cv2.INTER_AREA)
-        lum[k] = small.reshape(size[1], size[0], -1).mean(axis=-1)
+        lum[k] = small.reshape(size[1], size[0], -1).mean(axis=-1) * unit
         saturated |= hits.reshape(size[1], size[0], -1).max(axis=-1) > 0
     return lum, saturated
 
@@ -168,7 +171,7 @@ def estimate_reference(images: np.ndarray, angles_deg: Sequence[float], white: f
     """Estimate the glass's s-direction φ⊥ from a stack (module docstring).
 
     Args:
-        images: (N, H, W, C) float linear shots, N ≥ 3.
+        images: (N, H, W, C) linear shots (float, or uint16 codes), N ≥ 3.
         angles_deg: the N polarizer angles (deg).
         white: the sensor's white level in the units of ``images`` (for saturation).
 
@@ -231,7 +234,7 @@ def present(images: np.ndarray, angles_deg: Sequence[float], reference_deg: floa
     (three shots, equal modulo 180°) is returned as it is, not copied.
 
     Args:
-        images: (N, H, W, C) float linear shots, N ≥ 3.
+        images: (N, H, W, C) linear shots (float, or uint16 codes), N ≥ 3.
         angles_deg: the N polarizer angles (deg).
         reference_deg: the reference φ⊥ (deg), usually `estimate_reference_deg`.
         rows: image rows processed at a time (bounds the temporary memory).
@@ -245,7 +248,7 @@ def present(images: np.ndarray, angles_deg: Sequence[float], reference_deg: floa
         raise ValueError(f"expected a finite reference angle (deg), got {reference_deg}")
     angles3 = presented_angles_deg(reference_deg)
     phi3 = np.radians(angles3)
-    if images.shape[0] == 3:
+    if images.shape[0] == 3 and images.dtype == np.float32:
         gap = np.mod(np.degrees(phi) - angles3 + 90.0, 180.0) - 90.0
         if np.all(np.abs(gap) < 1e-9):
             return images, angles3
@@ -253,7 +256,7 @@ def present(images: np.ndarray, angles_deg: Sequence[float], reference_deg: floa
     mixing = (optics.stokes_matrix(phi3) @ np.linalg.pinv(optics.stokes_matrix(phi))).astype(np.float32)
     out = np.empty((3,) + images.shape[1:], np.float32)
     for y in range(0, images.shape[1], rows):
-        out[:, y : y + rows] = np.tensordot(mixing, images[:, y : y + rows].astype(np.float32, copy=False), axes=1)
+        out[:, y : y + rows] = np.tensordot(mixing, optics.to_float(images[:, y : y + rows]), axes=1)
     return out, angles3
 
 
@@ -270,7 +273,7 @@ def presence_map(images: np.ndarray, angles_deg: Sequence[float], reference_deg:
     reflection", 0 "no reflection"; it is a confidence map, not a separation.
 
     Args:
-        images: (N, H, W, C) float linear shots, N ≥ 3.
+        images: (N, H, W, C) linear shots (float, or uint16 codes), N ≥ 3.
         angles_deg: the N polarizer angles (deg).
         reference_deg: φ⊥ (deg); estimated when None.
         white: the sensor's white level.
@@ -278,18 +281,16 @@ def presence_map(images: np.ndarray, angles_deg: Sequence[float], reference_deg:
     Returns:
         H×W float32 in [0, 1].
     """
-    phi = check_stack(images, angles_deg)
-    _, stokes, usable = _statistics(images, phi, white)
-    if reference_deg is None:
-        reference_deg = _estimate(stokes, usable, float(np.mod(np.degrees(phi[0]), 180.0))).reference_deg
-    ref = float(reference_deg)
-    signed = _signed_dolp(stokes, np.radians(ref))
+    return inspect_stack(images, angles_deg, reference_deg, white).presence_at(images.shape[1:3])
+
+
+def _presence(stokes: np.ndarray, usable: np.ndarray, reference_deg: float) -> np.ndarray:
+    """`presence_map` on the reduced Stokes images (3, h, w): h×w float32 in [0, 1]."""
+    signed = _signed_dolp(stokes, np.radians(reference_deg))
     lo, hi = (np.percentile(signed[usable], [TAIL_PERCENT, 100 - TAIL_PERCENT]) if usable.any() else (0.0, 0.0))
     theta_lo, _ = feasible_theta_deg(float(lo), float(hi))
     c_t, c_r = optics.dolp_limits(np.radians(theta_lo))
-    share = np.clip((signed + c_t) / (c_r + c_t), 0.0, 1.0).astype(np.float32)
-    h, w = images.shape[1:3]
-    return np.clip(cv2.resize(share, (w, h), interpolation=cv2.INTER_LINEAR), 0.0, 1.0)
+    return np.clip((signed + c_t) / (c_r + c_t), 0.0, 1.0).astype(np.float32)
 
 
 def feasible_theta_deg(dolp_lo: float, dolp_hi: float, bounds_deg: tuple[float, float] = (10.0, 80.0),
@@ -334,14 +335,19 @@ def polarization_warnings(images: np.ndarray, angles_deg: Sequence[float], white
       assumed, and the way to override it.
 
     Args:
-        images: (N, H, W, C) float linear shots, N ≥ 3.
+        images: (N, H, W, C) linear shots (float, or uint16 codes), N ≥ 3.
         angles_deg: the N polarizer angles (deg).
         white: the sensor's white level.
 
     Returns:
         Warnings as sentences; empty for a normal scene.
     """
-    phi = check_stack(images, angles_deg)
+    return inspect_stack(images, angles_deg, white=white).warnings
+
+
+def _warnings(images: np.ndarray, angles_deg: Sequence[float], lum: np.ndarray, stokes: np.ndarray,
+              usable: np.ndarray, estimate: ReferenceEstimate) -> list[str]:
+    """`polarization_warnings` from the stack and its reduced statistics (`_statistics`)."""
     n = images.shape[0]
     warnings = []
     for i in range(n):
@@ -349,7 +355,6 @@ def polarization_warnings(images: np.ndarray, angles_deg: Sequence[float], white
             if np.array_equal(images[i], images[j]):
                 warnings.append(f"shots {i} and {j} ({angles_deg[i]:g} and {angles_deg[j]:g} deg) are identical: "
                                 "the same file given twice?")
-    lum, stokes, usable = _statistics(images, phi, white)
     lum = np.stack([cv2.blur(shot, (BLUR, BLUR)) for shot in lum])
     mean = max(float(lum.mean()), 1e-12)
     spread = max(float(np.abs(lum[i] - lum[j]).mean()) / mean for i in range(n) for j in range(i + 1, n))
@@ -363,10 +368,53 @@ def polarization_warnings(images: np.ndarray, angles_deg: Sequence[float], white
         warnings.append(f"the shots show too little polarization to separate anything (98% of pixels below DoLP "
                         f"{level:.3f}): no glass in view, glass seen nearly head-on, or no polarizer")
         return warnings
-    estimate = _estimate(stokes, usable, float(np.mod(np.degrees(phi[0]), 180.0)))
     if estimate.basis is Basis.TRANSMISSION:
         other = np.mod(estimate.reference_deg + 90.0, 180.0)
         warnings.append(f"the polarization is weak and has one orientation: urd assumes the transmission dominates "
                         f"(reference {estimate.reference_deg:.1f} deg); if the reflection dominates the photo, "
                         f"pass --reference {other:.1f}")
     return warnings
+
+
+@dataclasses.dataclass(frozen=True)
+class Inspection:
+    """What the shots say before any separation (`inspect_stack`).
+
+    Attributes:
+        estimate: the estimated s-direction (`estimate_reference`).
+        reference_deg: the reference to use (deg): the given one, else the estimate's.
+        warnings: `polarization_warnings`.
+        presence: the reflection-presence map at the reduced size (h×w float32 in [0, 1]),
+            along ``reference_deg``; `presence_at` gives it at full size.
+    """
+
+    estimate: ReferenceEstimate
+    reference_deg: float
+    warnings: list[str]
+    presence: np.ndarray
+
+    def presence_at(self, shape: tuple[int, int]) -> np.ndarray:
+        """The presence map resized bilinearly to ``shape`` (H, W): H×W float32 in [0, 1]."""
+        h, w = shape
+        return np.clip(cv2.resize(self.presence, (w, h), interpolation=cv2.INTER_LINEAR), 0.0, 1.0)
+
+
+def inspect_stack(images: np.ndarray, angles_deg: Sequence[float], reference_deg: float | None = None,
+                  white: float = 1.0) -> Inspection:
+    """The reference estimate, the warnings and the presence map of a stack in one pass over
+    it (the three share the reduced statistics; a 24 MP stack is read once, not three times).
+
+    Args:
+        images: (N, H, W, C) linear shots (float, or uint16 codes), N ≥ 3.
+        angles_deg: the N polarizer angles (deg).
+        reference_deg: φ⊥ (deg) to use for the presence map; the estimate's when None.
+        white: the sensor's white level.
+    """
+    phi = check_stack(images, angles_deg)
+    if reference_deg is not None and not np.isfinite(reference_deg):
+        raise ValueError(f"expected a finite reference angle (deg) or None, got {reference_deg}")
+    lum, stokes, usable = _statistics(images, phi, white)
+    estimate = _estimate(stokes, usable, float(np.mod(np.degrees(phi[0]), 180.0)))
+    reference = estimate.reference_deg if reference_deg is None else float(reference_deg)
+    return Inspection(estimate, reference, _warnings(images, list(angles_deg), lum, stokes, usable, estimate),
+                      _presence(stokes, usable, reference))

@@ -38,19 +38,25 @@ def test_smallest_tile_and_no_overlap_are_accepted():
         assert r_hat.shape == t_hat.shape == stack.shape[1:] and np.isfinite(r_hat).all() and np.isfinite(t_hat).all()
 
 
-def test_tiled_matches_whole_image_at_the_default_tile():
-    # 1296 × 1301 px takes 2 × 2 default tiles (the last column not on the 8-px grid: padded);
-    # measured: 2.4e-4 (R̂) and 2.2e-4 (T̂) apart (128 px overlap: 4.6e-3)
+def test_tiled_matches_whole_image():
+    # 1296 × 1301 px takes 2 × 2 tiles of 1024 px (the last column not on the 8-px grid: padded);
+    # measured: 2.4e-4 (R̂) and 2.2e-4 (T̂) apart (128 px overlap: 4.6e-3); the default overlap
     from acquire.virtual_camera import make_glass_scene
 
     h, w = 1296, 1301
-    assert len(tile_spans(h, TILE, OVERLAP)) == len(tile_spans(w, TILE, OVERLAP)) == 2
+    assert len(tile_spans(h, 1024, OVERLAP)) == len(tile_spans(w, 1024, OVERLAP)) == 2
+    assert len(tile_spans(6000, TILE, OVERLAP)) == 4 and len(tile_spans(4000, TILE, OVERLAP)) == 3
     model, _ = load_model()
     scene = make_glass_scene(w + 1, h)                                 # the virtual camera's sizes are even
     stack = np.stack([scene.render(np.radians(a))[:, :w] * 0.6 for a in (0, 45, 90)]).astype(np.float32)
     r_whole, t_whole = separate_stack(model, stack, [0, 45, 90], tile=1312, precision="fp32")
-    r_tiled, t_tiled = separate_stack(model, stack, [0, 45, 90], precision="fp32")
+    r_tiled, t_tiled = separate_stack(model, stack, [0, 45, 90], tile=1024, precision="fp32")
     assert max(np.abs(r_whole - r_tiled).max(), np.abs(t_whole - t_tiled).max()) < 1e-3
+    # the stored uint16 codes give the float result (converted a tile at a time)
+    codes = np.clip(np.rint(stack * 65535), 0, 65535).astype(np.uint16)
+    r_codes, t_codes = separate_stack(model, codes, [0, 45, 90], tile=1024, precision="fp32")
+    r_float, t_float = separate_stack(model, codes / np.float32(65535), [0, 45, 90], tile=1024, precision="fp32")
+    assert max(np.abs(r_codes - r_float).max(), np.abs(t_codes - t_float).max()) < 1e-5
 
 
 @pytest.mark.parametrize("variant", ["canonical", "direct"])
@@ -104,3 +110,21 @@ def test_presenting_tile_by_tile_matches_presenting_the_stack():
     np.testing.assert_allclose(t_got, t_want, atol=1e-5)
     with pytest.raises(ValueError, match="expected a finite reference angle"):
         separate_stack(model, stack, angles, reference_deg=float("nan"))
+
+
+def test_precision_auto_follows_what_the_hardware_runs(monkeypatch):
+    from separate.precision import Precision, native_bf16, resolve
+
+    monkeypatch.delenv("ONEDNN_MAX_CPU_ISA", raising=False)
+    monkeypatch.delenv("DNNL_MAX_CPU_ISA", raising=False)
+    monkeypatch.setattr(torch.cpu, "get_capabilities", lambda: {"avx2": True, "avx512_bf16": False, "amx_bf16": False})
+    assert not native_bf16() and resolve("auto") is Precision.FP32 and resolve("bf16") is Precision.BF16
+    monkeypatch.setattr(torch.cpu, "get_capabilities", lambda: {"avx2": True, "avx512_bf16": True, "amx_bf16": False})
+    assert native_bf16() and resolve("auto") is Precision.BF16
+    # oneDNN capped below AVX512_CORE_BF16 (as an administrator may, or to try an AVX2 machine) emulates bf16
+    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "AVX2")
+    assert not native_bf16() and resolve("auto") is Precision.FP32
+    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "avx512_core_bf16")
+    assert native_bf16()
+    with pytest.raises(ValueError, match="expected precision auto, fp32 or bf16"):
+        resolve("fp16")

@@ -40,7 +40,10 @@ def test_alignment_recovers_known_shake_within_a_tenth_of_a_pixel(tmp_path, seed
         assert np.abs(truth[:, 2]).max() > 1.0 or entry["shot"] == 0     # the shake is real
         assert warp_rms(entry["warp"], truth, 768, 1024) < 0.1, entry
     stack, angles = scene.reload().load_stack()
-    assert stack.shape == (4, 768, 1024, 3) and angles == [0.0, 45.0, 90.0, 135.0]
+    assert stack.shape == (4, 768, 1024, 3) and stack.dtype == np.float32 and angles == [0.0, 45.0, 90.0, 135.0]
+    codes, _ = scene.load_stack(codes=True)                     # the stored 16-bit codes, 65535 = 1.0
+    assert codes.dtype == np.uint16
+    np.testing.assert_allclose(codes / np.float32(65535.0), stack, rtol=1e-6)
     # aligned shots agree with the noiseless rendering in the reference frame (away from borders)
     for i, angle in enumerate(angles):
         expected = cam.render(angle, 0)

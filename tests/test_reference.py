@@ -185,3 +185,23 @@ def test_warnings_name_the_likely_cause():
     weak = np.stack([s0 / 2 * (1 + 0.008 * np.cos(2 * np.radians(a - 30))) for a in angles]).astype(np.float32)
     found = polarization_warnings(weak, angles)
     assert len(found) == 1 and "too little polarization" in found[0]
+
+
+def test_one_inspection_gives_what_the_three_functions_give_and_codes_read_as_floats():
+    from separate.reference import inspect_stack
+
+    angles = [0.0, 45.0, 90.0, 135.0]
+    shots, _, _ = scene(70.0, angles, noise=0.002)
+    inspection = inspect_stack(shots, angles)
+    assert inspection.reference_deg == estimate_reference_deg(shots, angles)
+    assert inspection.warnings == polarization_warnings(shots, angles)
+    np.testing.assert_array_equal(inspection.presence_at(shots.shape[1:3]), presence_map(shots, angles))
+    assert inspect_stack(shots, angles, 10.0).reference_deg == 10.0
+    codes = np.clip(np.rint(shots * 65535), 0, 65535).astype(np.uint16)
+    from_codes = inspect_stack(codes, angles)
+    assert angle_error(from_codes.reference_deg, inspection.reference_deg) < 0.05
+    assert from_codes.warnings == inspection.warnings
+    assert np.abs(from_codes.presence - inspection.presence).max() < 0.01
+    np.testing.assert_allclose(present(codes, angles, 70.0)[0], present(codes / np.float32(65535), angles, 70.0)[0], atol=1e-6)
+    with pytest.raises(TypeError, match="expected float or unsigned-integer images"):
+        inspect_stack(codes.astype(np.int32), angles)

@@ -16,6 +16,8 @@ import subprocess
 import sys
 import time
 
+from separate.evaluate import cpu_model
+
 
 # A wrapper process runs one command and reports its own children's peak RSS (KiB): the
 # peak of RUSAGE_CHILDREN in this process would be the maximum over every command run so far.
@@ -24,7 +26,7 @@ WRAPPER = ("import resource, subprocess, sys; done = subprocess.run(sys.argv[1:]
 
 
 def run(args: list[str]) -> tuple[float, float, str]:
-    """Run ``python -m urd.cli ARGS`` in a child; return (seconds, peak RSS in GB, its stderr)."""
+    """Run ``python -m urd.cli ARGS`` in a child; return (seconds, peak RSS in GiB, its stderr)."""
     started = time.perf_counter()
     done = subprocess.run([sys.executable, "-c", WRAPPER, sys.executable, "-m", "urd.cli", *args],
                           capture_output=True, text=True)
@@ -49,7 +51,8 @@ ingest_s, ingest_gb, _ = run(["ingest", scene])
 separate_args = ["separate", "scene_01", "--dataset", args.folder, "--precision", args.precision]
 separate_s, separate_gb, log = run(separate_args + (["--tile", str(args.tile)] if args.tile else []))
 precision = next((line.split(":", 1)[1].strip() for line in log.splitlines() if line.startswith("precision:")), args.precision)
-print(f"scene {args.size}, 3 shots, {os.cpu_count()} CPU cores; network precision {precision}"
-      + (f", tile {args.tile} px" if args.tile else ""))
-print(f"urd ingest   (decode + align + write):  {ingest_s:6.1f} s, peak memory {ingest_gb:.2f} GB")
-print(f"urd separate (load + network + write):  {separate_s:6.1f} s, peak memory {separate_gb:.2f} GB")
+capped = [f"{k}={os.environ[k]}" for k in ("ONEDNN_MAX_CPU_ISA", "ATEN_CPU_CAPABILITY", "MKL_ENABLE_INSTRUCTIONS") if k in os.environ]
+print(f"CPU: {cpu_model()}, {os.cpu_count()} cores" + (f"; instruction sets capped: {' '.join(capped)}" if capped else ""))
+print(f"scene {args.size}, 3 shots; network precision {precision}" + (f", tile {args.tile} px" if args.tile else ""))
+print(f"urd ingest   (decode + align + write):  {ingest_s:6.1f} s, peak memory {ingest_gb:.2f} GiB")
+print(f"urd separate (load + network + write):  {separate_s:6.1f} s, peak memory {separate_gb:.2f} GiB")

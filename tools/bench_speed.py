@@ -21,11 +21,17 @@ precision. Figures are the best of ``--repeat`` runs; other load on the machine 
 
 On a busy machine wall-clock figures fall with the load; the one-thread figures per CPU second
 (``--threads 1``, and the matmul's rate measured the same way) do not, or much less.
+
+An AVX2-only CPU can be imitated on a newer one by capping the instruction sets of oneDNN,
+ATen and MKL (urd's precision ``auto`` then takes fp32, as on such a CPU):
+
+    ONEDNN_MAX_CPU_ISA=AVX2 ATEN_CPU_CAPABILITY=avx2 MKL_ENABLE_INSTRUCTIONS=AVX2 python tools/bench_speed.py
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from pathlib import Path
 
@@ -194,6 +200,9 @@ def main() -> None:
     flags = [k for k in ("avx2", "avx512_f", "avx512_bf16", "avx512_vnni", "amx_bf16") if caps.get(k)]
     print(f"CPU: {cpu_model()}, {threads} threads; torch {torch.__version__}, "
           f"oneDNN {'yes' if torch.backends.mkldnn.is_available() else 'no'}; flags: {' '.join(flags) or 'unknown'}")
+    capped = {k: os.environ[k] for k in ("ONEDNN_MAX_CPU_ISA", "ATEN_CPU_CAPABILITY", "MKL_ENABLE_INSTRUCTIONS") if k in os.environ}
+    if capped:
+        print("instruction sets capped (emulating an older CPU): " + ", ".join(f"{k}={v}" for k, v in capped.items()))
     print(f"precision auto → {describe(resolve('auto'))}")
     rates = {Precision.FP32: matmul_gflops(torch.float32, args.repeat)}
     if native_bf16():

@@ -35,6 +35,7 @@ Guarantees, all kept here:
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import copy
 import dataclasses
@@ -556,9 +557,10 @@ class Scene:
                     problems.append(str(exc))
         return problems
 
-    def load_stack(self) -> tuple["Any", list[float]]:
+    def load_stack(self, codes: bool = False) -> tuple["Any", list[float]]:
         """The aligned stack (N, H, W, 3) float32 linear, hash-verified, and its best known
-        polarizer angles (deg)."""
+        polarizer angles (deg); with ``codes`` the stored uint16 codes (65535 = 1.0; half the
+        memory, `separate.optics.code_scale`)."""
         import numpy as np
         import tifffile
 
@@ -572,12 +574,17 @@ class Scene:
             raise DatasetError(f"{self.name}: {ingest['error']}")
         self.check_files(ingest["aligned"])
         paths = [confined_path(self.path, f["file"], str(self.manifest_path)) for f in ingest["aligned"]]
-        first = tifffile.imread(paths[0])
-        images = np.empty((len(paths),) + first.shape, np.float32)     # filled in place: no 2x peak
-        images[0] = first / np.float32(65535.0)
-        del first
-        for i, path in enumerate(paths[1:], start=1):
-            images[i] = tifffile.imread(path) / np.float32(65535.0)
+        images = None
+        with concurrent.futures.ThreadPoolExecutor(max_workers=2) as pool:     # the next file decodes meanwhile
+            for i, stored in enumerate(pool.map(tifffile.imread, paths)):
+                if images is None:
+                    dtype = np.uint16 if codes else np.float32
+                    images = np.empty((len(paths),) + stored.shape, dtype)    # filled in place: no 2x peak
+                if codes:
+                    images[i] = stored
+                else:
+                    np.multiply(stored, np.float32(1 / 65535.0), out=images[i])
+                del stored
         return images, self.angles_deg()
 
     # -- writing

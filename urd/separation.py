@@ -18,6 +18,7 @@ import numpy as np
 import tifffile
 
 from separate import metrics
+from separate.reference import Inspection, inspect_stack
 from urd.dataset import Scene, atomic_path
 from urd.errors import DatasetError
 from urd.images import Transfer, read_image
@@ -54,26 +55,44 @@ def write_preview(path: Path, image: np.ndarray, white: float, overwrite: bool =
             raise DatasetError(f"cannot write {path}")
 
 
-def truth_metrics(scene: Scene, r_hat: np.ndarray, t_hat: np.ndarray) -> dict | None:
-    """PSNR/SSIM of R̂, T̂ and of no separation against the scene's ground truth, if any.
+def _read_mapped(path: Path) -> np.ndarray:
+    """A TIFF's image, memory-mapped read-only where the file allows it (uncompressed, one
+    contiguous strip; no copy of a 24 MP truth image), else read."""
+    try:
+        return tifffile.memmap(path, mode="r")
+    except ValueError:
+        return tifffile.imread(path)
+
+
+def truth_metrics(scene: Scene, r_hat: np.ndarray, t_hat: np.ndarray, rows: int = 256) -> dict | None:
+    """PSNR/SSIM of R̂, T̂ and of no separation (R̂ + T̂) against the scene's ground truth, if any.
 
     Figures are computed 5% inside the border (aligned shots are padded there), with peak 1;
-    SSIM on the central 2048×2048 pixels at most.
+    PSNR over ``rows`` rows at a time (no full-size temporaries), SSIM on the central
+    1024×1024 pixels at most.
     """
     truth = scene.truth_dir()
     if not (truth / "T_obs.tiff").is_file():
         return None
-    r_true, t_true = tifffile.imread(truth / "R_obs.tiff"), tifffile.imread(truth / "T_obs.tiff")
+    r_true, t_true = _read_mapped(truth / "R_obs.tiff"), _read_mapped(truth / "T_obs.tiff")
     h, w = t_true.shape[:2]
-    crop = (slice(h // 20, h - h // 20), slice(w // 20, w - w // 20))
+    top, bottom, cols = h // 20, h - h // 20, slice(w // 20, w - w // 20)
+    pairs = {"R": lambda region: (r_hat[region], r_true[region]), "T": lambda region: (t_hat[region], t_true[region]),
+             "T_no_separation": lambda region: (r_hat[region] + t_hat[region], t_true[region])}
+    squared = dict.fromkeys(pairs, 0.0)
+    for y in range(top, bottom, rows):
+        block = (slice(y, min(bottom, y + rows)), cols)
+        for name, pair in pairs.items():
+            est, ref = pair(block)
+            squared[name] += float(np.square(est - ref).sum(dtype=np.float64))
+    count = (bottom - top) * (cols.stop - cols.start) * t_true.shape[2]
     cy, cx = h // 2, w // 2
-    centre = (slice(max(crop[0].start, cy - 1024), min(crop[0].stop, cy + 1024)),
-              slice(max(crop[1].start, cx - 1024), min(crop[1].stop, cx + 1024)))
+    centre = (slice(max(top, cy - 512), min(bottom, cy + 512)), slice(max(cols.start, cx - 512), min(cols.stop, cx + 512)))
     out = {}
-    for name, est, ref in (("R", r_hat, r_true), ("T", t_hat, t_true), ("T_no_separation", r_hat + t_hat, t_true)):
-        out[name] = {"psnr_db": round(float(metrics.psnr(est[crop], ref[crop])), 3),
-                     "ssim": round(metrics.ssim(np.clip(est[centre], 0, 1), np.clip(ref[centre], 0, 1)), 4)}
-        del est
+    for name, pair in pairs.items():
+        est, ref = pair(centre)
+        out[name] = {"psnr_db": round(float(metrics.psnr_from_mse(squared[name] / count)), 3),
+                     "ssim": round(metrics.ssim(np.clip(est, 0, 1), np.clip(ref, 0, 1)), 4)}
     return out
 
 
@@ -107,15 +126,11 @@ class Separation:
     truth_metrics: dict | None = None
 
 
-def _separate(images: np.ndarray, angles: list[float], run, reference: str | float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, list[str]]:
-    """Check the stack, choose the reference angle, run the method, compute the presence map."""
-    from separate.reference import estimate_reference_deg, polarization_warnings, presence_map
-
-    warnings = polarization_warnings(images, angles)
-    reference_deg = estimate_reference_deg(images, angles) if reference == "auto" else float(reference)
-    confidence = presence_map(images, angles, reference_deg)
-    r_hat, t_hat = run(images, angles, reference_deg)
-    return r_hat, t_hat, confidence, reference_deg, warnings
+def _separate(images: np.ndarray, angles: list[float], run, reference: str | float) -> tuple[np.ndarray, np.ndarray, Inspection]:
+    """Inspect the stack (reference angle, warnings, presence map), then run the method."""
+    inspection = inspect_stack(images, angles, None if reference == "auto" else float(reference))
+    r_hat, t_hat = run(images, angles, inspection.reference_deg)
+    return r_hat, t_hat, inspection
 
 
 def separate_scene(scene: Scene, method: str, run, info: dict, force: bool = False,
@@ -127,12 +142,14 @@ def separate_scene(scene: Scene, method: str, run, info: dict, force: bool = Fal
         scene.reload()
         if method in scene.methods() and not force:
             raise DatasetError(f"{scene.results_dir(method)} exists; pass --force to replace these results")
-        images, angles = scene.load_stack()
-        r_hat, t_hat, confidence, reference_deg, warnings = _separate(images, angles, run, reference)
+        images, angles = scene.load_stack(codes=True)          # uint16: half the memory of float32
+        r_hat, t_hat, inspection = _separate(images, angles, run, reference)
         del images                                            # the largest array: free it before writing
         metrics_truth = truth_metrics(scene, r_hat, t_hat)
+        reference_deg, warnings = inspection.reference_deg, inspection.warnings
         with scene.staging() as staging:
-            paths = write_results(staging, r_hat, t_hat, overwrite=False, confidence=confidence)
+            paths = write_results(staging, r_hat, t_hat, overwrite=False,
+                                  confidence=inspection.presence_at(r_hat.shape[:2]))
             staged = {f"results/{method}/{p.name}": p for p in paths}
             entry = scene.add_result(method, staged, {"angles_deg": angles, **info, "full_scale": FULL_SCALE,
                                                       "reference_deg": round(reference_deg, 3),
@@ -152,5 +169,7 @@ def separate_images(paths: list[Path], angles_deg: list[float], out: Path, run, 
         raise ValueError(f"expected images of one size, got {[im.shape[:2] for im in loaded]}")
     stack = np.stack(loaded)
     del loaded
-    r_hat, t_hat, confidence, reference_deg, warnings = _separate(stack, angles_deg, run, reference)
-    return Separation(write_results(Path(out), r_hat, t_hat, overwrite=force, confidence=confidence), reference_deg, warnings)
+    r_hat, t_hat, inspection = _separate(stack, angles_deg, run, reference)
+    del stack
+    paths = write_results(Path(out), r_hat, t_hat, overwrite=force, confidence=inspection.presence_at(r_hat.shape[:2]))
+    return Separation(paths, inspection.reference_deg, inspection.warnings)
