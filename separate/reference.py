@@ -73,6 +73,8 @@ ONE_SIDED = 0.1
 WEAK_DOLP = 0.02
 #: Shots whose mean absolute difference is below this fraction of their mean are "identical".
 IDENTICAL = 0.002
+#: Share of clipped pixels (`clipped_mask`) above which the scene is warned about.
+CLIPPED_WARN = 0.01
 #: Offsets (deg) of the presented shots from the reference.
 PRESENTED_OFFSETS_DEG = (0.0, 45.0, 90.0)
 
@@ -143,6 +145,17 @@ def _reduce_stack(images: np.ndarray, white: float) -> tuple[np.ndarray, np.ndar
         lum[k] = small.reshape(size[1], size[0], -1).mean(axis=-1) * unit
         saturated |= hits.reshape(size[1], size[0], -1).max(axis=-1) > 0
     return lum, saturated
+
+
+def clipped_mask(images: np.ndarray, white: float = 1.0, rows: int = 512) -> np.ndarray:
+    """Pixels (H×W bool) where any shot reaches `SATURATION` × white in any channel: their
+    polarization is lost (a clipped shot does not follow Malus's law), so no method can separate
+    them; ``rows`` rows at a time."""
+    limit = SATURATION * white / optics.code_scale(images)
+    out = np.empty(images.shape[1:3], bool)
+    for y in range(0, images.shape[1], rows):
+        out[y : y + rows] = (images[:, y : y + rows] >= limit).any(axis=(0, 3))
+    return out
 
 
 def _statistics(images: np.ndarray, phi: np.ndarray, white: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -332,7 +345,8 @@ def polarization_warnings(images: np.ndarray, angles_deg: Sequence[float], white
     * otherwise, 98% of the pixels below DoLP `WEAK_DOLP`: too little polarization to separate
       anything (no glass in view, glass seen nearly head-on, or no polarizer);
     * a weak polarization with one orientation (`Basis.TRANSMISSION`): the side of φ⊥ is
-      assumed, and the way to override it.
+      assumed, and the way to override it;
+    * more than `CLIPPED_WARN` of the pixels clipped in some shot (`clipped_mask`).
 
     Args:
         images: (N, H, W, C) linear shots (float, or uint16 codes), N ≥ 3.
@@ -346,10 +360,15 @@ def polarization_warnings(images: np.ndarray, angles_deg: Sequence[float], white
 
 
 def _warnings(images: np.ndarray, angles_deg: Sequence[float], lum: np.ndarray, stokes: np.ndarray,
-              usable: np.ndarray, estimate: ReferenceEstimate) -> list[str]:
-    """`polarization_warnings` from the stack and its reduced statistics (`_statistics`)."""
+              usable: np.ndarray, estimate: ReferenceEstimate, clipped: np.ndarray) -> list[str]:
+    """`polarization_warnings` from the stack, its reduced statistics (`_statistics`) and its
+    clipped pixels (`clipped_mask`)."""
     n = images.shape[0]
     warnings = []
+    share = float(clipped.mean())
+    if share > CLIPPED_WARN:
+        warnings.append(f"{100 * share:.1f}% of the pixels are clipped in at least one shot: their polarization is "
+                        "lost and R and T there are guesses (marked in clipped.png); expose for the highlights")
     for i in range(n):
         for j in range(i + 1, n):
             if np.array_equal(images[i], images[j]):
@@ -386,12 +405,14 @@ class Inspection:
         warnings: `polarization_warnings`.
         presence: the reflection-presence map at the reduced size (h×w float32 in [0, 1]),
             along ``reference_deg``; `presence_at` gives it at full size.
+        clipped: H×W bool, `clipped_mask`.
     """
 
     estimate: ReferenceEstimate
     reference_deg: float
     warnings: list[str]
     presence: np.ndarray
+    clipped: np.ndarray
 
     def presence_at(self, shape: tuple[int, int]) -> np.ndarray:
         """The presence map resized bilinearly to ``shape`` (H, W): H×W float32 in [0, 1]."""
@@ -416,5 +437,6 @@ def inspect_stack(images: np.ndarray, angles_deg: Sequence[float], reference_deg
     lum, stokes, usable = _statistics(images, phi, white)
     estimate = _estimate(stokes, usable, float(np.mod(np.degrees(phi[0]), 180.0)))
     reference = estimate.reference_deg if reference_deg is None else float(reference_deg)
-    return Inspection(estimate, reference, _warnings(images, list(angles_deg), lum, stokes, usable, estimate),
-                      _presence(stokes, usable, reference))
+    clipped = clipped_mask(images, white)
+    return Inspection(estimate, reference, _warnings(images, list(angles_deg), lum, stokes, usable, estimate, clipped),
+                      _presence(stokes, usable, reference), clipped)

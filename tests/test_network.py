@@ -248,7 +248,8 @@ def test_urd_separate_on_a_simulated_scene_beats_no_separation(tmp_path):
     assert out.returncode == 0, out.stderr
     entry = scene.load()["results"]["network"]
     assert entry["weights"]["sha256"]
-    assert {"R.tiff", "T.tiff", "R_preview.png", "T_preview.png"} <= {Path(f["file"]).name for f in entry["files"]}
+    assert {"R.tiff", "T.tiff", "R_preview.png", "T_preview.png", "confidence.tiff", "clipped.png"} <= {
+        Path(f["file"]).name for f in entry["files"]}
     figures = entry["truth_metrics"]
     assert figures["T"]["psnr_db"] > figures["T_no_separation"]["psnr_db"] + 3
     out = urd("separate", "scene_01", "--dataset", tmp_path / "ds")

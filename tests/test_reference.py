@@ -205,3 +205,21 @@ def test_one_inspection_gives_what_the_three_functions_give_and_codes_read_as_fl
     np.testing.assert_allclose(present(codes, angles, 70.0)[0], present(codes / np.float32(65535), angles, 70.0)[0], atol=1e-6)
     with pytest.raises(TypeError, match="expected float or unsigned-integer images"):
         inspect_stack(codes.astype(np.int32), angles)
+
+
+def test_clipped_pixels_are_marked_and_warned_about():
+    from separate.reference import clipped_mask, inspect_stack
+
+    angles = [0.0, 45.0, 90.0]
+    shots, _, _ = scene(40.0, angles, noise=0.002)
+    assert not clipped_mask(shots).any() and not any("clipped" in w for w in polarization_warnings(shots, angles))
+    bright = shots.copy()
+    bright[1, :8, :, 2] = 1.0                                   # one shot, one channel, the top 8 rows
+    mask = clipped_mask(bright)
+    assert mask[:8].all() and not mask[8:].any()
+    inspection = inspect_stack(bright, angles)
+    share = 100 * 8 / bright.shape[1]
+    assert np.array_equal(inspection.clipped, mask)
+    assert any(f"{share:.1f}% of the pixels are clipped" in w for w in inspection.warnings)
+    codes = np.clip(np.rint(bright * 65535), 0, 65535).astype(np.uint16)
+    assert np.array_equal(clipped_mask(codes), mask)

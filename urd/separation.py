@@ -3,7 +3,9 @@
 Outputs go to ``results/METHOD/`` of a scene (or a chosen folder): ``R.tiff`` and ``T.tiff``,
 linear 16-bit RGB with full scale 2.0 (value = DN / 65535 × 2, since R + T = S0 reaches twice
 a single shot's white level), and ``R_preview.png`` / ``T_preview.png``, 8-bit sRGB at most 2048 px
-long, scaled by one common white point. The scene manifest's ``results`` record names the method, its
+long, scaled by one common white point; ``confidence.tiff``, the reflection-presence map
+(`separate.reference.presence_map`), and ``clipped.png``, the pixels clipped in some shot
+(`separate.reference.clipped_mask`). The scene manifest's ``results`` record names the method, its
 parameters, the weights' SHA-256 for the network, the files with their hashes, and PSNR/SSIM
 against the virtual camera's ground truth when the scene has one.
 """
@@ -97,9 +99,10 @@ def truth_metrics(scene: Scene, r_hat: np.ndarray, t_hat: np.ndarray, rows: int 
 
 
 def write_results(folder: Path, r_hat: np.ndarray, t_hat: np.ndarray, overwrite: bool,
-                  confidence: np.ndarray | None = None) -> list[Path]:
-    """Write the result files into ``folder`` (R, T as linear TIFF, sRGB previews, and the
-    reflection-presence map when given); return their paths."""
+                  confidence: np.ndarray | None = None, clipped: np.ndarray | None = None) -> list[Path]:
+    """Write the result files into ``folder`` (R, T as linear TIFF, sRGB previews, and when
+    given the reflection-presence map and the clipped pixels as a PNG, 255 = clipped); return
+    their paths."""
     folder.mkdir(parents=True, exist_ok=True)
     step = max(1, int(np.sqrt(r_hat.size / 3 / 1e6)))                 # percentile of ~1 M samples
     white = float(np.percentile(r_hat[::step, ::step] + t_hat[::step, ::step], 99.5)) or 1.0
@@ -112,6 +115,11 @@ def write_results(folder: Path, r_hat: np.ndarray, t_hat: np.ndarray, overwrite:
         paths.append(folder / "confidence.tiff")
         with atomic_path(paths[-1], overwrite) as tmp:
             tifffile.imwrite(tmp, np.asarray(confidence, np.float32), photometric="minisblack")
+    if clipped is not None:
+        paths.append(folder / "clipped.png")
+        with atomic_path(paths[-1], overwrite) as tmp:
+            if not cv2.imwrite(str(tmp), clipped.astype(np.uint8) * np.uint8(255)):
+                raise DatasetError(f"cannot write {paths[-1]}")
     return paths
 
 
@@ -149,7 +157,7 @@ def separate_scene(scene: Scene, method: str, run, info: dict, force: bool = Fal
         reference_deg, warnings = inspection.reference_deg, inspection.warnings
         with scene.staging() as staging:
             paths = write_results(staging, r_hat, t_hat, overwrite=False,
-                                  confidence=inspection.presence_at(r_hat.shape[:2]))
+                                  confidence=inspection.presence_at(r_hat.shape[:2]), clipped=inspection.clipped)
             staged = {f"results/{method}/{p.name}": p for p in paths}
             entry = scene.add_result(method, staged, {"angles_deg": angles, **info, "full_scale": FULL_SCALE,
                                                       "reference_deg": round(reference_deg, 3),
@@ -171,5 +179,6 @@ def separate_images(paths: list[Path], angles_deg: list[float], out: Path, run, 
     del loaded
     r_hat, t_hat, inspection = _separate(stack, angles_deg, run, reference)
     del stack
-    paths = write_results(Path(out), r_hat, t_hat, overwrite=force, confidence=inspection.presence_at(r_hat.shape[:2]))
+    paths = write_results(Path(out), r_hat, t_hat, overwrite=force, confidence=inspection.presence_at(r_hat.shape[:2]),
+                          clipped=inspection.clipped)
     return Separation(paths, inspection.reference_deg, inspection.warnings)
