@@ -704,15 +704,15 @@ def settings_for(quick: bool, large: bool = False) -> Settings:
     robustness patches of 128² at two levels per axis, 1 MP timings; about 4 CPU-minutes
     (6.5-8.5 min wall on 2 shared cores). Full: every method on 64 + 64 cross-validation
     patches (the bsds500-test set is `tools/bench_synthetic.py`'s), 48 robustness patches at
-    every level for none/network/direct/schechner/farid (not Kong: its constrained
-    optimization takes ~13 s per 128² patch on 2 cores, 20 conditions × 48 patches would be
-    hours), every method timed at 1 MP, and 24 MP with ``large``.
+    every level for the polarization methods (none/network/direct/schechner/kong/farid),
+    every method timed at 1 MP, and the network and Schechner at 24 MP with ``large``; about an
+    hour on 2 cores (Kong ~1.1 s per 256² patch, Schechner ~1.2 s, the rest less).
     """
     if quick and large:
         raise ValueError("expected large (24 MP) timings only in the full run, got quick=True, large=True")
     if quick:
         return Settings(True, QUICK_METHODS, 12, 256, QUICK_METHODS, 10, 128, QUICK_METHODS, (816, 1224), False, 24, 6)
-    return Settings(False, ALL_METHODS, 64, 256, ("none", "network", "direct", "schechner", "farid"), 48, 128,
+    return Settings(False, ALL_METHODS, 64, 256, ("none", "network", "direct", "schechner", "kong", "farid"), 48, 128,
                     ALL_METHODS, (816, 1224), large, 96, 12)
 
 

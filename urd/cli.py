@@ -394,7 +394,8 @@ def train(
 @app.command()
 def bench(
     quick: bool = typer.Option(False, "--quick", help="The paper's evaluation, reduced (< 10 min on 2 cores): tables, CSV and plots in docs/bench/quick, checked against docs/bench/expected-quick.json."),
-    full: bool = typer.Option(False, "--full", help="The paper's full evaluation (hours on 2 cores): cross-validation, robustness, speed into docs/bench/full."),
+    full: bool = typer.Option(False, "--full", help="The paper's full evaluation (about an hour on 2 cores): cross-validation, robustness, speed into docs/bench/full."),
+    large: bool = typer.Option(False, "--24mp", help="With --full: also time the network and Schechner on a 24 MP scene."),
     images: Optional[Path] = typer.Option(None, help="With --quick/--full: also cross-validate on the photos of this folder (JPEG, PNG, 8/16-bit TIFF)."),
     out: Optional[Path] = typer.Option(None, help="With --quick/--full: output folder (default docs/bench)."),
     count: int = typer.Option(64, min=1, help="Benchmark patches (seeded, from bsds500/test or bundled photos)."),
@@ -405,11 +406,13 @@ def bench(
     """Benchmark the methods on synthetic data with ground truth: by default one table of RMSE /
     PSNR / SSIM of R and T per method (with network and direct: their paired T PSNR difference);
     with --quick or --full the paper's tables, robustness study and speed figures."""
+    if large and not full:
+        raise typer.BadParameter("--24mp goes with --full")
     if quick or full:
         from separate.evaluate import DEFAULT_OUT, run_evaluation
 
         result = run_guarded(run_evaluation, out or DEFAULT_OUT, quick, images, progress=TerminalProgress(),
-                             command=" ".join(["urd"] + sys.argv[1:]))
+                             large=large, command=" ".join(["urd"] + sys.argv[1:]))
         typer.echo(f"tables, CSV and plots in {Path(result['folder']).resolve()}")
         return
     from separate.bench import format_paired, format_table, run_benchmark
