@@ -32,6 +32,23 @@ def test_fresnel_textbook_values_at_45_deg_for_n_1_5():
     assert r_s == pytest.approx(((1 - root) / (1 + root)) ** 2, rel=1e-12)
 
 
+@pytest.mark.parametrize("n", [1.33, 1.474, 1.7])
+def test_fresnel_slopes_are_the_derivatives_of_the_reflectances(n):
+    theta = np.linspace(0.0, 1.5, 61)
+    d_s, d_p = optics.fresnel_reflectance_slope(theta, n)
+    step = 1e-6
+    (s1, p1), (s0, p0) = optics.fresnel_reflectance(theta + step, n), optics.fresnel_reflectance(theta - step, n)
+    np.testing.assert_allclose(d_s[1:], ((s1 - s0) / (2 * step))[1:], rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(d_p[1:], ((p1 - p0) / (2 * step))[1:], rtol=1e-6, atol=1e-9)
+    assert d_s[0] == 0.0 and d_p[0] == 0.0                       # flat at normal incidence
+    assert np.all(d_s[1:] > 0)                                   # R_s rises monotonically
+    # R_p has its minimum (zero) at Brewster's angle: its slope changes sign there
+    brewster = optics.brewster_angle(n)
+    assert np.all(d_p[1:][theta[1:] < brewster - 0.01] < 0) and np.all(d_p[theta > brewster + 0.01] > 0)
+    torch_slopes = optics.fresnel_reflectance_slope(torch.from_numpy(theta), n)
+    np.testing.assert_allclose(torch_slopes[0].numpy(), d_s, rtol=1e-12)
+
+
 @pytest.mark.parametrize("n", [1.33, 1.474, 1.5, 1.7])
 def test_normal_incidence_and_grazing(n):
     r_s, r_p = optics.fresnel_reflectance(np.array(0.0), n)

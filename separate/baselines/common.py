@@ -24,14 +24,19 @@ def fresnel_inverse(i_perp: np.ndarray, i_par: np.ndarray, theta: np.ndarray | f
     return r_obs.astype(np.float32), t_obs.astype(np.float32)
 
 
+def mixture_coefficients(r_s, r_p):
+    """(a, b) with R_obs = a·I⊥ + b·I∥ (and T_obs = I⊥ + I∥ − R_obs) for reflectances R_s > R_p:
+    a = ρ'(1 − R_p), b = −ρ'(1 − R_s), ρ' = (R_s + R_p)/(R_s − R_p) (numpy or torch, broadcasting)."""
+    ratio = (r_s + r_p) / (r_s - r_p)
+    return ratio * (1 - r_p), -ratio * (1 - r_s)
+
+
 def mixture_inverse(i_perp, i_par, r_s, r_p):
     """The arithmetic of `fresnel_inverse` for given reflectances R_s > R_p (numpy or torch,
-    broadcasting)."""
-    det = (r_s - r_p) / 4                                   # = (R_s(1−R_p) − R_p(1−R_s))/4 > 0
-    i_r = ((1 - r_p) * i_perp - (1 - r_s) * i_par) / 2 / det
-    i_t = (r_s * i_par - r_p * i_perp) / 2 / det
-    rho = (r_s + r_p) / 2
-    return rho * i_r, (1 - rho) * i_t
+    broadcasting): the observable layers (R_obs, T_obs), which sum to S0 = I⊥ + I∥."""
+    a, b = mixture_coefficients(r_s, r_p)
+    r_obs = a * i_perp + b * i_par
+    return r_obs, i_perp + i_par - r_obs
 
 
 def luminance(image: np.ndarray) -> np.ndarray:

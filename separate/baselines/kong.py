@@ -37,27 +37,9 @@ import numpy as np
 import torch
 
 from separate import optics
-from separate.baselines.common import canonical, fresnel_inverse, luminance
+from separate.baselines.common import canonical, fresnel_inverse, luminance, mixture_coefficients
 
 PENALTY = 1e3
-
-
-def _fresnel_with_derivatives(theta: np.ndarray, n: float = optics.N_GLASS) -> tuple[np.ndarray, ...]:
-    """R_s, R_p of `separate.optics.fresnel_reflectance` at ``theta`` (rad) and their derivatives
-    dR_s/dθ, dR_p/dθ (per rad).
-
-    With k = n·cos θ_t, r_s = (cos θ − k)/(cos θ + k) and r_p = (n·cos θ − cos θ_t)/(n·cos θ + cos θ_t);
-    as k² = n² − sin²θ, both amplitudes have dr/dθ = −2(n² − 1)·sin θ / (k·denominator²).
-    """
-    angle = torch.from_numpy(theta)
-    cos_i, sin_i = torch.cos(angle).numpy(), torch.sin(angle).numpy()   # numpy's float64 ones took ~8× longer
-    cos_t = np.sqrt(1.0 - (sin_i / n) ** 2)
-    k = n * cos_t
-    m = n * cos_i
-    den_s, den_p = cos_i + k, m + cos_t
-    r_s, r_p = (cos_i - k) / den_s, (m - cos_t) / den_p
-    slope = (-2 * (n * n - 1)) * sin_i / k
-    return r_s**2, r_p**2, 2 * r_s * slope / den_s**2, 2 * r_p * slope / den_p**2
 
 
 def _difference_parts(image: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -79,14 +61,15 @@ def _energy(theta: np.ndarray, i_perp: np.ndarray, i_par: np.ndarray, smoothness
     """
     h, w = theta.shape
     side, pixels = max(h, w), h * w
-    r_s, r_p, dr_s, dr_p = _fresnel_with_derivatives(theta)
+    angle = torch.from_numpy(theta)                              # torch's float64 cos/sin: ~8× numpy's here
+    r_s, r_p = (r.numpy() for r in optics.fresnel_reflectance(angle))
+    dr_s, dr_p = (d.numpy() for d in optics.fresnel_reflectance_slope(angle))
+    a, b = mixture_coefficients(r_s, r_p)
     inverse = 1 / (r_s - r_p)
-    ratio = (r_s + r_p) * inverse                                # A = ratio·(1 − R_p), B = −ratio·(1 − R_s)
+    ratio = (r_s + r_p) * inverse                                # a = ratio·(1 − R_p), b = −ratio·(1 − R_s)
     dratio = 2 * (r_s * dr_p - r_p * dr_s) * inverse**2
-    trans_s, trans_p = 1 - r_s, 1 - r_p
-    a, b = ratio * trans_p, -ratio * trans_s
-    da = dratio * trans_p - ratio * dr_p
-    db = ratio * dr_s - dratio * trans_s
+    da = dratio * (1 - r_p) - ratio * dr_p
+    db = ratio * dr_s - dratio * (1 - r_s)
     s0 = i_perp + i_par
     r_hat = a * i_perp + b * i_par
     t_hat = s0 - r_hat
