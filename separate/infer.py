@@ -47,7 +47,7 @@ import numpy as np
 import torch
 
 from separate import optics
-from separate.model import TARGET_MEAN, ResBlock, SeparationNet, canonical_inputs
+from separate.model import TARGET_MEAN, ResBlock, ResizeUp, SeparationNet, canonical_inputs
 from separate.networks import build_model
 from separate.precision import Precision, resolve
 from urd.errors import WeightsError
@@ -178,9 +178,13 @@ class FusedNet:
                 x = self._conv(m.down[i], x, "relu")
         for i in reversed(range(len(m.up))):
             up = m.up[i]
-            w, b = self._weights[up]
-            x = torch.ops.mkldnn._convolution_transpose_pointwise(x, w, b, up.padding, up.output_padding, up.stride,
-                                                                  up.dilation, up.groups, "relu", [], "")
+            if isinstance(up, ResizeUp):
+                x = torch.nn.functional.interpolate(self._conv(up.conv, x), scale_factor=2, mode="bilinear",
+                                                    align_corners=False).relu_()
+            else:
+                w, b = self._weights[up]
+                x = torch.ops.mkldnn._convolution_transpose_pointwise(x, w, b, up.padding, up.output_padding, up.stride,
+                                                                      up.dilation, up.groups, "relu", [], "")
             x += skips.pop()
             for block in m.dec[i]:
                 x = self._res_block(block, x)

@@ -2,8 +2,11 @@
 
 A canonical projection layer turns the polarization shots into I⊥ and I∥; the three shots and
 the two canonical images (15 channels for RGB) feed an encoder-decoder with skip connections:
-three down-sampling stages of two ResNet blocks each and a mirrored decoder with transposed
-convolutions. The 8 output channels are residual images T̃, R̃ and weights ξ∥, ξ⊥:
+three down-sampling stages of two ResNet blocks each and a mirrored decoder that up-samples with
+transposed convolutions (kernel 2, stride 2: the paper's, and the shipped weights'), or, with
+``upsample="resize"``, with a 1×1 convolution followed by bilinear ×2 interpolation
+(`ResizeUp`), which has no per-phase weights and so leaves no 2/4/8-px grid texture
+(`tools/bench_texture.py`). The 8 output channels are residual images T̃, R̃ and weights ξ∥, ξ⊥:
 
     R̂ = ξ⊥·R̃ + (1−ξ⊥)·B_R,   T̂ = ξ∥·T̃ + (1−ξ∥)·B_T.
 
@@ -30,6 +33,7 @@ from separate import optics
 
 NOMINAL_ANGLES = tuple(np.radians([0.0, 45.0, 90.0]))
 VARIANTS = ("canonical", "direct")
+UPSAMPLING = ("transposed", "resize")
 TARGET_MEAN = 0.25
 
 
@@ -77,6 +81,29 @@ class ResBlock(nn.Module):
         return F.relu(x + self.conv2(F.relu(self.conv1(x))))
 
 
+class ResizeUp(nn.Module):
+    """×2 up-sampling from ``c_in`` to ``c_out`` channels: a 1×1 convolution, then bilinear
+    interpolation (the two commute: the interpolation weights sum to one; convolving first is 4×
+    cheaper)."""
+
+    def __init__(self, c_in: int, c_out: int):
+        super().__init__()
+        self.conv = nn.Conv2d(c_in, c_out, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return F.interpolate(self.conv(x), scale_factor=2, mode="bilinear", align_corners=False)
+
+    @classmethod
+    def from_transposed(cls, up: nn.ConvTranspose2d) -> "ResizeUp":
+        """The resize up-sampling closest to a kernel-2, stride-2 transposed convolution: its
+        weights averaged over the four output phases (a start for fine-tuning)."""
+        out = cls(up.in_channels, up.out_channels)
+        with torch.no_grad():
+            out.conv.weight.copy_(up.weight.mean(dim=(2, 3)).t()[..., None, None])
+            out.conv.bias.copy_(up.bias)
+        return out
+
+
 class SeparationNet(nn.Module):
     """Encoder-decoder separating reflection and transmission from polarization shots.
 
@@ -85,25 +112,33 @@ class SeparationNet(nn.Module):
             16 gives 1.12 M parameters for RGB, the shipped size).
         variant: "canonical" (paper) or "direct" (no projection layer, no residual).
         channels: colour channels per shot.
+        upsample: the decoder's up-sampling, "transposed" (the paper's) or "resize" (`ResizeUp`).
     """
 
-    def __init__(self, width: int = 16, variant: str = "canonical", channels: int = 3):
+    def __init__(self, width: int = 16, variant: str = "canonical", channels: int = 3, upsample: str = "transposed"):
         super().__init__()
         if variant not in VARIANTS:
             raise ValueError(f"expected variant in {VARIANTS}, got {variant!r}")
-        self.variant, self.width, self.channels = variant, width, channels
+        if upsample not in UPSAMPLING:
+            raise ValueError(f"expected upsample in {UPSAMPLING}, got {upsample!r}")
+        self.variant, self.width, self.channels, self.upsample = variant, width, channels, upsample
         n_in = channels * (5 if variant == "canonical" else 3)
         n_out = 2 * channels + (2 if variant == "canonical" else 0)
         widths = [width, 2 * width, 4 * width, 8 * width]
         self.head = nn.Conv2d(n_in, width, 3, padding=1)
         self.enc = nn.ModuleList([nn.Sequential(ResBlock(c), ResBlock(c)) for c in widths])
         self.down = nn.ModuleList([nn.Conv2d(a, b, 3, stride=2, padding=1) for a, b in zip(widths, widths[1:])])
-        self.up = nn.ModuleList([nn.ConvTranspose2d(b, a, 2, stride=2) for a, b in zip(widths, widths[1:])])
+        pairs = list(zip(widths, widths[1:]))
+        if upsample == "transposed":
+            self.up = nn.ModuleList([nn.ConvTranspose2d(b, a, 2, stride=2) for a, b in pairs])
+        else:
+            self.up = nn.ModuleList([ResizeUp(b, a) for a, b in pairs])
         self.dec = nn.ModuleList([nn.Sequential(ResBlock(c), ResBlock(c)) for c in widths[:-1]])
         self.tail = nn.Conv2d(width, n_out, 3, padding=1)
 
     def config(self) -> dict:
-        return {"width": self.width, "variant": self.variant, "channels": self.channels}
+        config = {"width": self.width, "variant": self.variant, "channels": self.channels}
+        return config if self.upsample == "transposed" else {**config, "upsample": self.upsample}
 
     def backbone(self, x: torch.Tensor) -> torch.Tensor:
         """The encoder-decoder on a (B, n_in, H, W) tensor, H and W multiples of 8."""
@@ -158,3 +193,15 @@ class SeparationNet(nn.Module):
         """The paper's ℓ2 loss on R̂ and T̂ (``outputs`` of ``forward``) against R and T."""
         r_hat, t_hat = outputs
         return torch.mean((r_hat - r) ** 2) + torch.mean((t_hat - t) ** 2)
+
+
+def with_resize_upsampling(model: SeparationNet) -> SeparationNet:
+    """A copy of a transposed-up-sampling network whose decoder up-samples with `ResizeUp`
+    (`ResizeUp.from_transposed`), every other weight kept: the start for fine-tuning it."""
+    if model.upsample != "transposed":
+        raise ValueError(f"expected a network with transposed up-sampling, got {model.upsample!r}")
+    out = SeparationNet(model.width, model.variant, model.channels, upsample="resize")
+    out.load_state_dict({k: v for k, v in model.state_dict().items() if not k.startswith("up.")}, strict=False)
+    for i, up in enumerate(model.up):
+        out.up[i] = ResizeUp.from_transposed(up)
+    return out

@@ -59,6 +59,7 @@ class TrainConfig:
     precision: str = "auto"
     threads: int = 0
     angles: str = "classic"
+    upsample: str = "transposed"
 
     @classmethod
     def from_toml(cls, path: Path) -> "TrainConfig":
@@ -136,7 +137,8 @@ def model_config(cfg: TrainConfig) -> dict:
     """The network's config for a training config."""
     if cfg.variant == "ceilnet":
         return {"variant": "ceilnet", "width": cfg.width, "blocks": cfg.blocks}
-    return {"variant": cfg.variant, "width": cfg.width}
+    config = {"variant": cfg.variant, "width": cfg.width}
+    return config if cfg.upsample == "transposed" else {**config, "upsample": cfg.upsample}
 
 
 def lr_at(cfg: TrainConfig, step: int) -> float:

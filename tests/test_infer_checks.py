@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from separate.infer import OVERLAP, TILE, FusedNet, load_model, runner, separate_stack, tile_spans
-from separate.model import SeparationNet
+from separate.model import ResizeUp, SeparationNet, with_resize_upsampling
 
 SMALL = np.random.default_rng(0).random((3, 40, 48, 3)).astype(np.float32)
 
@@ -59,12 +59,16 @@ def test_tiled_matches_whole_image():
     assert max(np.abs(r_codes - r_float).max(), np.abs(t_codes - t_float).max()) < 1e-5
 
 
-@pytest.mark.parametrize("variant", ["canonical", "direct"])
+@pytest.mark.parametrize("variant", ["canonical", "direct", "resize"])
 def test_fused_network_matches_the_module(variant):
     # FusedNet repeats SeparationNet.forward with oneDNN's fused convolutions: it must give the same
-    # numbers (measured: 8e-7 in fp32 with the shipped weights), at an odd size and with four shots
+    # numbers (measured: 8e-7 in fp32 with the shipped weights), at an odd size and with four shots;
+    # "resize": the shipped weights with the decoder's up-sampling made bilinear (ResizeUp)
     torch.manual_seed(0)
-    model = load_model()[0] if variant == "canonical" else SeparationNet(width=8, variant="direct").eval()
+    model = load_model()[0] if variant != "direct" else SeparationNet(width=8, variant="direct").eval()
+    if variant == "resize":
+        model = with_resize_upsampling(model).eval()
+        assert model.config()["upsample"] == "resize" and isinstance(model.up[0], ResizeUp)
     obs = torch.rand(1, 4, 3, 61, 83)
     angles = list(np.radians([10, 55, 100, 145]))
     scale = torch.tensor([0.4])

@@ -22,13 +22,16 @@ def _clock(seconds: float) -> str:
 class TerminalProgress:
     """Render progress callbacks as one updating line (a new line when the label changes).
 
-    The ETA extrapolates the rate of the current label's units since its first call.
+    The ETA extrapolates the rate of the current label's units since its first call, counted
+    from the ``done`` of that call (a resumed run starts part-way: its earlier units took no time
+    here).
     """
 
     def __init__(self, stream: TextIO = sys.stderr, width: int = 24):
         self.stream, self.width = stream, width
         self.label: str | None = None
         self.started = time.monotonic()
+        self.first_done = 0
         self.last_draw = 0.0
 
     def __call__(self, done: int, total: int, label: str) -> None:
@@ -36,14 +39,15 @@ class TerminalProgress:
         if label != self.label:
             if self.label is not None:
                 self.stream.write("\n")
-            self.label, self.started = label, now
+            self.label, self.started, self.first_done = label, now, done
         elif done < total and now - self.last_draw < 0.2:
             return
         self.last_draw = now
         total = max(total, 1)
         frac = min(1.0, done / total)
         elapsed = now - self.started
-        eta = f"ETA {_clock(elapsed * (1 - frac) / frac)}" if 0 < frac < 1 else ("done" if frac >= 1 else "ETA --:--")
+        rate = (done - self.first_done) / elapsed if elapsed > 0 else 0.0
+        eta = "done" if frac >= 1 else (f"ETA {_clock((total - done) / rate)}" if rate > 0 else "ETA --:--")
         bar = "#" * round(self.width * frac) + "-" * (self.width - round(self.width * frac))
         self.stream.write(f"\r{label[:40]:<40} [{bar}] {100 * frac:3.0f}% {done}/{total} {_clock(elapsed)} {eta}  ")
         self.stream.flush()

@@ -1,0 +1,22 @@
+"""The terminal progress line: counts, elapsed time and an ETA from the rate seen here."""
+
+import io
+
+from urd import progress
+
+
+def test_eta_counts_the_units_done_here_not_before_a_resume(monkeypatch):
+    now = [100.0]
+    monkeypatch.setattr(progress.time, "monotonic", lambda: now[0])
+    out = io.StringIO()
+    bar = progress.TerminalProgress(out)
+    bar(1000, 2000, "train")                  # a run resumed at step 1000
+    now[0] += 10.0
+    bar(1010, 2000, "train")                  # 10 steps in 10 s: 990 s left
+    line = out.getvalue().split("\r")[-1]
+    assert "1010/2000" in line and "0:10" in line and "ETA 16:30" in line
+    now[0] += 1.0
+    bar(2000, 2000, "train")
+    assert out.getvalue().split("\r")[-1].rstrip().endswith("done")
+    bar(0, 3, "separate")                     # a new label starts a new line and a new clock
+    assert "\n" in out.getvalue() and "ETA --:--" in out.getvalue().split("\r")[-1]
