@@ -56,6 +56,7 @@ WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 TILE = 2048     # px: a 6000 × 4000 image takes 4 × 3 tiles (1.19× its pixels); see the module docstring
 OVERLAP = 160   # px between tiles: tiled and whole-image results agree within 2.4e-4 (fp32)
 MIN_TILE = 128  # px: smaller tiles spend most of their pixels on the overlap
+MODULE_TILE = 1024  # px for networks run as modules (CEILNet, or torch without oneDNN): their memory per pixel is higher
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "urd-canonical.pt"
 
 
@@ -226,6 +227,11 @@ def runner(model: torch.nn.Module, precision: str | Precision = "auto") -> Calla
         return r_hat.float(), t_hat.float()
 
     return run
+
+
+def default_tile(model: torch.nn.Module) -> int:
+    """The default tile (px): `TILE` for a network `runner` runs through `FusedNet`, else `MODULE_TILE`."""
+    return TILE if isinstance(model, SeparationNet) and FusedNet.available() else MODULE_TILE
 
 
 def check_tiling(tile: int, overlap: int) -> tuple[int, int]:

@@ -67,13 +67,13 @@ def chooser(reference: Reference) -> Callable[[np.ndarray, list[float], float | 
 def network(weights: Path | None = None, tile: int | None = None, precision: str = "auto", colour_match: bool = False,
             progress=None, reference: Reference = "auto", uses_reference: bool = True) -> tuple[Run, dict]:
     """The paper's network (`separate.model`) with shipped or given weights, tiled
-    (`separate.infer.separate_stack`, ``tile`` px, default `separate.infer.TILE`); the shots
-    presented at the reference unless ``uses_reference`` is False (a network that sees only S0)."""
-    from separate.infer import OVERLAP, TILE, load_model, match_histograms, separate_stack
+    (`separate.infer.separate_stack`, ``tile`` px, default `separate.infer.default_tile`); the
+    shots presented at the reference unless ``uses_reference`` is False (a network that sees only S0)."""
+    from separate.infer import OVERLAP, default_tile, load_model, match_histograms, separate_stack
     from separate.precision import resolve
 
-    tile = TILE if tile is None else tile
     model, weights_info = load_model(weights)
+    tile = default_tile(model) if tile is None else tile
     chosen = resolve(precision).value
     choose = chooser(reference)
 

@@ -186,7 +186,7 @@ def estimate_reference(images: np.ndarray, angles_deg: Sequence[float], white: f
     Args:
         images: (N, H, W, C) linear shots (float, or uint16 codes), N ≥ 3.
         angles_deg: the N polarizer angles (deg).
-        white: the sensor's white level in the units of ``images`` (for saturation).
+        white: the sensor's white level in linear units (1.0 = full scale, also for codes; for saturation).
 
     Returns:
         A `ReferenceEstimate`; ``reference_deg`` is in [0, 180).
@@ -244,7 +244,7 @@ def present(images: np.ndarray, angles_deg: Sequence[float], reference_deg: floa
     Exact for the ideal linear-polarizer model (I_φ = (S0 + S1 cos 2φ + S2 sin 2φ)/2) and it
     uses every shot: with N > 3 the fit averages their noise. The fit (as
     `separate.optics.stokes_from_images`) and the rendering are applied as one 3×N matrix. A stack already at those angles
-    (three shots, equal modulo 180°) is returned as it is, not copied.
+    (three float32 shots, equal modulo 180°) is returned as it is, not copied.
 
     Args:
         images: (N, H, W, C) linear shots (float, or uint16 codes), N ≥ 3.

@@ -171,7 +171,12 @@ def train(cfg: TrainConfig, run_dir: Path, init: Path | None = None, progress=No
     origin = None
     last = run_dir / "last.pt"
     if last.exists() or init is not None:
-        state = load_checkpoint(last if last.exists() else init, device)
+        source = last if last.exists() else init
+        state = load_checkpoint(source, device)
+        stored = {"channels": 3, **state.get("model_config", {})}
+        if stored != {"channels": 3, **model.config()}:
+            raise WeightsError(f"{source} holds a network {stored}, not the {model.config()} of this config "
+                               "(for resize up-sampling from transposed weights: tools/resize_upsampling.py)")
         model.load_state_dict(state["model"])
         if last.exists():
             optim.load_state_dict(state["optim"])

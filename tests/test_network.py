@@ -322,3 +322,18 @@ def test_benchmark_scores_methods_and_weights_given_by_path():
     assert sum(counts) == 4 and [line.split(" | ")[0] for line in table[2:]] == ["| none", "| shipped"]
     by_band = [float(v) for v in table[3].strip("| ").split(" | ")[1:] if v != "–"]
     assert min(by_band) <= rows[1]["psnr_t"] <= max(by_band)
+
+
+def test_training_refuses_init_weights_of_another_architecture(tmp_path):
+    from separate.model import with_resize_upsampling
+
+    cfg = TrainConfig(width=16, patch=32, batch=4, micro_batch=4, steps=1, val_samples=8, val_every=1, threads=1,
+                      upsample="resize")
+    with pytest.raises(WeightsError, match="tools/resize_upsampling.py"):
+        train(cfg, tmp_path / "run", init=DEFAULT_WEIGHTS)            # transposed weights, resize config
+    resized = with_resize_upsampling(load_model()[0])
+    init = tmp_path / "resize-init.pt"
+    torch.save({"model": resized.state_dict(), "model_config": resized.config()}, init)
+    record = train(cfg, tmp_path / "run2", init=init)
+    saved = torch.load(tmp_path / "run2" / "last.pt", weights_only=True)
+    assert saved["model_config"]["upsample"] == "resize" and record["psnr_t"] > 20

@@ -17,7 +17,7 @@ import numpy as np
 
 from separate import optics
 from separate.methods import get_method
-from separate.reference import estimate_reference_deg, polarization_warnings, presence_map
+from separate.reference import inspect_stack
 from urd import samples
 from urd.separation import srgb_encode
 
@@ -53,8 +53,8 @@ for capture in samples.captures():
     s0 = stokes[0]
     white = float(np.percentile(s0, 99.5)) or 1.0
     dolp = np.clip(optics.dolp(stokes.mean(axis=-1)), 0, 1)
-    reference = estimate_reference_deg(stack, angles)
-    presence = presence_map(stack, angles, reference)
+    inspection = inspect_stack(stack, angles)
+    reference, presence = inspection.reference_deg, inspection.presence_at(stack.shape[1:3])
     rows = []
     for name in args.methods.split(","):
         run, _ = get_method(name)
@@ -68,7 +68,7 @@ for capture in samples.captures():
                                tile(presence, "presence", 1.0)]))
         print(f"{capture.name:22s} {name:10s} R share {share:6.1%}  T min {t_hat.min():+.3f}  R min {r_hat.min():+.3f}  "
               f"{seconds:5.1f} s")
-    for warning in polarization_warnings(stack, angles):
+    for warning in inspection.warnings:
         print(f"{capture.name:22s} warning: {warning}")
     sheet = np.vstack(rows)
     cv2.imwrite(str(args.out / f"{capture.name}.png"), sheet[..., ::-1])

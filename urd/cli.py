@@ -314,7 +314,7 @@ def separate(
     out: Path = typer.Option(Path("separated"), help="Output folder for --images."),
     reference: str = typer.Option("auto", help="Reference angle (deg): the glass's s-direction, where the reflection is brightest; 'auto' estimates it from the shots."),
     weights: Optional[Path] = typer.Option(None, help="Weights file of the network or ceilnet (default: the shipped ones)."),
-    tile: Optional[int] = typer.Option(None, help="Network tile size (px, at least 128; default 2048, separate.infer.TILE); memory grows with it, not with the image.", show_default=False),
+    tile: Optional[int] = typer.Option(None, help="Network tile size (px, at least 128; default 2048 for the network, 1024 for ceilnet: separate.infer.default_tile); memory grows with it, not with the image.", show_default=False),
     precision: str = typer.Option("auto", help="Network arithmetic: auto (bf16 where the CPU or GPU runs it natively, else fp32), fp32 or bf16."),
     colour_match: bool = typer.Option(False, help="Match each colour channel's histogram of T to the darkest observation's (paper §3.4)."),
     param: Optional[list[str]] = typer.Option(None, "--param", help="A baseline's parameter as NAME=VALUE (repeat), e.g. --method kong --param smoothness=0.5; names and paper defaults in each baseline's docstring (separate/baselines/)."),

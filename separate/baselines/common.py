@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from separate import optics
+from separate.optics import Array
 
 
 def canonical(images: np.ndarray, angles_deg: list[float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -24,11 +25,19 @@ def fresnel_inverse(i_perp: np.ndarray, i_par: np.ndarray, theta: np.ndarray | f
     return r_obs.astype(np.float32), t_obs.astype(np.float32)
 
 
-def mixture_coefficients(r_s, r_p):
+def mixture_coefficients(r_s: Array, r_p: Array) -> tuple[Array, Array]:
     """(a, b) with R_obs = a·I⊥ + b·I∥ (and T_obs = I⊥ + I∥ − R_obs) for reflectances R_s > R_p:
-    a = ρ'(1 − R_p), b = −ρ'(1 − R_s), ρ' = (R_s + R_p)/(R_s − R_p) (numpy or torch, broadcasting)."""
+    a = q(1 − R_p), b = −q(1 − R_s), q = (R_s + R_p)/(R_s − R_p) (numpy or torch, broadcasting)."""
     ratio = (r_s + r_p) / (r_s - r_p)
     return ratio * (1 - r_p), -ratio * (1 - r_s)
+
+
+def mixture_coefficient_slopes(r_s: Array, r_p: Array, dr_s: Array, dr_p: Array) -> tuple[Array, Array]:
+    """Derivatives (da, db) of `mixture_coefficients` for reflectance derivatives dR_s, dR_p
+    (e.g. per radian of θ, `separate.optics.fresnel_reflectance_slope`)."""
+    ratio = (r_s + r_p) / (r_s - r_p)
+    dratio = 2 * (r_s * dr_p - r_p * dr_s) / (r_s - r_p) ** 2
+    return dratio * (1 - r_p) - ratio * dr_p, ratio * dr_s - dratio * (1 - r_s)
 
 
 def mixture_inverse(i_perp, i_par, r_s, r_p):

@@ -37,7 +37,8 @@ import numpy as np
 import torch
 
 from separate import optics
-from separate.baselines.common import canonical, fresnel_inverse, luminance, mixture_coefficients
+from separate.baselines.common import (canonical, fresnel_inverse, luminance, mixture_coefficient_slopes,
+                                       mixture_coefficients)
 
 PENALTY = 1e3
 
@@ -56,8 +57,8 @@ def _energy(theta: np.ndarray, i_perp: np.ndarray, i_par: np.ndarray, smoothness
     """The penalized energy of a θ map (rad, H×W) for luminance canonical images (H×W), and
     its gradient dE/dθ (per rad, H×W), derived by hand.
 
-    R̂_θ = A(θ)·I⊥ + B(θ)·I∥ and T̂_θ = I⊥ + I∥ − R̂_θ (`separate.baselines.common.mixture_inverse`
-    rearranged), so dE/dθ = (∂E/∂R̂ − ∂E/∂T̂)·(A′·I⊥ + B′·I∥) + the smoothness term's gradient.
+    R̂_θ = A(θ)·I⊥ + B(θ)·I∥ and T̂_θ = I⊥ + I∥ − R̂_θ (`separate.baselines.common.mixture_coefficients`),
+    so dE/dθ = (∂E/∂R̂ − ∂E/∂T̂)·(A′·I⊥ + B′·I∥) + the smoothness term's gradient.
     """
     h, w = theta.shape
     side, pixels = max(h, w), h * w
@@ -65,11 +66,7 @@ def _energy(theta: np.ndarray, i_perp: np.ndarray, i_par: np.ndarray, smoothness
     r_s, r_p = (r.numpy() for r in optics.fresnel_reflectance(angle))
     dr_s, dr_p = (d.numpy() for d in optics.fresnel_reflectance_slope(angle))
     a, b = mixture_coefficients(r_s, r_p)
-    inverse = 1 / (r_s - r_p)
-    ratio = (r_s + r_p) * inverse                                # a = ratio·(1 − R_p), b = −ratio·(1 − R_s)
-    dratio = 2 * (r_s * dr_p - r_p * dr_s) * inverse**2
-    da = dratio * (1 - r_p) - ratio * dr_p
-    db = ratio * dr_s - dratio * (1 - r_s)
+    da, db = mixture_coefficient_slopes(r_s, r_p, dr_s, dr_p)
     s0 = i_perp + i_par
     r_hat = a * i_perp + b * i_par
     t_hat = s0 - r_hat
