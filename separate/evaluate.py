@@ -706,7 +706,7 @@ def settings_for(quick: bool, large: bool = False) -> Settings:
     patches (the bsds500-test set is `tools/bench_synthetic.py`'s), 48 robustness patches at
     every level for the polarization methods (none/network/direct/schechner/kong/farid),
     every method timed at 1 MP, and the network and Schechner at 24 MP with ``large``; about an
-    hour on 2 cores (Kong ~1.1 s per 256² patch, Schechner ~1.2 s, the rest less).
+    half hour on 2 cores (1804 s measured; Kong ~1.1 s per 256² patch, Schechner ~1.2 s, the rest less).
     """
     if quick and large:
         raise ValueError("expected large (24 MP) timings only in the full run, got quick=True, large=True")

@@ -192,7 +192,7 @@ def test_tiles_cover_the_axis_on_the_8_px_grid_with_the_overlap(tile, overlap):
 
 @pytest.mark.parametrize("stack,angles,message", [
     (np.zeros((2, 16, 16, 3)), [0, 45], "N>=3"),
-    (np.zeros((3, 16, 16, 3)), [0, 30, 60], "spanning at least 90"),
+    (np.zeros((3, 16, 16, 3)), [0, 30, 60], "spanning at least 70"),
     (np.full((3, 16, 16, 3), np.nan), [0, 45, 90], "NaN"),
 ])
 def test_bad_inputs(stack, angles, message):
