@@ -109,8 +109,11 @@ def no_separation(reference: Reference = "auto") -> tuple[Run, dict]:
     """The reference point: T̂ = S0 (the unpolarized image), R̂ = 0."""
     check_reference(reference)
 
-    def run(images: np.ndarray, angles_deg: list[float], reference_deg: float | None = None) -> tuple[np.ndarray, np.ndarray]:
-        s0 = optics.stokes_from_images(optics.to_float(images), np.radians(angles_deg))[0]
+    def run(images: np.ndarray, angles_deg: list[float], reference_deg: float | None = None,
+            rows: int = 256) -> tuple[np.ndarray, np.ndarray]:
+        s0 = np.empty(images.shape[1:], np.float32)           # a block of rows at a time: codes stay codes
+        for y in range(0, images.shape[1], rows):
+            s0[y : y + rows] = optics.stokes_from_images(optics.to_float(images[:, y : y + rows]), np.radians(angles_deg))[0]
         return np.zeros_like(s0), s0
 
     return run, {"parameters": {}, "reference_policy": "not used: S0 only"}
