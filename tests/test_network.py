@@ -324,6 +324,7 @@ def test_benchmark_scores_methods_and_weights_given_by_path():
     assert min(by_band) <= rows[1]["psnr_t"] <= max(by_band)
 
 
+@pytest.mark.slow
 def test_training_refuses_init_weights_of_another_architecture(tmp_path):
     from separate.model import with_resize_upsampling
 
