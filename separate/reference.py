@@ -127,26 +127,6 @@ def check_stack(images: np.ndarray, angles_deg: Sequence[float]) -> np.ndarray:
     return phi
 
 
-def _reduce_stack(images: np.ndarray, white: float) -> tuple[np.ndarray, np.ndarray]:
-    """The stack's luminance area-averaged to at most `MAX_SIDE` px on the long side, (N, h, w)
-    float64 (averaging commutes with the Stokes fit), and where a reduced pixel covers a shot
-    value at or above `SATURATION` × white, h×w bool."""
-    n, h, w = images.shape[:3]
-    scale = min(1.0, MAX_SIDE / max(h, w))
-    size = (max(1, round(w * scale)), max(1, round(h * scale)))
-    lum, saturated = np.empty((n, size[1], size[0])), np.zeros((size[1], size[0]), bool)
-    unit = optics.code_scale(images)
-    for k, shot in enumerate(images):
-        small = shot if shot.dtype == np.uint16 else shot.astype(np.float32, copy=False)    # cv2 takes both
-        hits = (shot >= SATURATION * white / unit).view(np.uint8) * np.uint8(255)    # 255 keeps one pixel in 500 visible
-        if scale < 1:
-            small = cv2.resize(small, size, interpolation=cv2.INTER_AREA)
-            hits = cv2.resize(hits, size, interpolation=cv2.INTER_AREA)
-        lum[k] = small.reshape(size[1], size[0], -1).mean(axis=-1) * unit
-        saturated |= hits.reshape(size[1], size[0], -1).max(axis=-1) > 0
-    return lum, saturated
-
-
 def clipped_mask(images: np.ndarray, white: float = 1.0, rows: int = 512) -> np.ndarray:
     """Pixels (H×W bool) where any shot reaches `SATURATION` × white in any channel: their
     polarization is lost (a clipped shot does not follow Malus's law), so no method can separate
@@ -161,11 +141,32 @@ def clipped_mask(images: np.ndarray, white: float = 1.0, rows: int = 512) -> np.
     return out
 
 
-def _statistics(images: np.ndarray, phi: np.ndarray, white: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The reduced luminance (N, h, w), its filtered Stokes images (3, h, w) float64 and their
+def _reduce_stack(images: np.ndarray, clipped: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The stack's luminance area-averaged to at most `MAX_SIDE` px on the long side, (N, h, w)
+    float64 (averaging commutes with the Stokes fit), and where a reduced pixel covers a
+    clipped pixel (`clipped_mask`), h×w bool."""
+    n, h, w = images.shape[:3]
+    scale = min(1.0, MAX_SIDE / max(h, w))
+    size = (max(1, round(w * scale)), max(1, round(h * scale)))
+    lum = np.empty((n, size[1], size[0]))
+    unit = optics.code_scale(images)
+    saturated = clipped.view(np.uint8) * np.uint8(255)               # 255 keeps one pixel in 500 visible
+    for k, shot in enumerate(images):
+        small = shot if shot.dtype == np.uint16 else shot.astype(np.float32, copy=False)    # cv2 takes both
+        if scale < 1:
+            small = cv2.resize(small, size, interpolation=cv2.INTER_AREA)
+        lum[k] = small.reshape(size[1], size[0], -1).mean(axis=-1) * unit
+    if scale < 1:
+        saturated = cv2.resize(saturated, size, interpolation=cv2.INTER_AREA)
+    return lum, saturated > 0
+
+
+def _statistics(images: np.ndarray, phi: np.ndarray, white: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The reduced luminance (N, h, w), its filtered Stokes images (3, h, w) float64, their
     usable pixels (h×w bool: no saturated shot nearby, S0 > 0, not among the strongest edges,
-    DoLP ≤ 1)."""
-    lum, saturated = _reduce_stack(images, white)
+    DoLP ≤ 1) and the full-size clipped pixels (`clipped_mask`)."""
+    clipped = clipped_mask(images, white)
+    lum, saturated = _reduce_stack(images, clipped)
     stokes = optics.stokes_from_images(lum, phi)
     edge = np.hypot(*np.gradient(stokes[0])) / np.maximum(stokes[0], 1e-12)
     stokes = np.stack([cv2.blur(s, (BLUR, BLUR)) for s in stokes])
@@ -174,7 +175,7 @@ def _statistics(images: np.ndarray, phi: np.ndarray, white: float) -> tuple[np.n
         edge = cv2.blur(edge, (BLUR, BLUR))
         usable &= edge <= np.percentile(edge[usable], FLAT_PERCENT)
     usable &= np.hypot(stokes[1], stokes[2]) <= stokes[0]                 # DoLP > 1: not light, an artefact
-    return lum, stokes, usable
+    return lum, stokes, usable, clipped
 
 
 def _signed_dolp(stokes: np.ndarray, phi_perp: float) -> np.ndarray:
@@ -195,7 +196,7 @@ def estimate_reference(images: np.ndarray, angles_deg: Sequence[float], white: f
         A `ReferenceEstimate`; ``reference_deg`` is in [0, 180).
     """
     phi = check_stack(images, angles_deg)
-    _, stokes, usable = _statistics(images, phi, white)
+    _, stokes, usable, _ = _statistics(images, phi, white)
     return _estimate(stokes, usable, float(np.mod(np.degrees(phi[0]), 180.0)))
 
 
@@ -437,9 +438,8 @@ def inspect_stack(images: np.ndarray, angles_deg: Sequence[float], reference_deg
     phi = check_stack(images, angles_deg)
     if reference_deg is not None and not np.isfinite(reference_deg):
         raise ValueError(f"expected a finite reference angle (deg) or None, got {reference_deg}")
-    lum, stokes, usable = _statistics(images, phi, white)
+    lum, stokes, usable, clipped = _statistics(images, phi, white)
     estimate = _estimate(stokes, usable, float(np.mod(np.degrees(phi[0]), 180.0)))
     reference = estimate.reference_deg if reference_deg is None else float(reference_deg)
-    clipped = clipped_mask(images, white)
     return Inspection(estimate, reference, _warnings(images, list(angles_deg), lum, stokes, usable, estimate, clipped),
                       _presence(stokes, usable, reference), clipped)
