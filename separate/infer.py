@@ -311,8 +311,8 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
             only where the CPU runs it natively).
         progress: called with (tiles done, tiles total).
         reference_deg: if given, the network sees the shots presented at this reference + 0/45/90°
-            (`separate.reference.present`), rendered tile by tile: the same results as
-            presenting the stack first, without a second stack in memory.
+            (`separate.reference.present`'s matrix, `presenting_matrix`), rendered tile by
+            tile: the same results as presenting the stack first, without a second stack in memory.
     """
     check_inputs(images, angles_deg)
     tile, overlap = check_tiling(tile, overlap)
@@ -328,17 +328,24 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
     shot_means = np.array([_clipped_mean(shot) for shot in images]) * unit   # mean(S0) is linear in them
     s0_mean = float(np.linalg.pinv(optics.stokes_matrix(angles))[0] @ shot_means)
     scale = torch.tensor([max(s0_mean, 1e-6)])
+    mixing = np.eye(n, dtype=np.float32)
     if reference_deg is not None:
-        from separate.reference import present, presented_angles_deg
+        from separate.reference import presented_angles_deg, presenting_matrix
 
+        mixing = presenting_matrix(angles_deg, reference_deg)
         angles = [float(a) for a in np.radians(presented_angles_deg(reference_deg))]
+    mixing = torch.from_numpy(mixing * np.float32(unit))
+    source = images if images.flags.writeable and all(s > 0 for s in images.strides) else None
 
     def patch(y: int, y1: int, x: int, x1: int) -> torch.Tensor:
-        """(1, N, C, h, w) float32 shots of a tile, presented if asked, negatives clipped."""
-        shots = optics.to_float(images[:, y:y1, x:x1])
-        if reference_deg is not None:
-            shots = present(shots, angles_deg, reference_deg)[0]
-        out = torch.from_numpy(np.clip(shots, 0.0, None, dtype=np.float32)).permute(0, 3, 1, 2)[None]
+        """(1, N', C, h, w) float32 shots of a tile (N' = 3 when presented), linear, negatives
+        clipped; torch ops, so the conversion runs on every intra-op thread."""
+        if source is None:
+            shots = torch.from_numpy(np.array(images[:, y:y1, x:x1]))
+        else:
+            shots = torch.from_numpy(source)[:, y:y1, x:x1]
+        shots = shots.permute(0, 3, 1, 2).to(torch.float32, memory_format=torch.contiguous_format)
+        out = torch.matmul(mixing, shots.view(n, -1)).view(len(mixing), c, y1 - y, x1 - x).clamp_(min=0.0)[None]
         return out.expand(-1, -1, model.channels, -1, -1) if c == 1 else out
 
     r_out = np.zeros((h, w, c), np.float32)
@@ -351,10 +358,10 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
             r_hat, t_hat = run(patch(y, y1, x, x1), angles, scale)      # a temporary: freed inside once used
             weight = torch.from_numpy(wy[:, None, None] * wx[None, :, None])
             for out, hat in ((r_out, r_hat), (t_out, t_hat)):
-                hat = hat[0].permute(1, 2, 0)                            # (h, w, C); contiguous from FusedNet
+                hat = hat[0].permute(1, 2, 0)                            # (h, w, C)
                 if mono:
                     hat = hat.mean(dim=-1, keepdim=True)
-                out[y:y1, x:x1] += (hat * weight).numpy()
+                torch.from_numpy(out)[y:y1, x:x1].addcmul_(hat, weight)
             del r_hat, t_hat
             _release_freed_memory()
             done += 1

@@ -241,6 +241,15 @@ def presented_angles_deg(reference_deg: float) -> list[float]:
     return [ref + offset for offset in PRESENTED_OFFSETS_DEG]
 
 
+def presenting_matrix(angles_deg: Sequence[float], reference_deg: float) -> np.ndarray:
+    """The 3×N float32 matrix that re-renders N shots at ``angles_deg`` (deg) as shots at
+    reference + 0/45/90°: A(φ3) · pinv(A(φ)), the least-squares Stokes fit then the rendering
+    (A = `separate.optics.stokes_matrix`). Applied to linear values by `present`."""
+    phi = np.radians(np.asarray(angles_deg, np.float64))
+    phi3 = np.radians(presented_angles_deg(reference_deg))
+    return (optics.stokes_matrix(phi3) @ np.linalg.pinv(optics.stokes_matrix(phi))).astype(np.float32)
+
+
 def present(images: np.ndarray, angles_deg: Sequence[float], reference_deg: float,
             rows: int = 256) -> tuple[np.ndarray, list[float]]:
     """Re-render a stack at reference + 0/45/90° from its least-squares Stokes fit.
@@ -264,13 +273,11 @@ def present(images: np.ndarray, angles_deg: Sequence[float], reference_deg: floa
     if not np.isfinite(reference_deg):
         raise ValueError(f"expected a finite reference angle (deg), got {reference_deg}")
     angles3 = presented_angles_deg(reference_deg)
-    phi3 = np.radians(angles3)
     if images.shape[0] == 3 and images.dtype == np.float32:
         gap = np.mod(np.degrees(phi) - angles3 + 90.0, 180.0) - 90.0
         if np.all(np.abs(gap) < 1e-9):
             return images, angles3
-    # fit then render in one linear map: shots3 = A(φ3) · pinv(A(φ)) · shots, A = optics.stokes_matrix
-    mixing = (optics.stokes_matrix(phi3) @ np.linalg.pinv(optics.stokes_matrix(phi))).astype(np.float32)
+    mixing = presenting_matrix(angles_deg, reference_deg)
     out = np.empty((3,) + images.shape[1:], np.float32)
     for y in range(0, images.shape[1], rows):
         out[:, y : y + rows] = np.tensordot(mixing, optics.to_float(images[:, y : y + rows]), axes=1)

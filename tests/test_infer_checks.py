@@ -116,6 +116,23 @@ def test_presenting_tile_by_tile_matches_presenting_the_stack():
         separate_stack(model, stack, angles, reference_deg=float("nan"))
 
 
+def test_codes_read_only_and_reversed_stacks_separate_as_their_float_values():
+    model, _ = load_model()
+    rng = np.random.default_rng(3)
+    codes = rng.integers(0, 40000, (3, 160, 200, 3), dtype=np.uint16)
+    floats = codes.astype(np.float32) / 65535
+    r_want, t_want = separate_stack(model, floats, [0, 45, 90], tile=128, overlap=32, precision="fp32", reference_deg=20.0)
+    read_only = codes.copy()
+    read_only.flags.writeable = False
+    reversed_rows = codes[:, ::-1].copy()[:, ::-1]               # the same values, negative row strides
+    assert reversed_rows.strides[1] < 0
+    for stack in (codes, read_only, reversed_rows):
+        r_got, t_got = separate_stack(model, stack, [0, 45, 90], tile=128, overlap=32, precision="fp32", reference_deg=20.0)
+        np.testing.assert_allclose(r_got, r_want, atol=1e-5)
+        np.testing.assert_allclose(t_got, t_want, atol=1e-5)
+    assert not read_only.flags.writeable
+
+
 def test_precision_auto_follows_what_the_hardware_runs(monkeypatch):
     from separate.precision import Precision, native_bf16, resolve
 

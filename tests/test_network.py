@@ -151,6 +151,20 @@ def test_training_improves_the_validation_psnr(tmp_path):
     assert [r["psnr_t"] for r in logged] == psnr
 
 
+def test_train_seed_option_overrides_the_config(tmp_path):
+    cfg = tmp_path / "tiny.toml"
+    cfg.write_text('width = 4\npatch = 32\nbatch = 2\nmicro_batch = 2\nsteps = 1\nval_samples = 2\nval_every = 1\nprecision = "fp32"\nthreads = 1\n')
+    runs = {}
+    for seed in (None, 5):
+        run = tmp_path / f"run-{seed}"
+        out = subprocess.run([sys.executable, "-m", "urd.cli", "train", str(cfg), str(run)] + (["--seed", str(seed)] if seed else []),
+                             capture_output=True, text=True, timeout=300)
+        assert out.returncode == 0, out.stderr[-2000:]
+        runs[seed] = torch.load(run / "last.pt", weights_only=True)
+    assert runs[None]["train_config"]["seed"] == 0 and runs[5]["train_config"]["seed"] == 5
+    assert not torch.equal(runs[None]["model"]["head.weight"], runs[5]["model"]["head.weight"])
+
+
 @pytest.mark.slow
 def test_ddp_with_two_gloo_processes(tmp_path):
     cfg = tmp_path / "ddp.toml"
@@ -175,7 +189,7 @@ def test_tiled_inference_matches_whole_image_on_one_megapixel():
     scene = make_glass_scene(1224, 816)
     stack = np.stack([scene.render(np.radians(a)) * 0.6 for a in (0, 45, 90)]).astype(np.float32)
     r1, t1 = separate_stack(model, stack, [0, 45, 90], tile=2048, precision="fp32")
-    r2, t2 = separate_stack(model, stack, [0, 45, 90], precision="fp32")  # default tiles: 2 × 2 here
+    r2, t2 = separate_stack(model, stack, [0, 45, 90], tile=768, overlap=160, precision="fp32")   # 2 × 2 tiles
     assert len(tile_spans(1224, 768, 160)) == len(tile_spans(816, 768, 160)) == 2
     assert max(np.abs(r1 - r2).max(), np.abs(t1 - t2).max()) < 1e-3
 

@@ -8,6 +8,7 @@ Angles are degrees here and in manifests. Errors print one line and exit with st
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import sys
@@ -371,12 +372,15 @@ def train(
     config: Path = typer.Argument(..., help="TOML config (see configs/cpu.toml and configs/paper.toml)."),
     run_dir: Path = typer.Argument(..., help="Run folder: checkpoints, log.jsonl; an existing run resumes."),
     init: Optional[Path] = typer.Option(None, help="Start from these weights (e.g. the shipped ones) instead of scratch."),
+    seed: Optional[int] = typer.Option(None, min=0, help="Override the config's seed (weight initialisation and training data), e.g. for a multi-seed ablation."),
 ) -> None:
     """Train the separation network (or the CEILNet baseline: configs/ceilnet.toml) on synthesized data (config file, checkpoints, resume; torchrun for DDP)."""
     from separate.precision import describe, resolve
     from separate.train import TrainConfig, train as train_run
 
     cfg = run_guarded(TrainConfig.from_toml, config)
+    if seed is not None:
+        cfg = dataclasses.replace(cfg, seed=seed)
     typer.echo(f"precision: {describe(resolve(cfg.precision))}", err=True)
     bar = TerminalProgress()
 
