@@ -58,10 +58,16 @@ def test_version_and_help_show_the_sim_and_virtual_prefixes():
     assert "[sim] polarizer mounting offset" in out.stdout and "[virtual] sensor size" in out.stdout
 
 
-def test_bad_parameters_exit_2_with_the_reason(tmp_path):
+def test_bad_parameters_exit_2_with_the_reason(tmp_path, monkeypatch):
+    from typer.testing import CliRunner
+
+    from urd.cli import app
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("COLUMNS", "200")
     for args, reason in ((("separate", "--images", "a.tif", "--angles", "0,45,nan"), "finite"),
                          (("separate", "--images", "a.tif", "--angles", "0,45,180"), "same mod 180"),
                          (("capture", "--stage", "sim", "--sim-size", "0x10"), "between 16 and 20000"),
                          (("separate", "scene_01", "--reference", "east"), "'auto' or an angle")):
-        out = urd(*args, cwd=tmp_path)
-        assert out.returncode == 2 and reason in out.stderr, (args, out.stderr)
+        out = CliRunner().invoke(app, list(args))
+        assert out.exit_code == 2 and reason in out.output, (args, out.output)

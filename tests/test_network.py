@@ -151,18 +151,22 @@ def test_training_improves_the_validation_psnr(tmp_path):
     assert [r["psnr_t"] for r in logged] == psnr
 
 
-def test_train_seed_option_overrides_the_config(tmp_path):
+def test_train_seed_option_overrides_the_config(tmp_path, monkeypatch):
+    from typer.testing import CliRunner
+
+    import separate.train
+    from urd.cli import app
+
+    seen = []
+    monkeypatch.setattr(separate.train, "train", lambda cfg, run_dir, init, progress: seen.append(cfg) or {"step": 0})
     cfg = tmp_path / "tiny.toml"
-    cfg.write_text('width = 4\npatch = 32\nbatch = 2\nmicro_batch = 2\nsteps = 1\nval_samples = 2\nval_every = 1\nprecision = "fp32"\nthreads = 1\n')
-    runs = {}
-    for seed in (None, 5):
-        run = tmp_path / f"run-{seed}"
-        out = subprocess.run([sys.executable, "-m", "urd.cli", "train", str(cfg), str(run)] + (["--seed", str(seed)] if seed else []),
-                             capture_output=True, text=True, timeout=300)
-        assert out.returncode == 0, out.stderr[-2000:]
-        runs[seed] = torch.load(run / "last.pt", weights_only=True)
-    assert runs[None]["train_config"]["seed"] == 0 and runs[5]["train_config"]["seed"] == 5
-    assert not torch.equal(runs[None]["model"]["head.weight"], runs[5]["model"]["head.weight"])
+    cfg.write_text("seed = 3\nsteps = 1\n")
+    for extra in ([], ["--seed", "5"]):
+        result = CliRunner().invoke(app, ["train", str(cfg), str(tmp_path / "run"), *extra])
+        assert result.exit_code == 0, result.output
+    assert [c.seed for c in seen] == [3, 5] and seen[1].steps == 1
+    result = CliRunner().invoke(app, ["train", str(cfg), str(tmp_path / "run"), "--seed", "-1"])
+    assert result.exit_code == 2
 
 
 @pytest.mark.slow
