@@ -236,3 +236,43 @@ def train(cfg: TrainConfig, run_dir: Path, init: Path | None = None, progress=No
     if distributed:
         dist.destroy_process_group()
     return record
+
+
+def export_weights(checkpoint: Path, output: Path, device: str, note: str = "", parent: dict | None = None) -> dict:
+    """Write a checkpoint's network as shipped weights (float16: half the size, loaded as
+    float32) plus a model card (``output`` with .json) and return the card.
+
+    The card records the training config, steps, patches seen, wall time, ``device``, and the
+    validation figures logged at that checkpoint. ``parent`` is the card of the weights the run
+    was initialized from (`train` with ``init``): the card then lists every stage and the totals.
+    WeightsError if ``parent`` does not describe the weights the run started from.
+    """
+    state = load_checkpoint(checkpoint)
+    if parent is not None and state.get("init") and state["init"]["sha256"] != parent["sha256"]:
+        raise WeightsError(f"the parent card ({parent['weights']}) does not describe the weights the run started from "
+                           f"({state['init']['path']})")
+    output = Path(output)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(output, overwrite=True) as tmp:
+        torch.save({"model": {k: v.half() for k, v in state["model"].items()}, "model_config": state["model_config"]}, tmp)
+    cfg = state["train_config"]
+    card = {
+        "weights": output.name,
+        "sha256": hashlib.sha256(output.read_bytes()).hexdigest(),
+        "model": state["model_config"],
+        "parameters": sum(v.numel() for v in state["model"].values()),
+        "training": {"config": cfg, "steps": state["step"], "patches_seen": state["step"] * cfg["batch"],
+                     "wall_time_s": round(state.get("wall_s", 0.0)), "device": device,
+                     "data": "synthesized from bsds500/train + sunhays80 (../shared/data/natural), pipeline "
+                             + cfg["pipeline"]},
+        "validation": state.get("val"),
+        "initialized_from": state.get("init") or (parent and {"path": parent["weights"], "sha256": parent["sha256"]}),
+        "note": note,
+    }
+    if parent is not None:
+        stages = parent.get("stages", [parent["training"]]) + [card["training"]]
+        card["stages"] = stages
+        card["total"] = {key: sum(s[key] for s in stages) for key in ("steps", "patches_seen", "wall_time_s")}
+    with atomic_path(output.with_suffix(".json"), overwrite=True) as tmp:
+        tmp.write_text(json.dumps(card, indent=2) + "\n")
+    return card

@@ -123,6 +123,17 @@ def parse_size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def parse_seeds(text: str) -> list[int]:
+    """'0,1' → [0, 1]: at least two different non-negative integers."""
+    try:
+        seeds = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise typer.BadParameter(f"expected comma-separated integers like 0,1, got {text!r}") from None
+    if len(set(seeds)) < 2 or min(seeds) < 0:
+        raise typer.BadParameter(f"expected at least two different non-negative seeds, got {text!r}")
+    return seeds
+
+
 def parse_reference(text: str) -> str | float:
     """'auto' or degrees."""
     if text == "auto":
@@ -401,17 +412,37 @@ def bench(
     full: bool = typer.Option(False, "--full", help="The paper's full evaluation (about 30 min on 2 cores): cross-validation, robustness, speed into docs/bench/full."),
     large: bool = typer.Option(False, "--24mp", help="With --full: also time the network and Schechner on a 24 MP scene."),
     images: Optional[Path] = typer.Option(None, help="With --quick/--full: also cross-validate on the photos of this folder (JPEG, PNG, 8/16-bit TIFF)."),
-    out: Optional[Path] = typer.Option(None, help="With --quick/--full: output folder (default docs/bench)."),
+    out: Optional[Path] = typer.Option(None, help="With --quick/--full/--ablation: output folder (default docs/bench)."),
     count: int = typer.Option(64, min=1, help="Benchmark patches (seeded, from bsds500/test or bundled photos)."),
     size: int = typer.Option(256, min=32, help="Patch size (px)."),
     methods: str = typer.Option("none,network", help="Comma-separated methods, plus 'direct' for the direct variant (shipped urd-direct.pt or --direct-weights), and LABEL=PATH for the network with other weights."),
     direct_weights: Optional[Path] = typer.Option(None, help="Weights of the direct variant."),
+    ablation: bool = typer.Option(False, "--ablation", help="The paper's pipeline ablation (DR, DR+NRD, DR+NRD+LCG) with several seeds: trains the runs missing from --runs (configs/ablation-*.toml, about 1 h of CPU each), scores them on --count patches, writes OUT/ablation (default docs/bench/ablation)."),
+    seeds: str = typer.Option("0,1", help="With --ablation: comma-separated training seeds (at least two)."),
+    jobs: int = typer.Option(2, min=1, help="With --ablation: training runs side by side (one thread each)."),
+    runs: Path = typer.Option(Path("runs/ablation"), help="With --ablation: folder of the training runs (unfinished ones resume)."),
 ) -> None:
     """Benchmark the methods on synthetic data with ground truth: by default one table of RMSE /
     PSNR / SSIM of R and T per method (with network and direct: their paired T PSNR difference);
-    with --quick or --full the paper's tables, robustness study and speed figures."""
+    with --quick or --full the paper's tables, robustness study and speed figures; with
+    --ablation the multi-seed pipeline ablation."""
     if large and not full:
         raise typer.BadParameter("--24mp goes with --full")
+    if ablation:
+        from separate.ablation import run_ablation
+        from separate.evaluate import DEFAULT_OUT
+
+        seed_list = parse_seeds(seeds)
+        folder = (out or DEFAULT_OUT) / "ablation"
+        bar = TerminalProgress()
+        result = run_guarded(run_ablation, folder, runs, seed_list, jobs, count, size,
+                             progress=lambda done, total: bar(done, total, "ablation training runs"),
+                             command=" ".join(["urd"] + sys.argv[1:]))
+        bar.close()
+        typer.echo(Path(result["files"][0]).read_text())
+        typer.echo(f"table, CSV, plot and weights in {folder.resolve()}")
+        if not (quick or full):
+            return
     if quick or full:
         from separate.evaluate import DEFAULT_OUT, run_evaluation
 

@@ -1,0 +1,159 @@
+"""Multi-seed ablation of the synthesis pipeline (paper §4, the table of Fig. 7).
+
+The canonical network is trained on DR, DR+NRD and DR+NRD+LCG at an equal budget (the TOML
+configs `PIPELINES` names, in ``configs/``), once per seed, and scored on the synthetic
+benchmark (`separate.bench`, whose test data has every effect). Reported per pipeline: T̂ PSNR
+per seed, their mean and spread, and each pipeline's paired T̂ gain over the same seed's DR
+run, so that the order of the pipelines can be judged against the noise of one training run.
+
+Runs live in ``runs_dir/<pipeline>-s<seed>`` (e.g. ``dr-nrd-s1``) (`urd train` folders: an unfinished one
+resumes); each run's best checkpoint is exported as float16 weights with a model card.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import multiprocessing
+import time
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from separate.bench import paired_gain, run_benchmark
+from separate.evaluate import cpu_model, environment, plot_bars, write_csv, write_text
+from separate.train import TrainConfig, export_weights, load_checkpoint, train
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+PIPELINES = {"DR": "ablation-dr", "DR+NRD": "ablation-dr-nrd", "DR+NRD+LCG": "ablation-dr-nrd-lcg"}
+
+
+@dataclasses.dataclass(frozen=True)
+class AblationRun:
+    """One training run of the ablation: a pipeline's config trained with one seed."""
+
+    pipeline: str
+    seed: int
+    config: Path
+    folder: Path
+
+    @property
+    def label(self) -> str:
+        return f"{self.pipeline}/s{self.seed}"
+
+    def train_config(self) -> TrainConfig:
+        """The config file's settings with this run's seed, one thread (runs go side by side)."""
+        return dataclasses.replace(TrainConfig.from_toml(self.config), seed=self.seed, threads=1)
+
+    def finished(self) -> bool:
+        last = self.folder / "last.pt"
+        return last.exists() and load_checkpoint(last)["step"] >= self.train_config().steps
+
+
+def ablation_runs(seeds: Sequence[int], runs_dir: Path, configs: Path = CONFIGS) -> list[AblationRun]:
+    """Every (pipeline, seed) run; ValueError unless there are at least two different seeds."""
+    if len(set(seeds)) < 2 or any(s < 0 for s in seeds):
+        raise ValueError(f"expected at least two different non-negative seeds (the spread between them is the point), got {list(seeds)}")
+    return [AblationRun(pipeline, seed, Path(configs) / f"{stem}.toml", Path(runs_dir) / f"{stem.removeprefix('ablation-')}-s{seed}")
+            for pipeline, stem in PIPELINES.items() for seed in dict.fromkeys(seeds)]
+
+
+def _train_run(run: AblationRun) -> None:
+    """Train or resume one run (in a worker process), its log lines in ``<run folder>.log``."""
+    cfg = run.train_config()
+    with open(run.folder.with_suffix(".log"), "a") as log:
+        def show(record: dict) -> None:
+            if "psnr_t" in record:
+                log.write(f"step {record['step']}/{cfg.steps}: val PSNR T {record['psnr_t']:.2f} dB, R {record['psnr_r']:.2f} dB\n")
+                log.flush()
+
+        train(cfg, run.folder, progress=show)
+
+
+def train_missing(runs: Sequence[AblationRun], jobs: int, progress: Callable[[int, int], None] | None = None) -> list[AblationRun]:
+    """Train the runs that are missing or unfinished, ``jobs`` processes at a time (one thread
+    each); returns them. ``progress`` is called with (runs done, runs to train)."""
+    if jobs < 1:
+        raise ValueError(f"expected at least 1 job, got {jobs}")
+    todo = [run for run in runs if not run.finished()]
+    for run in todo:
+        run.folder.parent.mkdir(parents=True, exist_ok=True)
+    if todo:
+        context = multiprocessing.get_context("spawn")               # no forked torch thread pools
+        with concurrent.futures.ProcessPoolExecutor(jobs, mp_context=context) as pool:
+            for done, future in enumerate(concurrent.futures.as_completed([pool.submit(_train_run, r) for r in todo]), 1):
+                future.result()
+                if progress:
+                    progress(done, len(todo))
+    return todo
+
+
+def score(runs: Sequence[AblationRun], weights_dir: Path, count: int, size: int, jobs: int) -> list[dict]:
+    """Export each run's best checkpoint into ``weights_dir`` (float16 + card) and score it on
+    the benchmark (``count`` patches of ``size``²); one `run_benchmark` row per run."""
+    device = f"{cpu_model()}, bf16 autocast where native, 1 thread ({jobs} runs side by side)"
+    methods = []
+    for run in runs:
+        target = Path(weights_dir) / f"{run.folder.name}.pt"
+        export_weights(run.folder / "best.pt", target, device, note=f"ablation {run.label} (separate.ablation); not shipped")
+        methods.append(f"{run.label}={target}")
+    return run_benchmark(methods, count, size)
+
+
+def format_ablation(runs: Sequence[AblationRun], rows: list[dict], header: str) -> str:
+    """The Markdown report: per-pipeline T̂ PSNR per seed, mean, spread; paired gains over DR."""
+    by_label = {r["method"]: r for r in rows}
+    seeds = list(dict.fromkeys(run.seed for run in runs))
+    val = {run.label: load_checkpoint(run.folder / "best.pt")["val"]["psnr_t"] for run in runs}
+
+    def figures(pipeline: str, key: str) -> list[float]:
+        return [by_label[f"{pipeline}/s{s}"][key] for s in seeds]
+
+    lines = [header, "", "| pipeline | " + " | ".join(f"T PSNR s{s}" for s in seeds)
+             + " | T PSNR mean | seed spread | R PSNR mean | T SSIM mean | val T PSNR mean |",
+             "|---|" + "---|" * (len(seeds) + 5)]
+    for pipeline in PIPELINES:
+        t = figures(pipeline, "psnr_t")
+        lines.append(f"| {pipeline} | " + " | ".join(f"{x:.2f}" for x in t) + f" | {np.mean(t):.2f} | {max(t) - min(t):.2f} | "
+                     f"{np.mean(figures(pipeline, 'psnr_r')):.2f} | {np.mean(figures(pipeline, 'ssim_t')):.3f} | "
+                     f"{np.mean([val[f'{pipeline}/s{s}'] for s in seeds]):.2f} |")
+    lines += ["", "Paired T̂ PSNR gain over the same seed's DR run (dB; mean over patches, 95% bootstrap interval):", "",
+              "| pipeline | " + " | ".join(f"seed {s}" for s in seeds) + " |", "|---|" + "---|" * len(seeds)]
+    for pipeline in list(PIPELINES)[1:]:
+        cells = []
+        for s in seeds:
+            g = paired_gain(rows, f"{pipeline}/s{s}", f"DR/s{s}")
+            cells.append(f"{g['mean']:+.2f} ({g['ci95'][0]:+.2f} to {g['ci95'][1]:+.2f})")
+        lines.append(f"| {pipeline} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def run_ablation(out_dir: Path, runs_dir: Path, seeds: Sequence[int] = (0, 1), jobs: int = 2, count: int = 64,
+                 size: int = 256, configs: Path = CONFIGS, progress: Callable[[int, int], None] | None = None,
+                 command: str | None = None) -> dict:
+    """Train what is missing, score every run, and write ``out_dir``/ablation.md, .csv, .png
+    and ``out_dir``/weights; returns {"files": [...], "trained": [run folder names], "rows": [...]}."""
+    runs = ablation_runs(seeds, runs_dir, configs)
+    trained = train_missing(runs, jobs, progress)
+    out_dir = Path(out_dir)
+    started = time.perf_counter()
+    rows = score(runs, out_dir / "weights", count, size, jobs)
+    env = environment(command)
+    steps = runs[0].train_config().steps
+    header = (f"# Ablation of the synthesis pipeline, {len(set(seeds))} seeds\n\n"
+              f"Command: `{env['command']}` (commit {env['commit']}, {env['date']}, {env['cpu']}). Each run: "
+              f"`{runs[0].config.parent.name}/ablation-*.toml` with its seed ({steps} steps); benchmark: {count} patches of "
+              f"{size}² (seed 2018, full pipeline, reference auto), scored in {time.perf_counter() - started:.0f} s. "
+              "Weights and cards: `weights/` (not shipped).")
+    write_text(out_dir / "ablation.md", format_ablation(runs, rows, header))
+    by_label = {r["method"]: r for r in rows}
+    write_csv(out_dir / "ablation.csv", ["pipeline", "seed", "rmse_t", "psnr_t", "ssim_t", "rmse_r", "psnr_r", "ssim_r"],
+              [[run.pipeline, run.seed] + [by_label[run.label][k] for k in ("rmse_t", "psnr_t", "ssim_t", "rmse_r", "psnr_r", "ssim_r")]
+               for run in runs])
+    seeds = list(dict.fromkeys(seeds))
+    plot_bars(out_dir / "ablation.png", list(PIPELINES),
+              {f"seed {s}": [by_label[f"{p}/s{s}"]["psnr_t"] for p in PIPELINES] for s in seeds},
+              "Ablation: T PSNR on the synthetic benchmark", "T PSNR (dB)", "training pipeline")
+    files = [out_dir / name for name in ("ablation.md", "ablation.csv", "ablation.png")]
+    return {"files": files, "trained": [run.folder.name for run in trained], "rows": rows}

@@ -1,0 +1,48 @@
+"""The multi-seed pipeline ablation (`urd bench --ablation`) on tiny configs, end to end."""
+
+import csv
+import json
+import re
+
+import pytest
+
+from separate.ablation import PIPELINES, ablation_runs, run_ablation
+
+TINY = 'width = 4\npatch = 32\nbatch = 2\nmicro_batch = 2\nsteps = 2\nval_samples = 4\nval_every = 2\nprecision = "fp32"\nthreads = 1\npipeline = "{}"\n'
+
+
+def tiny_configs(folder):
+    folder.mkdir()
+    for pipeline, stem in PIPELINES.items():
+        (folder / f"{stem}.toml").write_text(TINY.format(pipeline))
+    return folder
+
+
+def test_ablation_needs_two_seeds(tmp_path):
+    with pytest.raises(ValueError, match="at least two different"):
+        ablation_runs([3, 3], tmp_path)
+    names = [run.folder.name for run in ablation_runs([0, 1], tmp_path)]
+    assert names == ["dr-s0", "dr-s1", "dr-nrd-s0", "dr-nrd-s1", "dr-nrd-lcg-s0", "dr-nrd-lcg-s1"]
+
+
+@pytest.mark.slow
+def test_ablation_trains_scores_and_resumes_without_retraining(tmp_path):
+    configs = tiny_configs(tmp_path / "configs")
+    calls = []
+    result = run_ablation(tmp_path / "out", tmp_path / "runs", (0, 1), jobs=2, count=3, size=64, configs=configs,
+                          progress=lambda done, total: calls.append((done, total)))
+    assert sorted(result["trained"]) == sorted(run.folder.name for run in ablation_runs([0, 1], tmp_path / "runs"))
+    assert calls[-1] == (6, 6)
+    table = (tmp_path / "out" / "ablation.md").read_text()
+    for pipeline in PIPELINES:
+        assert re.search(rf"^\| {re.escape(pipeline)} \| \d+\.\d\d \| \d+\.\d\d \| \d+\.\d\d \| \d+\.\d\d \|", table, re.M), table
+    assert re.search(r"^\| DR\+NRD \| [+-]\d+\.\d\d \([+-]\d+\.\d\d to [+-]\d+\.\d\d\) \|", table, re.M)
+    rows = list(csv.DictReader(open(tmp_path / "out" / "ablation.csv")))
+    assert [(r["pipeline"], r["seed"]) for r in rows] == [(p, s) for p in PIPELINES for s in ("0", "1")]
+    cards = sorted((tmp_path / "out" / "weights").glob("*.json"))
+    assert len(cards) == 6 and json.loads(cards[0].read_text())["training"]["steps"] == 2
+    seeds = {json.loads(c.read_text())["training"]["config"]["seed"] for c in cards}
+    assert seeds == {0, 1}
+    again = run_ablation(tmp_path / "out", tmp_path / "runs", (0, 1), jobs=2, count=3, size=64, configs=configs)
+    assert again["trained"] == []
+    assert [r["psnr_t"] for r in again["rows"]] == [r["psnr_t"] for r in result["rows"]]
