@@ -36,7 +36,9 @@ def test_ablation_trains_scores_and_resumes_without_retraining(tmp_path):
     table = (tmp_path / "out" / "ablation.md").read_text()
     for pipeline in PIPELINES:
         assert re.search(rf"^\| {re.escape(pipeline)} \| \d+\.\d\d \| \d+\.\d\d \| \d+\.\d\d \| \d+\.\d\d \|", table, re.M), table
-    assert re.search(r"^\| DR\+NRD \| [+-]\d+\.\d\d \([+-]\d+\.\d\d to [+-]\d+\.\d\d\) \|", table, re.M)
+    for comparison in ("DR+NRD − DR", "DR+NRD+LCG − DR+NRD", "DR+NRD+LCG − DR"):
+        cell = r"[+-]\d+\.\d\d \([+-]\d+\.\d\d to [+-]\d+\.\d\d\)"
+        assert re.search(rf"^\| {re.escape(comparison)} \| {cell} \| {cell} \|$", table, re.M), table
     rows = list(csv.DictReader(open(tmp_path / "out" / "ablation.csv")))
     assert [(r["pipeline"], r["seed"]) for r in rows] == [(p, s) for p in PIPELINES for s in ("0", "1")]
     cards = sorted((tmp_path / "out" / "weights").glob("*.json"))
