@@ -21,9 +21,10 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from separate.bench import paired_gain, run_benchmark
+from separate.bench import SEED, paired_gain, run_benchmark
 from separate.evaluate import cpu_model, environment, plot_bars, write_csv, write_text
 from separate.train import TrainConfig, export_weights, load_checkpoint, train
+from urd.errors import TrainingError
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 PIPELINES = {"DR": "ablation-dr", "DR+NRD": "ablation-dr-nrd", "DR+NRD+LCG": "ablation-dr-nrd-lcg"}
@@ -40,6 +41,7 @@ class AblationRun:
 
     @property
     def label(self) -> str:
+        """'PIPELINE/sSEED', its method name in the benchmark rows."""
         return f"{self.pipeline}/s{self.seed}"
 
     def train_config(self) -> TrainConfig:
@@ -47,6 +49,7 @@ class AblationRun:
         return dataclasses.replace(TrainConfig.from_toml(self.config), seed=self.seed, threads=1)
 
     def finished(self) -> bool:
+        """Whether the folder holds a checkpoint at the config's last step."""
         last = self.folder / "last.pt"
         return last.exists() and load_checkpoint(last)["step"] >= self.train_config().steps
 
@@ -82,17 +85,22 @@ def train_missing(runs: Sequence[AblationRun], jobs: int, progress: Callable[[in
     if todo:
         context = multiprocessing.get_context("spawn")               # no forked torch thread pools
         with concurrent.futures.ProcessPoolExecutor(jobs, mp_context=context) as pool:
-            for done, future in enumerate(concurrent.futures.as_completed([pool.submit(_train_run, r) for r in todo]), 1):
-                future.result()
+            futures = {pool.submit(_train_run, run): run for run in todo}
+            for done, future in enumerate(concurrent.futures.as_completed(futures), 1):
+                try:
+                    future.result()
+                except Exception as exc:                  # noqa: BLE001 - name the run, stop the others
+                    pool.shutdown(wait=False, cancel_futures=True)
+                    raise TrainingError(f"ablation run {futures[future].label} ({futures[future].folder}) failed: {exc}") from exc
                 if progress:
                     progress(done, len(todo))
     return todo
 
 
-def score(runs: Sequence[AblationRun], weights_dir: Path, count: int, size: int, jobs: int) -> list[dict]:
+def score(runs: Sequence[AblationRun], weights_dir: Path, count: int, size: int) -> list[dict]:
     """Export each run's best checkpoint into ``weights_dir`` (float16 + card) and score it on
     the benchmark (``count`` patches of ``size``²); one `run_benchmark` row per run."""
-    device = f"{cpu_model()}, bf16 autocast where native, 1 thread ({jobs} runs side by side)"
+    device = f"{cpu_model()} (the machine that exported it), one thread per run, runs side by side"
     methods = []
     for run in runs:
         target = Path(weights_dir) / f"{run.folder.name}.pt"
@@ -102,7 +110,8 @@ def score(runs: Sequence[AblationRun], weights_dir: Path, count: int, size: int,
 
 
 def format_ablation(runs: Sequence[AblationRun], rows: list[dict], header: str) -> str:
-    """The Markdown report: per-pipeline T̂ PSNR per seed, mean, spread; paired gains over DR."""
+    """The Markdown report: per-pipeline T̂ PSNR per seed, mean, spread; paired gains between
+    the pipelines of one seed."""
     by_label = {r["method"]: r for r in rows}
     seeds = list(dict.fromkeys(run.seed for run in runs))
     val = {run.label: load_checkpoint(run.folder / "best.pt")["val"]["psnr_t"] for run in runs}
@@ -140,14 +149,14 @@ def run_ablation(out_dir: Path, runs_dir: Path, seeds: Sequence[int] = (0, 1), j
     trained = train_missing(runs, jobs, progress)
     out_dir = Path(out_dir)
     started = time.perf_counter()
-    rows = score(runs, out_dir / "weights", count, size, jobs)
+    rows = score(runs, out_dir / "weights", count, size)
     env = environment(command)
     steps = runs[0].train_config().steps
     header = (f"# Ablation of the synthesis pipeline, {len(set(seeds))} seeds\n\n"
               f"Command: `{env['command']}` (commit {env['commit']}, {env['date']}, {env['cpu']}). Each run: "
-              f"`{runs[0].config.parent.name}/ablation-*.toml` with its seed ({steps} steps); benchmark: {count} patches of "
-              f"{size}² (seed 2018, full pipeline, reference auto), scored in {time.perf_counter() - started:.0f} s. "
-              "Weights and cards: `weights/` (not shipped).")
+              f"`{runs[0].config.parent.name}/ablation-*.toml` with its seed ({steps} steps), scored at its best-validation "
+              f"checkpoint; benchmark: {count} patches of {size}² (seed {SEED}, full pipeline, reference auto), scored in "
+              f"{time.perf_counter() - started:.0f} s. Weights and cards: `weights/` (not shipped).")
     write_text(out_dir / "ablation.md", format_ablation(runs, rows, header))
     by_label = {r["method"]: r for r in rows}
     write_csv(out_dir / "ablation.csv", ["pipeline", "seed", "rmse_t", "psnr_t", "ssim_t", "rmse_r", "psnr_r", "ssim_r"],

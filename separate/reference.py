@@ -244,7 +244,8 @@ def presented_angles_deg(reference_deg: float) -> list[float]:
 def presenting_matrix(angles_deg: Sequence[float], reference_deg: float) -> np.ndarray:
     """The 3×N float32 matrix that re-renders N shots at ``angles_deg`` (deg) as shots at
     reference + 0/45/90°: A(φ3) · pinv(A(φ)), the least-squares Stokes fit then the rendering
-    (A = `separate.optics.stokes_matrix`). Applied to linear values by `present`."""
+    (A = `separate.optics.stokes_matrix`). Applied to linear values by `present` and, a tile
+    at a time, by `separate.infer.separate_stack`."""
     phi = np.radians(np.asarray(angles_deg, np.float64))
     phi3 = np.radians(presented_angles_deg(reference_deg))
     return (optics.stokes_matrix(phi3) @ np.linalg.pinv(optics.stokes_matrix(phi))).astype(np.float32)

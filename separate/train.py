@@ -9,7 +9,9 @@ each rank drawing its own synthetic stream.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import fcntl
 import hashlib
 import json
 import math
@@ -27,7 +29,7 @@ from separate.networks import build_model
 from separate.precision import Precision, resolve
 from separate.synthesis import AngleMode, SynthesisConfig, Synthesizer, default_pool
 from urd.dataset import atomic_path
-from urd.errors import WeightsError
+from urd.errors import TrainingError, WeightsError
 
 
 @dataclasses.dataclass
@@ -147,12 +149,58 @@ def lr_at(cfg: TrainConfig, step: int) -> float:
     return cfg.lr_min + (cfg.lr - cfg.lr_min) * warm * 0.5 * (1 + math.cos(math.pi * min(step, cfg.steps) / cfg.steps))
 
 
+# Settings a resumed run may change: how long, how often, how fast; not what it learns from.
+RESUMABLE_CHANGES = {"steps", "max_minutes", "threads", "precision", "val_every", "ckpt_every"}
+
+
+@contextlib.contextmanager
+def run_lock(run_dir: Path):
+    """Hold ``run_dir``'s training lock; TrainingError naming the holder's pid when another
+    process is training in that folder."""
+    with open(Path(run_dir) / ".lock", "a+") as handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            handle.seek(0)
+            holder = handle.read().strip() or "unknown"
+            raise TrainingError(f"run {run_dir} is being trained by another process (pid {holder})") from None
+        handle.truncate(0)
+        handle.write(f"{os.getpid()}\n")
+        handle.flush()
+        try:
+            yield
+        finally:
+            handle.truncate(0)
+
+
+def check_resumable(stored: dict, cfg: TrainConfig, source: Path) -> None:
+    """TrainingError naming the settings in which ``cfg`` differs from the config a checkpoint
+    was trained with (``stored``), other than `RESUMABLE_CHANGES`."""
+    current = dataclasses.asdict(cfg)
+    changed = sorted(k for k in set(stored) & set(current) - RESUMABLE_CHANGES if stored[k] != current[k])
+    if changed:
+        detail = ", ".join(f"{k} {stored[k]!r} → {current[k]!r}" for k in changed)
+        raise TrainingError(f"{source} was trained with other settings ({detail}); use a new run folder")
+
+
 def train(cfg: TrainConfig, run_dir: Path, init: Path | None = None, progress=None) -> dict:
     """Train (or resume) a run in ``run_dir``; returns the final log record.
 
     ``init`` optionally starts from a weights or checkpoint file (fine-tuning); a run folder
-    with ``last.pt`` always resumes from it instead.
+    with ``last.pt`` always resumes from it instead, provided its config differs from ``cfg``
+    only in `RESUMABLE_CHANGES` (else TrainingError). One process (DDP: rank 0) holds the
+    folder's lock while training (`run_lock`).
     """
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    if int(os.environ.get("RANK", "0")) != 0:
+        return _train(cfg, run_dir, init, progress)
+    with run_lock(run_dir):
+        return _train(cfg, run_dir, init, progress)
+
+
+def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict:
+    """`train`'s loop, in a folder already locked."""
     distributed = int(os.environ.get("WORLD_SIZE", "1")) > 1
     if distributed:
         dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
@@ -161,8 +209,6 @@ def train(cfg: TrainConfig, run_dir: Path, init: Path | None = None, progress=No
     device = torch.device(f"cuda:{int(os.environ.get('LOCAL_RANK', 0))}" if torch.cuda.is_available() else "cpu")
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
-    run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
     model = build_model(model_config(cfg)).to(device)
     optim = torch.optim.Adam(model.parameters(), lr=cfg.lr)
@@ -179,6 +225,7 @@ def train(cfg: TrainConfig, run_dir: Path, init: Path | None = None, progress=No
                                "(for resize up-sampling from transposed weights: tools/resize_upsampling.py)")
         model.load_state_dict(state["model"])
         if last.exists():
+            check_resumable(state["train_config"], cfg, last)
             optim.load_state_dict(state["optim"])
             step, best = state["step"], state.get("best_psnr_t", -math.inf)
             elapsed_before = state.get("wall_s", 0.0)

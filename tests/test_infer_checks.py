@@ -1,5 +1,7 @@
 """separate.infer: tile and overlap checks, tiling at the default tile size, the fused network."""
 
+import warnings
+
 import numpy as np
 import pytest
 import torch
@@ -122,11 +124,18 @@ def test_codes_read_only_and_reversed_stacks_separate_as_their_float_values():
     read_only.flags.writeable = False
     reversed_rows = codes[:, ::-1].copy()[:, ::-1]               # the same values, negative row strides
     assert reversed_rows.strides[1] < 0
-    for stack in (codes, read_only, reversed_rows):
-        r_got, t_got = separate_stack(model, stack, [0, 45, 90], tile=128, overlap=32, precision="fp32", reference_deg=20.0)
-        np.testing.assert_allclose(r_got, r_want, atol=1e-5)
-        np.testing.assert_allclose(t_got, t_want, atol=1e-5)
-    assert not read_only.flags.writeable
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")                           # torch warns on a read-only array it would wrap
+        big_endian = codes.astype(">u2")
+    for stack in (codes, read_only, reversed_rows, big_endian):
+            r_got, t_got = separate_stack(model, stack, [0, 45, 90], tile=128, overlap=32, precision="fp32", reference_deg=20.0)
+            np.testing.assert_allclose(r_got, r_want, atol=1e-5)
+            np.testing.assert_allclose(t_got, t_want, atol=1e-5)
+    # no reference: four shots passed on as they are, only scaled from codes
+    four = rng.integers(0, 40000, (4, 96, 120, 3), dtype=np.uint16)
+    got = separate_stack(model, four, [0, 45, 90, 135], tile=128, overlap=32, precision="fp32")
+    want = separate_stack(model, four.astype(np.float32) / 65535, [0, 45, 90, 135], tile=128, overlap=32, precision="fp32")
+    np.testing.assert_allclose(got, want, atol=1e-5)
 
 
 def test_precision_auto_follows_what_the_hardware_runs(monkeypatch):

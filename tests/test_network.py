@@ -18,9 +18,9 @@ from separate import optics
 from separate.infer import DEFAULT_WEIGHTS, load_model, match_histograms, separate_stack, tile_spans
 from separate.model import NOMINAL_ANGLES, SeparationNet, canonical_inputs
 from separate.synthesis import SynthesisConfig, Synthesizer, load_image_pool
-from separate.train import TrainConfig, train
+from separate.train import TrainConfig, run_lock, train
 from urd.dataset import Dataset
-from urd.errors import WeightsError
+from urd.errors import TrainingError, WeightsError
 from urd.ingest import IngestOptions, ingest_scene
 
 POOL = load_image_pool(None)
@@ -167,6 +167,19 @@ def test_train_seed_option_overrides_the_config(tmp_path, monkeypatch):
     assert [c.seed for c in seen] == [3, 5] and seen[1].steps == 1
     result = CliRunner().invoke(app, ["train", str(cfg), str(tmp_path / "run"), "--seed", "-1"])
     assert result.exit_code == 2
+
+
+def test_a_run_folder_is_trained_by_one_process_and_resumed_only_with_its_settings(tmp_path):
+    cfg = TrainConfig(width=4, patch=32, batch=2, micro_batch=2, steps=1, val_samples=2, val_every=1, precision="fp32", threads=1)
+    (tmp_path / "run").mkdir()
+    with run_lock(tmp_path / "run"):                  # as another process training there would
+        with pytest.raises(TrainingError, match=rf"being trained by another process \(pid {os.getpid()}\)"):
+            train(cfg, tmp_path / "run")
+    assert not (tmp_path / "run" / "last.pt").exists()
+    train(cfg, tmp_path / "run")
+    with pytest.raises(TrainingError, match=r"other settings \(lr 0.005 → 0.001, seed 0 → 1\)"):
+        train(dataclasses.replace(cfg, steps=2, seed=1, lr=1e-3), tmp_path / "run")
+    assert train(dataclasses.replace(cfg, steps=2, threads=2), tmp_path / "run")["step"] == 2   # longer: allowed
 
 
 @pytest.mark.slow

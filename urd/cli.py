@@ -428,6 +428,8 @@ def bench(
     --ablation the multi-seed pipeline ablation."""
     if large and not full:
         raise typer.BadParameter("--24mp goes with --full")
+    if not ablation and (seeds != "0,1" or jobs != 2 or runs != Path("runs/ablation")):
+        raise typer.BadParameter("--seeds, --jobs and --runs go with --ablation")
     if ablation:
         from separate.ablation import run_ablation
         from separate.evaluate import DEFAULT_OUT

@@ -47,3 +47,7 @@ class DatasetBusyError(DatasetError):
 
 class CaptureInterrupted(UrdError):
     """A capture was stopped by the user (Ctrl-C); its completed shots are kept."""
+
+
+class TrainingError(UrdError):
+    """A training run cannot go on: its folder is busy, or it was started with another config."""
