@@ -285,9 +285,16 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
     return record
 
 
+def _same_weights(a: dict, b: dict) -> bool:
+    """Whether two weights files' contents are equal (config, tensor names, dtypes and values)."""
+    return (a.get("model_config") == b["model_config"] and a["model"].keys() == b["model"].keys()
+            and all(a["model"][k].dtype == v.dtype and torch.equal(a["model"][k], v) for k, v in b["model"].items()))
+
+
 def export_weights(checkpoint: Path, output: Path, device: str, note: str = "", parent: dict | None = None) -> dict:
     """Write a checkpoint's network as shipped weights (float16: half the size, loaded as
-    float32) plus a model card (``output`` with .json) and return the card.
+    float32) plus a model card (``output`` with .json) and return the card. A weights file
+    already holding exactly these weights is kept as it is (same bytes, same SHA-256).
 
     The card records the training config, steps, patches seen, wall time, ``device``, and the
     validation figures logged at that checkpoint. ``parent`` is the card of the weights the run
@@ -300,8 +307,10 @@ def export_weights(checkpoint: Path, output: Path, device: str, note: str = "", 
                            f"({state['init']['path']})")
     output = Path(output)
     output.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(output, overwrite=True) as tmp:
-        torch.save({"model": {k: v.half() for k, v in state["model"].items()}, "model_config": state["model_config"]}, tmp)
+    weights = {"model": {k: v.half() for k, v in state["model"].items()}, "model_config": state["model_config"]}
+    if not (output.is_file() and _same_weights(load_checkpoint(output), weights)):   # torch.save's bytes differ each time
+        with atomic_path(output, overwrite=True) as tmp:
+            torch.save(weights, tmp)
     cfg = state["train_config"]
     card = {
         "weights": output.name,

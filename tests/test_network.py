@@ -308,6 +308,10 @@ def test_training_continues_from_the_shipped_weights(tmp_path):
     out = subprocess.run([*export, "--parent", DEFAULT_WEIGHTS.with_suffix(".json")], capture_output=True, text=True, cwd=root)
     assert out.returncode == 0, out.stderr
     card = json.loads((tmp_path / "w.json").read_text())
+    first = (tmp_path / "w.pt").read_bytes()
+    again = subprocess.run([*export, "--parent", DEFAULT_WEIGHTS.with_suffix(".json")], capture_output=True, text=True, cwd=root)
+    assert again.returncode == 0 and (tmp_path / "w.pt").read_bytes() == first     # the same weights: the file kept
+    assert json.loads((tmp_path / "w.json").read_text())["sha256"] == card["sha256"] == hashlib.sha256(first).hexdigest()
     shipped = json.loads(DEFAULT_WEIGHTS.with_suffix(".json").read_text())
     assert len(card["stages"]) == len(shipped.get("stages", [None])) + 1
     assert card["total"]["steps"] == shipped.get("total", shipped["training"])["steps"] + 1
