@@ -705,8 +705,8 @@ def settings_for(quick: bool, large: bool = False) -> Settings:
     (6.5-8.5 min wall on 2 shared cores). Full: every method on 64 + 64 cross-validation
     patches (the bsds500-test set is `tools/bench_synthetic.py`'s), 48 robustness patches at
     every level for the polarization methods (none/network/direct/schechner/kong/farid),
-    every method timed at 1 MP, and the network and Schechner at 24 MP with ``large``; about an
-    half hour on 2 cores (1804 s measured; Kong ~1.1 s per 256² patch, Schechner ~1.2 s, the rest less).
+    every method timed at 1 MP, and the network and Schechner at 24 MP with ``large``; about half
+    an hour on 2 cores (1804 s measured; Kong ~1.1 s per 256² patch, Schechner ~1.2 s, the rest less).
     """
     if quick and large:
         raise ValueError("expected large (24 MP) timings only in the full run, got quick=True, large=True")

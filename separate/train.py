@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import fcntl
 import hashlib
 import json
 import math
@@ -28,7 +27,7 @@ from separate import metrics
 from separate.networks import build_model
 from separate.precision import Precision, resolve
 from separate.synthesis import AngleMode, SynthesisConfig, Synthesizer, default_pool
-from urd.dataset import atomic_path
+from urd.dataset import atomic_path, pid_lock
 from urd.errors import TrainingError, WeightsError
 
 
@@ -153,24 +152,12 @@ def lr_at(cfg: TrainConfig, step: int) -> float:
 RESUMABLE_CHANGES = {"steps", "max_minutes", "threads", "precision", "val_every", "ckpt_every"}
 
 
-@contextlib.contextmanager
-def run_lock(run_dir: Path):
-    """Hold ``run_dir``'s training lock; TrainingError naming the holder's pid when another
-    process is training in that folder."""
-    with open(Path(run_dir) / ".lock", "a+") as handle:
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            handle.seek(0)
-            holder = handle.read().strip() or "unknown"
-            raise TrainingError(f"run {run_dir} is being trained by another process (pid {holder})") from None
-        handle.truncate(0)
-        handle.write(f"{os.getpid()}\n")
-        handle.flush()
-        try:
-            yield
-        finally:
-            handle.truncate(0)
+def run_lock(run_dir: Path) -> contextlib.AbstractContextManager:
+    """``run_dir``'s training lock (`urd.dataset.pid_lock`); TrainingError naming the holder's
+    pid when another process is training in that folder."""
+    return pid_lock(Path(run_dir) / ".lock",
+                    busy=lambda pid: TrainingError(f"run {run_dir} is being trained by another process (pid {pid})"),
+                    unopenable=lambda exc: TrainingError(f"cannot lock run {run_dir}: {exc.strerror or exc}"))
 
 
 def check_resumable(stored: dict, cfg: TrainConfig, source: Path) -> None:

@@ -48,7 +48,7 @@ import re
 import shutil
 import tempfile
 from pathlib import Path, PurePosixPath
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 from urd import __version__
 from urd.errors import DatasetBusyError, DatasetError, ManifestError
@@ -106,6 +106,30 @@ def atomic_path(path: Path, overwrite: bool = False) -> Iterator[Path]:
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+@contextlib.contextmanager
+def pid_lock(path: Path, busy: Callable[[str], Exception], unopenable: Callable[[OSError], Exception]) -> Iterator[None]:
+    """Hold an exclusive lock on the file ``path`` (created if missing), with this process's
+    pid written in it while held. Raises ``busy(holder pid)`` when another open of it holds the
+    lock, ``unopenable(error)`` when it cannot be opened."""
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as exc:
+        raise unopenable(exc) from exc
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise busy(os.pread(fd, 64, 0).decode(errors="replace").strip() or "unknown") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        try:
+            yield
+        finally:
+            os.ftruncate(fd, 0)
+    finally:
+        os.close(fd)
 
 
 def write_bytes_atomic(path: Path, data: bytes, overwrite: bool = False) -> None:
@@ -807,28 +831,15 @@ class Dataset:
             finally:
                 _HELD[key] -= 1
             return
-        path = self.root / LOCK_FILE
-        try:
-            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-        except OSError as exc:
-            raise DatasetError(f"cannot lock dataset {self.root}: {exc.strerror or exc}") from exc
-        try:
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "unknown"
-                raise DatasetBusyError(f"dataset {self.root} busy (held by pid {holder}); "
-                                       "wait for that command to finish") from None
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        with pid_lock(self.root / LOCK_FILE,
+                      busy=lambda pid: DatasetBusyError(f"dataset {self.root} busy (held by pid {pid}); "
+                                                        "wait for that command to finish"),
+                      unopenable=lambda exc: DatasetError(f"cannot lock dataset {self.root}: {exc.strerror or exc}")):
             _HELD[key] = 1
             try:
                 yield
             finally:
                 del _HELD[key]
-                os.ftruncate(fd, 0)
-        finally:
-            os.close(fd)
 
     def scene_names(self) -> list[str]:
         """Names of the scene folders present (readable or not), sorted by number."""

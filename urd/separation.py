@@ -131,8 +131,7 @@ def write_results(folder: Path, r_hat: np.ndarray, t_hat: np.ndarray, overwrite:
     with concurrent.futures.ThreadPoolExecutor(max_workers=2) as pool:
         for done in [pool.submit(write, path, image, overwrite=overwrite) for path, (write, image) in jobs.items()]:
             done.result()
-    paths = list(jobs)
-    return paths
+    return list(jobs)
 
 
 @dataclasses.dataclass
