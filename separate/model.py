@@ -65,7 +65,7 @@ def canonical_inputs(obs: torch.Tensor, angles: Sequence[float] = NOMINAL_ANGLES
         shots = obs
     else:
         shots = torch.stack([optics.intensity_from_stokes(stokes, phi_ref + a) for a in NOMINAL_ANGLES], dim=1)
-    i_perp, i_par, _ = optics.canonical_projection(stokes, phi_ref)
+    i_perp, i_par = optics.canonical_intensities(stokes, phi_ref)
     return shots, i_perp, i_par
 
 

@@ -313,12 +313,26 @@ def canonical_projection(stokes: Array, phi_ref: float = 0.0) -> tuple[Array, Ar
         (I⊥, I∥, φ⊥) with φ⊥ − phi_ref in [−π/4, π/4]; I⊥ + I∥ = S0.
     """
     xp = _xp(stokes)
+    s1, s2, sign = _canonical_frame(stokes, phi_ref)
+    i_perp, i_par = canonical_intensities(stokes, phi_ref)
+    return i_perp, i_par, phi_ref + 0.5 * xp.arctan2(sign * s2, sign * s1)
+
+
+def canonical_intensities(stokes: Array, phi_ref: float = 0.0) -> tuple[Array, Array]:
+    """(I⊥, I∥) of `canonical_projection`, without φ⊥ (no arctangent: the network's input)."""
+    xp = _xp(stokes)
+    s1, s2, sign = _canonical_frame(stokes, phi_ref)
+    diff = sign * xp.sqrt(s1**2 + s2**2)
+    return (stokes[0] + diff) / 2, (stokes[0] - diff) / 2
+
+
+def _canonical_frame(stokes: Array, phi_ref: float) -> tuple[Array, Array, Array]:
+    """S1, S2 in the frame of ``phi_ref`` (rad) and the sign (±1) that puts φ⊥ within ±45° of it."""
+    xp = _xp(stokes)
     c, s = float(np.cos(2 * phi_ref)), float(np.sin(2 * phi_ref))
     s1 = stokes[1] * c + stokes[2] * s
     s2 = -stokes[1] * s + stokes[2] * c
     sign = xp.where(s1 >= 0, 1.0, -1.0)
     if xp is not np:
         sign = sign.to(stokes.dtype)
-    psi = 0.5 * xp.arctan2(sign * s2, sign * s1)
-    diff = sign * xp.sqrt(s1**2 + s2**2)
-    return (stokes[0] + diff) / 2, (stokes[0] - diff) / 2, phi_ref + psi
+    return s1, s2, sign

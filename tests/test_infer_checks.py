@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from separate.infer import OVERLAP, TILE, FusedNet, load_model, runner, separate_stack, tile_spans
+from separate.infer import OVERLAP, STRIP_ROWS, TILE, FusedNet, load_model, runner, separate_stack, tile_spans
 from separate.model import ResizeUp, SeparationNet, with_resize_upsampling
 
 SMALL = np.random.default_rng(0).random((3, 40, 48, 3)).astype(np.float32)
@@ -57,11 +57,13 @@ def test_tiled_matches_whole_image():
     assert max(np.abs(r_whole - r_tiled).max(), np.abs(t_whole - t_tiled).max()) < 1e-3
 
 
+@pytest.mark.parametrize("strip_rows", [STRIP_ROWS, 16])
 @pytest.mark.parametrize("variant", ["canonical", "direct", "resize"])
-def test_fused_network_matches_the_module(variant):
+def test_fused_network_matches_the_module(variant, strip_rows):
     # FusedNet repeats SeparationNet.forward with oneDNN's fused convolutions: it must give the same
     # numbers (measured: 8e-7 in fp32 with the shipped weights), at an odd size and with four shots;
-    # "resize": the shipped weights with the decoder's up-sampling made bilinear (ResizeUp)
+    # "resize": the shipped weights with the decoder's up-sampling made bilinear (ResizeUp);
+    # 16 strip rows: the 64 padded rows run as 4 strips at full resolution, 4, 2 and 1 below
     torch.manual_seed(0)
     model = load_model()[0] if variant != "direct" else SeparationNet(width=8, variant="direct").eval()
     if variant == "resize":
@@ -72,8 +74,8 @@ def test_fused_network_matches_the_module(variant):
     scale = torch.tensor([0.4])
     with torch.inference_mode():
         expected = model(obs, angles, scale)
-        fp32 = FusedNet(model)(obs, angles, scale)
-        bf16 = FusedNet(model, torch.bfloat16)(obs, angles, scale)
+        fp32 = FusedNet(model, strip_rows=strip_rows)(obs, angles, scale)
+        bf16 = FusedNet(model, torch.bfloat16, strip_rows)(obs, angles, scale)
     for want, got, rounded in zip(expected, fp32, bf16):
         assert got.shape == want.shape and got.dtype == torch.float32
         torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
@@ -94,6 +96,8 @@ def test_runner_falls_back_to_the_module_for_other_networks():
     np.testing.assert_allclose(r_hat, (SMALL[0] + SMALL[2]) / 2, atol=1e-6)
     with pytest.raises(TypeError, match="expected a SeparationNet"):
         FusedNet(Halves())
+    with pytest.raises(ValueError, match="strip_rows of at least 8"):
+        FusedNet(SeparationNet(width=8), strip_rows=4)
 
 
 def test_presenting_tile_by_tile_matches_presenting_the_stack():

@@ -714,7 +714,8 @@ class Scene:
         data = self._data()
         results = data.setdefault("results", {})
         if method in results and not replace:
-            raise DatasetError(f"{self.results_dir(method)} exists; pass --force to replace these results")
+            raise DatasetError(f"{self.name} already has {method} results ({self.results_dir(method)}); "
+                               "pass --force to replace them")
         old = {f["file"] for f in results.get(method, {}).get("files", [])}
         base = {**entry, "time": now_iso(), "method": method}
 
