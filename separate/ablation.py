@@ -7,7 +7,9 @@ per seed, their mean and spread, and the paired T̂ gains between pipelines trai
 same seed, so that the order of the pipelines can be judged against the noise of one training run.
 
 Runs live in ``runs_dir/<pipeline>-s<seed>`` (e.g. ``dr-nrd-s1``) (`urd train` folders: an unfinished one
-resumes); each run's best checkpoint is exported as float16 weights with a model card.
+resumes); each run's best checkpoint is exported as float16 weights with a model card. The budget
+is the configs' step count unless ``steps`` overrides it for every run (a larger budget belongs in
+its own runs folder: a finished run resumed with more steps would stretch its learning-rate schedule).
 """
 
 from __future__ import annotations
@@ -38,6 +40,7 @@ class AblationRun:
     seed: int
     config: Path
     folder: Path
+    steps: int | None = None
 
     @property
     def label(self) -> str:
@@ -45,8 +48,9 @@ class AblationRun:
         return f"{self.pipeline}/s{self.seed}"
 
     def train_config(self) -> TrainConfig:
-        """The config file's settings with this run's seed, one thread (runs go side by side)."""
-        return dataclasses.replace(TrainConfig.from_toml(self.config), seed=self.seed, threads=1)
+        """The config file's settings with this run's seed and budget, one thread (runs go side by side)."""
+        cfg = TrainConfig.from_toml(self.config)
+        return dataclasses.replace(cfg, seed=self.seed, threads=1, steps=self.steps or cfg.steps)
 
     def finished(self) -> bool:
         """Whether the folder holds a checkpoint at the config's last step."""
@@ -54,11 +58,14 @@ class AblationRun:
         return last.exists() and load_checkpoint(last)["step"] >= self.train_config().steps
 
 
-def ablation_runs(seeds: Sequence[int], runs_dir: Path, configs: Path = CONFIGS) -> list[AblationRun]:
-    """Every (pipeline, seed) run; ValueError unless there are at least two different seeds."""
+def ablation_runs(seeds: Sequence[int], runs_dir: Path, configs: Path = CONFIGS, steps: int | None = None) -> list[AblationRun]:
+    """Every (pipeline, seed) run, of ``steps`` steps each (default: the configs'); ValueError
+    unless there are at least two different seeds and ``steps`` is positive."""
     if len(set(seeds)) < 2 or any(s < 0 for s in seeds):
         raise ValueError(f"expected at least two different non-negative seeds (the spread between them is the point), got {list(seeds)}")
-    return [AblationRun(pipeline, seed, Path(configs) / f"{stem}.toml", Path(runs_dir) / f"{stem.removeprefix('ablation-')}-s{seed}")
+    if steps is not None and steps < 1:
+        raise ValueError(f"expected at least 1 training step per run, got {steps}")
+    return [AblationRun(pipeline, seed, Path(configs) / f"{stem}.toml", Path(runs_dir) / f"{stem.removeprefix('ablation-')}-s{seed}", steps)
             for pipeline, stem in PIPELINES.items() for seed in dict.fromkeys(seeds)]
 
 
@@ -142,10 +149,11 @@ def format_ablation(runs: Sequence[AblationRun], rows: list[dict], header: str) 
 
 def run_ablation(out_dir: Path, runs_dir: Path, seeds: Sequence[int] = (0, 1), jobs: int = 2, count: int = 64,
                  size: int = 256, configs: Path = CONFIGS, progress: Callable[[int, int], None] | None = None,
-                 command: str | None = None) -> dict:
-    """Train what is missing, score every run, and write ``out_dir``/ablation.md, .csv, .png
-    and ``out_dir``/weights; returns {"files": [...], "trained": [run folder names], "rows": [...]}."""
-    runs = ablation_runs(seeds, runs_dir, configs)
+                 command: str | None = None, steps: int | None = None) -> dict:
+    """Train what is missing (``steps`` per run, default the configs'), score every run, and
+    write ``out_dir``/ablation.md, .csv, .png and ``out_dir``/weights; returns
+    {"files": [...], "trained": [run folder names], "rows": [...]}."""
+    runs = ablation_runs(seeds, runs_dir, configs, steps)
     trained = train_missing(runs, jobs, progress)
     out_dir = Path(out_dir)
     started = time.perf_counter()

@@ -25,6 +25,16 @@ def test_ablation_needs_two_seeds(tmp_path):
     assert names == ["dr-s0", "dr-s1", "dr-nrd-s0", "dr-nrd-s1", "dr-nrd-lcg-s0", "dr-nrd-lcg-s1"]
 
 
+def test_ablation_budget_is_the_configs_unless_steps_overrides_it(tmp_path):
+    configs = tiny_configs(tmp_path / "configs")
+    assert {run.train_config().steps for run in ablation_runs([0, 1], tmp_path, configs)} == {2}
+    longer = ablation_runs([0, 1], tmp_path, configs, steps=7)
+    assert {(run.train_config().steps, run.train_config().threads) for run in longer} == {(7, 1)}
+    assert [run.train_config().seed for run in longer] == [0, 1] * 3
+    with pytest.raises(ValueError, match="at least 1 training step"):
+        ablation_runs([0, 1], tmp_path, configs, steps=0)
+
+
 @pytest.mark.slow
 def test_ablation_trains_scores_and_resumes_without_retraining(tmp_path):
     configs = tiny_configs(tmp_path / "configs")

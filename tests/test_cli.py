@@ -70,6 +70,8 @@ def test_bad_parameters_exit_2_with_the_reason(tmp_path, monkeypatch):
                          (("capture", "--stage", "sim", "--sim-size", "0x10"), "between 16 and 20000"),
                          (("separate", "scene_01", "--reference", "east"), "'auto' or an angle"),
                          (("bench", "--ablation", "--seeds", "1,1"), "at least two different"),
-                         (("bench", "--jobs", "3"), "go with --ablation")):
+                         (("bench", "--jobs", "3"), "go with --ablation"),
+                         (("bench", "--steps", "16000"), "go with --ablation"),
+                         (("bench", "--ablation", "--steps", "0"), "--steps")):
         out = CliRunner().invoke(app, list(args))
         assert out.exit_code == 2 and reason in out.stderr, (args, out.output)

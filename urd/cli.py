@@ -420,7 +420,8 @@ def bench(
     ablation: bool = typer.Option(False, "--ablation", help="The paper's pipeline ablation (DR, DR+NRD, DR+NRD+LCG) with several seeds: trains the runs missing from --runs (configs/ablation-*.toml, about 1 h of CPU each), scores them on --count patches, writes OUT/ablation (default docs/bench/ablation)."),
     seeds: str = typer.Option("0,1", help="With --ablation: comma-separated training seeds (at least two)."),
     jobs: int = typer.Option(2, min=1, help="With --ablation: training runs side by side (one thread each)."),
-    runs: Path = typer.Option(Path("runs/ablation"), help="With --ablation: folder of the training runs (unfinished ones resume)."),
+    runs: Optional[Path] = typer.Option(None, help="With --ablation: folder of the training runs (unfinished ones resume; default runs/ablation, or runs/ablation-STEPS with --steps)."),
+    steps: Optional[int] = typer.Option(None, min=1, help="With --ablation: training steps of every run (default: the configs' 4000; e.g. 16000 on a GPU)."),
 ) -> None:
     """Benchmark the methods on synthetic data with ground truth: by default one table of RMSE /
     PSNR / SSIM of R and T per method (with network and direct: their paired T PSNR difference);
@@ -428,8 +429,8 @@ def bench(
     --ablation the multi-seed pipeline ablation."""
     if large and not full:
         raise typer.BadParameter("--24mp goes with --full")
-    if not ablation and (seeds != "0,1" or jobs != 2 or runs != Path("runs/ablation")):
-        raise typer.BadParameter("--seeds, --jobs and --runs go with --ablation")
+    if not ablation and (seeds != "0,1" or jobs != 2 or runs is not None or steps is not None):
+        raise typer.BadParameter("--seeds, --jobs, --runs and --steps go with --ablation")
     if ablation:
         from separate.ablation import run_ablation
         from separate.evaluate import DEFAULT_OUT
@@ -437,9 +438,10 @@ def bench(
         seed_list = parse_seeds(seeds)
         folder = (out or DEFAULT_OUT) / "ablation"
         bar = TerminalProgress()
+        runs = runs or Path("runs/ablation" + (f"-{steps}" if steps else ""))
         result = run_guarded(run_ablation, folder, runs, seed_list, jobs, count, size,
                              progress=lambda done, total: bar(done, total, "ablation training runs"),
-                             command=" ".join(["urd"] + sys.argv[1:]))
+                             command=" ".join(["urd"] + sys.argv[1:]), steps=steps)
         bar.close()
         typer.echo(Path(result["files"][0]).read_text())
         typer.echo(f"table, CSV, plot and weights in {folder.resolve()}")
