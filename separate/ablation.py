@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
+import torch
 
 from separate.bench import SEED, paired_gain, run_benchmark
 from separate.evaluate import cpu_model, environment, plot_bars, write_csv, write_text
@@ -50,7 +51,7 @@ class AblationRun:
     def train_config(self) -> TrainConfig:
         """The config file's settings with this run's seed and budget, one thread (runs go side by side)."""
         cfg = TrainConfig.from_toml(self.config)
-        return dataclasses.replace(cfg, seed=self.seed, threads=1, steps=self.steps or cfg.steps)
+        return dataclasses.replace(cfg, seed=self.seed, threads=1, steps=cfg.steps if self.steps is None else self.steps)
 
     def finished(self) -> bool:
         """Whether the folder holds a checkpoint at the config's last step."""
@@ -107,7 +108,8 @@ def train_missing(runs: Sequence[AblationRun], jobs: int, progress: Callable[[in
 def score(runs: Sequence[AblationRun], weights_dir: Path, count: int, size: int) -> list[dict]:
     """Export each run's best checkpoint into ``weights_dir`` (float16 + card) and score it on
     the benchmark (``count`` patches of ``size``²); one `run_benchmark` row per run."""
-    device = f"{cpu_model()} (the machine that exported it), one thread per run, runs side by side"
+    device = (f"{torch.cuda.get_device_name()}, runs side by side" if torch.cuda.is_available() else
+              f"{cpu_model()} (the machine that exported it), one thread per run, runs side by side")
     methods = []
     for run in runs:
         target = Path(weights_dir) / f"{run.folder.name}.pt"
@@ -159,10 +161,10 @@ def run_ablation(out_dir: Path, runs_dir: Path, seeds: Sequence[int] = (0, 1), j
     started = time.perf_counter()
     rows = score(runs, out_dir / "weights", count, size)
     env = environment(command)
-    steps = runs[0].train_config().steps
+    budget = runs[0].train_config().steps
     header = (f"# Ablation of the synthesis pipeline, {len(set(seeds))} seeds\n\n"
               f"Command: `{env['command']}` (commit {env['commit']}, {env['date']}, {env['cpu']}). Each run: "
-              f"`{runs[0].config.parent.name}/ablation-*.toml` with its seed ({steps} steps), scored at its best-validation "
+              f"`{runs[0].config.parent.name}/ablation-*.toml` with its seed ({budget} steps), scored at its best-validation "
               f"checkpoint; benchmark: {count} patches of {size}² (seed {SEED}, full pipeline, reference auto), scored in "
               f"{time.perf_counter() - started:.0f} s. Weights and cards: `weights/` (not shipped).")
     write_text(out_dir / "ablation.md", format_ablation(runs, rows, header))

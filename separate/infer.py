@@ -12,7 +12,7 @@ whose 2048 px tiles are 1632×1456: 0.51 and 0.69 GiB; 0.16 and 0.26 GiB with 10
 and memory that glibc would keep after each tile is handed back. The default 2048 px tiles put
 a 24 MP image through the network as 1.19× its pixels (1.39× with 1024 px tiles; 3072 px gave
 no further gain): bf16 23.2 s instead of 26.3 s, fp32 38.4 s instead of 43.9 s on the
-development machine (2-core AMD EPYC with AVX-512 BF16). A stack of uint16 codes (as scenes are
+development machine (2-core AMD EPYC with AVX-512 BF16; measured before the strips below). A stack of uint16 codes (as scenes are
 stored) is converted to float a tile at a time. One exposure scale, mean(S0) of the whole image,
 is used for every tile.
 
@@ -180,16 +180,23 @@ class FusedNet:
         x[:, :, :, w:] = x[:, :, :, w - 1 : w]
         return x, i_perp, i_par
 
-    def _chain(self, ops: list, x: torch.Tensor, level: int) -> torch.Tensor:
+    def _chain(self, ops: Sequence[ResBlock | tuple[torch.nn.Conv2d, str]], x: torch.Tensor, level: int) -> torch.Tensor:
         """Run ``ops`` (residual blocks and (convolution, unary) pairs, all at the resolution of
-        ``level``, stride 1) on ``x`` a strip of rows at a time (`strip_rows`, halved per level),
-        so that a strip's activations stay in the CPU's cache from one convolution to the next.
-        Each strip is read with as many extra rows on either side as the convolutions reach and
-        only its own rows are kept: the result is that of the ops on the whole of ``x``."""
+        ``level``, stride 1, 'same' padding) on ``x`` a strip of rows at a time (`strip_rows`,
+        halved per level), so that a strip's activations stay in the CPU's cache from one
+        convolution to the next. Each strip is read with as many extra rows on either side as the
+        convolutions reach and only its own rows are kept: the result is that of the ops on the
+        whole of ``x``, bit for bit."""
         convs = [conv for op in ops for conv in ((op.conv1, op.conv2) if isinstance(op, ResBlock) else op[:1])]
+        if any(conv.stride[0] != 1 or 2 * conv.padding[0] != conv.dilation[0] * (conv.kernel_size[0] - 1) for conv in convs):
+            raise ValueError("expected stride-1 convolutions with 'same' padding in a chain")
         reach = sum(conv.padding[0] for conv in convs)
         rows = max(8, self.strip_rows >> level)
         h = x.shape[2]
+        if h <= rows:
+            for op in ops:
+                x = self._res_block(op, x) if isinstance(op, ResBlock) else self._conv(op[0], x, op[1])
+            return x
         out = None
         for y0 in range(0, h, rows):
             y1 = min(h, y0 + rows)
@@ -237,7 +244,7 @@ class FusedNet:
         held = [x]
         del x
         _release_freed_memory()                              # the input's temporaries (saves ~50 B/px of peak)
-        out = self.backbone(held.pop())[..., :h, :w]         # the only reference: x goes after the first layer
+        out = self.backbone(held.pop())[..., :h, :w]         # the only reference: x goes after the first level
         canonical = self.model.variant == "canonical"
         if not canonical:
             return out[:, :c].float() / gain, out[:, c : 2 * c].float() / gain
@@ -382,7 +389,7 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
 
     # torch's zeroing touches the memory on every thread up front; np.zeros leaves it to the first tile
     # of each row of tiles, which on the development VM took 0.1-0.3 s each (huge-page faults)
-    r_out, t_out = (torch.zeros((h, w, c)).numpy() for _ in range(2))
+    r_out, t_out = (torch.zeros((h, w, c), dtype=torch.float32).numpy() for _ in range(2))
     rows, cols = tile_spans(h, tile, overlap), tile_spans(w, tile, overlap)
     row_weights, col_weights = _blend_weights(rows, h, overlap), _blend_weights(cols, w, overlap)
     done, total = 0, len(rows) * len(cols)

@@ -314,16 +314,13 @@ def canonical_projection(stokes: Array, phi_ref: float = 0.0) -> tuple[Array, Ar
     """
     xp = _xp(stokes)
     s1, s2, sign = _canonical_frame(stokes, phi_ref)
-    i_perp, i_par = canonical_intensities(stokes, phi_ref)
+    i_perp, i_par = _canonical_pair(stokes[0], s1, s2, sign)
     return i_perp, i_par, phi_ref + 0.5 * xp.arctan2(sign * s2, sign * s1)
 
 
 def canonical_intensities(stokes: Array, phi_ref: float = 0.0) -> tuple[Array, Array]:
     """(I⊥, I∥) of `canonical_projection`, without φ⊥ (no arctangent: the network's input)."""
-    xp = _xp(stokes)
-    s1, s2, sign = _canonical_frame(stokes, phi_ref)
-    diff = sign * xp.sqrt(s1**2 + s2**2)
-    return (stokes[0] + diff) / 2, (stokes[0] - diff) / 2
+    return _canonical_pair(stokes[0], *_canonical_frame(stokes, phi_ref))
 
 
 def _canonical_frame(stokes: Array, phi_ref: float) -> tuple[Array, Array, Array]:
@@ -336,3 +333,9 @@ def _canonical_frame(stokes: Array, phi_ref: float) -> tuple[Array, Array, Array
     if xp is not np:
         sign = sign.to(stokes.dtype)
     return s1, s2, sign
+
+
+def _canonical_pair(s0: Array, s1: Array, s2: Array, sign: Array) -> tuple[Array, Array]:
+    """I⊥ = (S0 + sign·|S12|)/2 and I∥ = (S0 − sign·|S12|)/2 in the frame of `_canonical_frame`."""
+    diff = sign * _xp(s0).sqrt(s1**2 + s2**2)
+    return (s0 + diff) / 2, (s0 - diff) / 2

@@ -82,6 +82,21 @@ def test_fused_network_matches_the_module(variant, strip_rows):
         assert (rounded - want).abs().max() < 0.03 * want.abs().max()   # bf16 rounding of the activations
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+def test_strips_give_the_whole_tile_bit_for_bit(dtype):
+    # FusedNet's strips (_chain) read each strip with the rows its convolutions reach: the result
+    # must not differ by a single bit from one strip covering the tile, for a batch of two
+    torch.manual_seed(1)
+    model = load_model()[0]
+    obs = torch.rand(2, 3, 3, 93, 70)
+    angles, scale = list(np.radians([0, 45, 90])), torch.tensor([0.3, 0.5])
+    with torch.inference_mode():
+        whole = FusedNet(model, dtype, strip_rows=1024)(obs, angles, scale)
+        strips = FusedNet(model, dtype, strip_rows=24)(obs, angles, scale)      # 4, 4, 3 and 2 strips per level
+    for a, b in zip(whole, strips):
+        assert torch.equal(a, b)
+
+
 def test_runner_falls_back_to_the_module_for_other_networks():
     class Halves(torch.nn.Module):
         channels = 3

@@ -284,7 +284,7 @@ def test_urd_separate_on_a_simulated_scene_beats_no_separation(tmp_path):
     figures = entry["truth_metrics"]
     assert figures["T"]["psnr_db"] > figures["T_no_separation"]["psnr_db"] + 3
     out = urd("separate", "scene_01", "--dataset", tmp_path / "ds")
-    assert out.returncode == 1 and "--force" in out.stderr       # never overwrites silently
+    assert out.returncode == 1 and "scene_01 already has network results" in out.stderr and "--force" in out.stderr
     files = [scene.path / f"aligned/shot_0{i}.tiff" for i in range(3)]
     args = [a for f in files for a in ("--images", f)]
     out = urd("separate", *args, "--out", tmp_path / "files")

@@ -421,7 +421,7 @@ def bench(
     seeds: str = typer.Option("0,1", help="With --ablation: comma-separated training seeds (at least two)."),
     jobs: int = typer.Option(2, min=1, help="With --ablation: training runs side by side (one thread each)."),
     runs: Optional[Path] = typer.Option(None, help="With --ablation: folder of the training runs (unfinished ones resume; default runs/ablation, or runs/ablation-STEPS with --steps)."),
-    steps: Optional[int] = typer.Option(None, min=1, help="With --ablation: training steps of every run (default: the configs' 4000; e.g. 16000 on a GPU)."),
+    steps: Optional[int] = typer.Option(None, min=1, help="With --ablation: training steps of every run (default: the configs' 4000; e.g. 16000 on a GPU); its runs in runs/ablation-STEPS and its report in OUT/ablation-STEPS."),
 ) -> None:
     """Benchmark the methods on synthetic data with ground truth: by default one table of RMSE /
     PSNR / SSIM of R and T per method (with network and direct: their paired T PSNR difference);
@@ -436,7 +436,7 @@ def bench(
         from separate.evaluate import DEFAULT_OUT
 
         seed_list = parse_seeds(seeds)
-        folder = (out or DEFAULT_OUT) / "ablation"
+        folder = (out or DEFAULT_OUT) / ("ablation" + (f"-{steps}" if steps else ""))
         bar = TerminalProgress()
         runs = runs or Path("runs/ablation" + (f"-{steps}" if steps else ""))
         result = run_guarded(run_ablation, folder, runs, seed_list, jobs, count, size,

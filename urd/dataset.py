@@ -707,15 +707,20 @@ class Scene:
         for name in sorted(old - kept):
             (self.path / name).unlink(missing_ok=True)
 
+    def check_no_results(self, method: str) -> None:
+        """DatasetError if the manifest already records results of ``method`` (replacing them takes --force)."""
+        if method in self.methods():
+            raise DatasetError(f"{self.name} already has {method} results ({self.results_dir(method)}); "
+                               "pass --force to replace them")
+
     def add_result(self, method: str, staged: dict[str, Path], entry: dict, replace: bool = False) -> Result:
         """Record a method's results: staged files (final name → staged path) are swapped in
         over the previous results (only with ``replace``); ``entry`` holds the method's
         description (parameters, weights, metrics). Returns the stored entry."""
         data = self._data()
         results = data.setdefault("results", {})
-        if method in results and not replace:
-            raise DatasetError(f"{self.name} already has {method} results ({self.results_dir(method)}); "
-                               "pass --force to replace them")
+        if not replace:
+            self.check_no_results(method)
         old = {f["file"] for f in results.get(method, {}).get("files", [])}
         base = {**entry, "time": now_iso(), "method": method}
 

@@ -159,9 +159,8 @@ def separate_scene(scene: Scene, method: str, run, info: dict, force: bool = Fal
     ``force``, and only once the new ones are complete."""
     with scene.lock():
         scene.reload()
-        if method in scene.methods() and not force:
-            raise DatasetError(f"{scene.name} already has {method} results ({scene.results_dir(method)}); "
-                               "pass --force to replace them")
+        if not force:
+            scene.check_no_results(method)
         images, angles = scene.load_stack(codes=True)          # uint16: half the memory of float32
         r_hat, t_hat, inspection = _separate(images, angles, run, reference)
         del images                                            # the largest array: free it before writing
