@@ -24,7 +24,8 @@ the convolutions (separate ReLU and sum passes, layout conversions): ~70% of the
 rate in fp32 and in native bf16, one thread, network alone (``tools/bench_speed.py``). The
 convolutions between two changes of resolution run in strips of rows (`STRIP_ROWS`) whose
 activations stay in cache instead of each convolution streaming the whole tile through
-memory (24 MP `separate_stack`: bf16 23.1–24.6 → 21.2–22.0 s, fp32 37.0 → 32.5 s). Other
+memory (24 MP `separate_stack`, transposed decoder: bf16 23.1–24.6 → 21.2–22.0 s, fp32 with
+AVX-512 37.0 → 32.5 s). Other
 networks (the CEILNet baseline) run as modules, under bf16 autocast where chosen.
 
 Input handling: NaN or infinite pixels are an error; negative pixels (linear decoding noise
@@ -70,15 +71,19 @@ MODULE_TILE = 1024  # px for networks run as modules (CEILNet, or torch without 
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "urd-canonical.pt"
 
 
-def load_model(path: Path | None = None) -> tuple[torch.nn.Module, dict]:
+def load_model(path: Path | str | None = None) -> tuple[torch.nn.Module, dict]:
     """Load shipped or trained weights; WeightsError if missing, corrupt or mismatched.
 
-    Accepts a weights file (``{"model", "model_config"}``) or a training checkpoint.
+    Accepts a weights file (``{"model", "model_config"}``), a training checkpoint, or the name
+    of a shipped weights file without its suffix (e.g. "urd-canonical-resize", `shipped_weights`).
     Returns the model in eval mode and a description (file, sha256, config, card).
     """
     path = Path(path or DEFAULT_WEIGHTS)
+    if not path.is_file() and path.name == str(path) and (WEIGHTS_DIR / f"{path}.pt").is_file():
+        path = WEIGHTS_DIR / f"{path}.pt"
     if not path.is_file():
-        raise WeightsError(f"weights file {path} not found (train with 'urd train' or reinstall urd)")
+        raise WeightsError(f"weights file {path} not found (shipped: {', '.join(shipped_weights())}; "
+                           "train your own with 'urd train')")
     digest = hashlib.sha256(path.read_bytes()).hexdigest()
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
@@ -91,6 +96,11 @@ def load_model(path: Path | None = None) -> tuple[torch.nn.Module, dict]:
     info = {"file": str(path), "sha256": digest, "config": state["model_config"],
             "card": json.loads(card.read_text()) if card.is_file() else None}
     return model, info
+
+
+def shipped_weights() -> list[str]:
+    """Names of the weights files shipped with urd (`load_model` accepts them as paths)."""
+    return sorted(p.stem for p in WEIGHTS_DIR.glob("*.pt"))
 
 
 def check_inputs(images: np.ndarray, angles_deg: list[float]) -> None:

@@ -1,13 +1,16 @@
 """separate.infer: tile and overlap checks, tiling at the default tile size, the fused network."""
 
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from separate.infer import OVERLAP, STRIP_ROWS, TILE, FusedNet, load_model, runner, separate_stack, tile_spans
-from separate.model import ResizeUp, SeparationNet, with_resize_upsampling
+from separate.infer import (OVERLAP, STRIP_ROWS, TILE, FusedNet, load_model, runner, separate_stack, shipped_weights,
+                            tile_spans)
+from separate.model import ResizeUp, SeparationNet
+from urd.errors import WeightsError
 
 SMALL = np.random.default_rng(0).random((3, 40, 48, 3)).astype(np.float32)
 
@@ -58,17 +61,19 @@ def test_tiled_matches_whole_image():
 
 
 @pytest.mark.parametrize("strip_rows", [STRIP_ROWS, 16])
-@pytest.mark.parametrize("variant", ["canonical", "direct", "resize"])
+@pytest.mark.parametrize("variant", ["resize", "transposed", "direct"])
 def test_fused_network_matches_the_module(variant, strip_rows):
     # FusedNet repeats SeparationNet.forward with oneDNN's fused convolutions: it must give the same
     # numbers (measured: 8e-7 in fp32 with the shipped weights), at an odd size and with four shots;
-    # "resize": the shipped weights with the decoder's up-sampling made bilinear (ResizeUp);
-    # 16 strip rows: the 64 padded rows run as 4 strips at full resolution, 4, 2 and 1 below
+    # "resize": the shipped weights (decoder up-sampling bilinear, ResizeUp); "transposed": the
+    # paper's decoder (urd-canonical-transposed); 16 strip rows: the 64 padded rows run as 4 strips
+    # at full resolution, 4, 2 and 1 below
     torch.manual_seed(0)
-    model = load_model()[0] if variant != "direct" else SeparationNet(width=8, variant="direct").eval()
-    if variant == "resize":
-        model = with_resize_upsampling(model).eval()
-        assert model.config()["upsample"] == "resize" and isinstance(model.up[0], ResizeUp)
+    if variant == "direct":
+        model = SeparationNet(width=8, variant="direct").eval()
+    else:
+        model = load_model(None if variant == "resize" else "urd-canonical-transposed")[0]
+        assert isinstance(model.up[0], ResizeUp) == (variant == "resize")
     obs = torch.rand(1, 4, 3, 61, 83)
     angles = list(np.radians([10, 55, 100, 145]))
     scale = torch.tensor([0.4])
@@ -80,6 +85,15 @@ def test_fused_network_matches_the_module(variant, strip_rows):
         assert got.shape == want.shape and got.dtype == torch.float32
         torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
         assert (rounded - want).abs().max() < 0.03 * want.abs().max()   # bf16 rounding of the activations
+
+
+def test_shipped_weights_load_by_name():
+    assert {"urd-canonical", "urd-canonical-transposed", "urd-direct", "ceilnet"} <= set(shipped_weights())
+    model, info = load_model("urd-canonical-transposed")
+    assert Path(info["file"]).name == "urd-canonical-transposed.pt" and not isinstance(model.up[0], ResizeUp)
+    assert isinstance(load_model()[0].up[0], ResizeUp)                      # the default decoder resizes
+    with pytest.raises(WeightsError, match="not found .*shipped: .*urd-canonical-transposed"):
+        load_model("urd-canonical-nonexistent")
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])

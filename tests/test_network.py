@@ -15,7 +15,7 @@ import torch
 
 from rig import capture_virtual
 from separate import optics
-from separate.infer import DEFAULT_WEIGHTS, load_model, match_histograms, separate_stack, tile_spans
+from separate.infer import DEFAULT_WEIGHTS, WEIGHTS_DIR, load_model, match_histograms, separate_stack, tile_spans
 from separate.model import NOMINAL_ANGLES, SeparationNet, canonical_inputs
 from separate.synthesis import SynthesisConfig, Synthesizer, load_image_pool
 from separate.train import TrainConfig, run_lock, train
@@ -295,7 +295,9 @@ def test_urd_separate_on_a_simulated_scene_beats_no_separation(tmp_path):
 
 @pytest.mark.slow
 def test_training_continues_from_the_shipped_weights(tmp_path):
-    cfg = TrainConfig(width=16, patch=32, batch=4, micro_batch=4, steps=1, val_samples=8, val_every=1, threads=1)
+    upsample = load_model()[1]["config"].get("upsample", "transposed")          # the shipped decoder
+    cfg = TrainConfig(width=16, patch=32, batch=4, micro_batch=4, steps=1, val_samples=8, val_every=1, threads=1,
+                      upsample=upsample)
     scratch = train(cfg, tmp_path / "scratch")
     tuned = train(cfg, tmp_path / "tuned", init=DEFAULT_WEIGHTS)
     assert tuned["psnr_t"] > scratch["psnr_t"] + 3
@@ -365,9 +367,10 @@ def test_training_refuses_init_weights_of_another_architecture(tmp_path):
 
     cfg = TrainConfig(width=16, patch=32, batch=4, micro_batch=4, steps=1, val_samples=8, val_every=1, threads=1,
                       upsample="resize")
+    transposed = WEIGHTS_DIR / "urd-canonical-transposed.pt"
     with pytest.raises(WeightsError, match="tools/resize_upsampling.py"):
-        train(cfg, tmp_path / "run", init=DEFAULT_WEIGHTS)            # transposed weights, resize config
-    resized = with_resize_upsampling(load_model()[0])
+        train(cfg, tmp_path / "run", init=transposed)                  # transposed weights, resize config
+    resized = with_resize_upsampling(load_model(transposed)[0])
     init = tmp_path / "resize-init.pt"
     torch.save({"model": resized.state_dict(), "model_config": resized.config()}, init)
     record = train(cfg, tmp_path / "run2", init=init)

@@ -1,6 +1,6 @@
 """Turn a network's transposed-convolution up-sampling into resize up-sampling, for fine-tuning.
 
-    python tools/resize_upsampling.py [--weights separate/weights/urd-canonical.pt] --out runs/resize-init.pt
+    python tools/resize_upsampling.py [--weights separate/weights/urd-canonical-transposed.pt] --out runs/resize-init.pt
 
 Writes a weights file (``{"model", "model_config"}``, as `separate.infer.load_model` and
 ``urd train --init`` read) whose decoder up-samples with `separate.model.ResizeUp` (1×1
@@ -15,11 +15,11 @@ from pathlib import Path
 import torch
 
 from separate.bench import run_benchmark
-from separate.infer import DEFAULT_WEIGHTS, load_model
+from separate.infer import WEIGHTS_DIR, load_model
 from separate.model import with_resize_upsampling
 
 parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-parser.add_argument("--weights", type=Path, default=DEFAULT_WEIGHTS)
+parser.add_argument("--weights", type=Path, default=WEIGHTS_DIR / "urd-canonical-transposed.pt")
 parser.add_argument("--out", type=Path, required=True)
 args = parser.parse_args()
 if args.out.exists():
