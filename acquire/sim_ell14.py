@@ -633,13 +633,16 @@ def serve(sim: SimulatedEll14, announce: Callable[[str], None], stop: threading.
     """Serve ``sim`` (started here if it is not yet) until ``stop`` is set, Ctrl-C, or SIGTERM.
 
     ``announce`` gets one line with the pty path to open, e.g. ``simulated ELL14 on /dev/pts/5
-    (address 0); Ctrl-C to stop``. Called from the main thread, SIGTERM sets ``stop`` while
-    serving (the previous handler is restored on return). Returns normally on each of these;
+    (address 0); Ctrl-C to stop``. Called from the main thread, SIGTERM sets ``stop`` and SIGINT
+    stops it even where the parent shell ignored SIGINT (a background job), while serving (the
+    previous handlers are restored on return). Returns normally on each of these;
     DeviceError if the simulator stops serving by itself. Does not close ``sim``.
     """
     stop = stop or threading.Event()
     in_main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, lambda signum, frame: stop.set()) if in_main_thread else None
+    # a shell starts background jobs with SIGINT ignored, and Python keeps it so: Ctrl-C / kill -INT must still stop us
+    previous_int = signal.signal(signal.SIGINT, signal.default_int_handler) if in_main_thread else None
     try:
         sim.start()
         announce(f"simulated ELL14 on {sim.port_name} (address {sim.address}); Ctrl-C to stop")
@@ -651,6 +654,7 @@ def serve(sim: SimulatedEll14, announce: Callable[[str], None], stop: threading.
     finally:
         if in_main_thread:
             signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
+            signal.signal(signal.SIGINT, previous_int if previous_int is not None else signal.default_int_handler)
 
 
 def main(argv: list[str] | None = None) -> int:

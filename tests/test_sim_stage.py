@@ -26,8 +26,9 @@ TURN = 143360          # counts per revolution
 class SimProcess:
     """``python -m acquire.sim_ell14 ARGS`` with its announced pty path and address."""
 
-    def __init__(self, *args: str):
-        self.proc = subprocess.Popen([sys.executable, "-m", "acquire.sim_ell14", *args], cwd=ROOT,
+    def __init__(self, *args: str, sigint_ignored: bool = False):
+        ignore = (lambda: signal.signal(signal.SIGINT, signal.SIG_IGN)) if sigint_ignored else None   # a shell's background job
+        self.proc = subprocess.Popen([sys.executable, "-m", "acquire.sim_ell14", *args], cwd=ROOT, preexec_fn=ignore,
                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         line = self._first_line(timeout_s=20)
         match = ANNOUNCE.match(line)
@@ -251,6 +252,14 @@ def test_options_and_sigint_stop_cleanly():
     assert sim.address == "3" and sim.path.startswith("/dev/")
     with serial.Serial(sim.path, baudrate=9600, timeout=QUIET_S) as port:
         converse(port, [(b"0gs", b""), (b"3gs", b"3GS00\r\n"), (b"3ma00004600", b"3PO00004600\r\n")])
+    status, out, err = sim.stop(signal.SIGINT)
+    assert status == 0 and "Traceback" not in err, err
+
+
+def test_sigint_stops_a_simulator_started_as_a_background_job():
+    # a non-interactive shell starts background jobs (`urd sim-stage &`) with SIGINT ignored and
+    # Python keeps it so; the simulator must still stop on Ctrl-C / kill -INT
+    sim = SimProcess("--seed", "3", sigint_ignored=True)
     status, out, err = sim.stop(signal.SIGINT)
     assert status == 0 and "Traceback" not in err, err
 
