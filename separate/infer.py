@@ -75,7 +75,7 @@ def load_model(path: Path | str | None = None) -> tuple[torch.nn.Module, dict]:
     """Load shipped or trained weights; WeightsError if missing, corrupt or mismatched.
 
     Accepts a weights file (``{"model", "model_config"}``), a training checkpoint, or the name
-    of a shipped weights file without its suffix (e.g. "urd-canonical-resize", `shipped_weights`).
+    of a shipped weights file without its suffix (e.g. "urd-canonical-transposed", `shipped_weights`).
     Returns the model in eval mode and a description (file, sha256, config, card).
     """
     path = Path(path or DEFAULT_WEIGHTS)
@@ -190,6 +190,12 @@ class FusedNet:
         x[:, :, :, w:] = x[:, :, :, w - 1 : w]
         return x, i_perp, i_par
 
+    def _run(self, ops: Sequence[ResBlock | tuple[torch.nn.Conv2d, str]], x: torch.Tensor) -> torch.Tensor:
+        """``ops`` (residual blocks and (convolution, unary) pairs) applied to ``x`` in turn."""
+        for op in ops:
+            x = self._res_block(op, x) if isinstance(op, ResBlock) else self._conv(op[0], x, op[1])
+        return x
+
     def _chain(self, ops: Sequence[ResBlock | tuple[torch.nn.Conv2d, str]], x: torch.Tensor, level: int) -> torch.Tensor:
         """Run ``ops`` (residual blocks and (convolution, unary) pairs, all at the resolution of
         ``level``, stride 1, 'same' padding) on ``x`` a strip of rows at a time (`strip_rows`,
@@ -204,16 +210,12 @@ class FusedNet:
         rows = max(8, self.strip_rows >> level)
         h = x.shape[2]
         if h <= rows:
-            for op in ops:
-                x = self._res_block(op, x) if isinstance(op, ResBlock) else self._conv(op[0], x, op[1])
-            return x
+            return self._run(ops, x)
         out = None
         for y0 in range(0, h, rows):
             y1 = min(h, y0 + rows)
             top = max(0, y0 - reach)
-            strip = x[:, :, top : min(h, y1 + reach)]
-            for op in ops:
-                strip = self._res_block(op, strip) if isinstance(op, ResBlock) else self._conv(op[0], strip, op[1])
+            strip = self._run(ops, x[:, :, top : min(h, y1 + reach)])
             if out is None:
                 out = torch.empty((x.shape[0], strip.shape[1], h, x.shape[3]), dtype=strip.dtype,
                                   memory_format=torch.channels_last)
@@ -398,7 +400,7 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
         return out.expand(-1, -1, model.channels, -1, -1) if c == 1 else out
 
     # torch's zeroing touches the memory on every thread up front; np.zeros leaves it to the first tile
-    # of each row of tiles, which on the development VM took 0.1-0.3 s each (huge-page faults)
+    # of each row of tiles, which on the development VM took 80-160 ms each (huge-page faults)
     r_out, t_out = (torch.zeros((h, w, c), dtype=torch.float32).numpy() for _ in range(2))
     rows, cols = tile_spans(h, tile, overlap), tile_spans(w, tile, overlap)
     row_weights, col_weights = _blend_weights(rows, h, overlap), _blend_weights(cols, w, overlap)
