@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
+import json
 import multiprocessing
 import time
 from pathlib import Path
@@ -25,7 +26,7 @@ import numpy as np
 import torch
 
 from separate.bench import SEED, paired_gain, run_benchmark
-from separate.evaluate import cpu_model, environment, plot_bars, write_csv, write_text
+from separate.evaluate import cpu_model, environment, plot_bars, plot_lines, write_csv, write_text
 from separate.train import TrainConfig, export_weights, load_checkpoint, train
 from urd.errors import TrainingError
 
@@ -118,6 +119,31 @@ def score(runs: Sequence[AblationRun], weights_dir: Path, count: int, size: int)
     return run_benchmark(methods, count, size)
 
 
+def validation_curve(run: AblationRun) -> dict[int, float]:
+    """A run's validation T̂ PSNR (dB) by training step, from its ``log.jsonl`` (a step logged
+    twice, after a resume, keeps its last value)."""
+    records = [json.loads(line) for line in (run.folder / "log.jsonl").read_text().splitlines() if line.strip()]
+    return {r["step"]: r["psnr_t"] for r in records if "psnr_t" in r}
+
+
+def curve_at(curve: dict[int, float], step: int) -> float:
+    """The last validation figure logged at or before ``step`` (NaN if none)."""
+    logged = [s for s in curve if s <= step]
+    return curve[max(logged)] if logged else float("nan")
+
+
+def format_curves(runs: Sequence[AblationRun], budget: int) -> str:
+    """Markdown: each run's validation T̂ PSNR at a quarter, half, three quarters and all of the
+    budget, to judge how far from convergence the runs are."""
+    marks = [budget * k // 4 for k in (1, 2, 3, 4)]
+    lines = ["Validation T̂ PSNR (dB) during training (the runs' own validation set: bsds500/val, full pipeline), "
+             "by step:", "", "| run | " + " | ".join(str(m) for m in marks) + " |", "|---|" + "---|" * len(marks)]
+    for run in runs:
+        curve = validation_curve(run)
+        lines.append(f"| {run.label} | " + " | ".join(f"{curve_at(curve, m):.2f}" for m in marks) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def format_ablation(runs: Sequence[AblationRun], rows: list[dict], header: str) -> str:
     """The Markdown report: per-pipeline T̂ PSNR per seed, mean, spread; paired gains between
     the pipelines of one seed."""
@@ -167,7 +193,7 @@ def run_ablation(out_dir: Path, runs_dir: Path, seeds: Sequence[int] = (0, 1), j
               f"`{runs[0].config.parent.name}/ablation-*.toml` with its seed ({budget} steps), scored at its best-validation "
               f"checkpoint; benchmark: {count} patches of {size}² (seed {SEED}, full pipeline, reference auto), scored in "
               f"{time.perf_counter() - started:.0f} s. Weights and cards: `weights/` (not shipped).")
-    write_text(out_dir / "ablation.md", format_ablation(runs, rows, header))
+    write_text(out_dir / "ablation.md", format_ablation(runs, rows, header) + "\n" + format_curves(runs, budget))
     by_label = {r["method"]: r for r in rows}
     write_csv(out_dir / "ablation.csv", ["pipeline", "seed", "rmse_t", "psnr_t", "ssim_t", "rmse_r", "psnr_r", "ssim_r"],
               [[run.pipeline, run.seed] + [by_label[run.label][k] for k in ("rmse_t", "psnr_t", "ssim_t", "rmse_r", "psnr_r", "ssim_r")]
@@ -176,5 +202,11 @@ def run_ablation(out_dir: Path, runs_dir: Path, seeds: Sequence[int] = (0, 1), j
     plot_bars(out_dir / "ablation.png", list(PIPELINES),
               {f"seed {s}": [by_label[f"{p}/s{s}"]["psnr_t"] for p in PIPELINES] for s in seeds},
               "Ablation: T PSNR on the synthetic benchmark", "T PSNR (dB)", "training pipeline")
-    files = [out_dir / name for name in ("ablation.md", "ablation.csv", "ablation.png")]
+    curves = {run.label: validation_curve(run) for run in runs}
+    steps = sorted({step for curve in curves.values() for step in curve})
+    every = -(-len(steps) // 12)                                        # at most 12 step labels
+    plot_lines(out_dir / "ablation-curves.png", [str(step) if i % every == 0 else "" for i, step in enumerate(steps)],
+               {label.replace("/", " "): [curve.get(step, float("nan")) for step in steps] for label, curve in curves.items()},
+               "Ablation: validation T PSNR during training", "training step", "val T PSNR (dB)")
+    files = [out_dir / name for name in ("ablation.md", "ablation.csv", "ablation.png", "ablation-curves.png")]
     return {"files": files, "trained": [run.folder.name for run in trained], "rows": rows}

@@ -2,11 +2,12 @@
 
 import csv
 import json
+import math
 import re
 
 import pytest
 
-from separate.ablation import PIPELINES, ablation_runs, run_ablation
+from separate.ablation import PIPELINES, ablation_runs, curve_at, run_ablation, validation_curve
 
 TINY = 'width = 4\npatch = 32\nbatch = 2\nmicro_batch = 2\nsteps = 2\nval_samples = 4\nval_every = 2\nprecision = "fp32"\nthreads = 1\npipeline = "{}"\n'
 
@@ -49,6 +50,10 @@ def test_ablation_trains_scores_and_resumes_without_retraining(tmp_path):
     for comparison in ("DR+NRD − DR", "DR+NRD+LCG − DR+NRD", "DR+NRD+LCG − DR"):
         cell = r"[+-]\d+\.\d\d \([+-]\d+\.\d\d to [+-]\d+\.\d\d\)"
         assert re.search(rf"^\| {re.escape(comparison)} \| {cell} \| {cell} \|$", table, re.M), table
+    curves = table.split("by step:")[1]
+    for run in ablation_runs([0, 1], tmp_path / "runs"):
+        assert re.search(rf"^\| {re.escape(run.label)} \|.* \| \d+\.\d\d \|$", curves, re.M), curves
+    assert (tmp_path / "out" / "ablation-curves.png").stat().st_size > 0
     rows = list(csv.DictReader(open(tmp_path / "out" / "ablation.csv")))
     assert [(r["pipeline"], r["seed"]) for r in rows] == [(p, s) for p in PIPELINES for s in ("0", "1")]
     cards = sorted((tmp_path / "out" / "weights").glob("*.json"))
@@ -58,3 +63,14 @@ def test_ablation_trains_scores_and_resumes_without_retraining(tmp_path):
     again = run_ablation(tmp_path / "out", tmp_path / "runs", (0, 1), jobs=2, count=3, size=64, configs=configs)
     assert again["trained"] == []
     assert [r["psnr_t"] for r in again["rows"]] == [r["psnr_t"] for r in result["rows"]]
+
+
+def test_validation_curve_keeps_a_resumed_steps_last_figure(tmp_path):
+    run = ablation_runs([0, 1], tmp_path)[0]
+    run.folder.mkdir(parents=True)
+    records = [{"step": 10, "loss": 1.0}, {"step": 500, "psnr_t": 20.0}, {"step": 1000, "psnr_t": 21.0},
+               {"step": 1000, "psnr_t": 22.0}]
+    (run.folder / "log.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+    curve = validation_curve(run)
+    assert curve == {500: 20.0, 1000: 22.0}
+    assert curve_at(curve, 999) == 20.0 and curve_at(curve, 1000) == 22.0 and math.isnan(curve_at(curve, 499))
