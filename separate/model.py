@@ -3,10 +3,10 @@
 A canonical projection layer turns the polarization shots into I⊥ and I∥; the three shots and
 the two canonical images (15 channels for RGB) feed an encoder-decoder with skip connections:
 three down-sampling stages of two ResNet blocks each and a mirrored decoder that up-samples with
-transposed convolutions (kernel 2, stride 2: the paper's, and the shipped weights'), or, with
-``upsample="resize"``, with a 1×1 convolution followed by bilinear ×2 interpolation
-(`ResizeUp`), which has no per-phase weights and so leaves no 2/4/8-px grid texture
-(`tools/bench_texture.py`). The 8 output channels are residual images T̃, R̃ and weights ξ∥, ξ⊥:
+transposed convolutions (kernel 2, stride 2: the paper's; ``urd-canonical-transposed.pt``), or,
+with ``upsample="resize"`` (the shipped ``urd-canonical.pt``), with a 1×1 convolution followed
+by bilinear ×2 interpolation (`ResizeUp`), which has no per-phase weights and so leaves no
+2/4/8-px grid texture (`tools/bench_texture.py`). The 8 output channels are residual images T̃, R̃ and weights ξ∥, ξ⊥:
 
     R̂ = ξ⊥·R̃ + (1−ξ⊥)·B_R,   T̂ = ξ∥·T̃ + (1−ξ∥)·B_T.
 
