@@ -52,15 +52,21 @@ def read_raw_codes(path: Path) -> np.ndarray:
 
 def to_linear(data: np.ndarray, transfer: Transfer = Transfer.LINEAR) -> np.ndarray:
     """Pixel codes → linear float32 by the module's rule (1.0 = the largest code)."""
-    transfer = Transfer(transfer)
-    if data.dtype == np.uint8:
-        x = data.astype(np.float32) / 255.0
-        return srgb_to_linear(x) if transfer is Transfer.SRGB else x
-    if data.dtype == np.uint16:
-        return data.astype(np.float32) / 65535.0
+    if data.dtype in (np.uint8, np.uint16):
+        return codes_to_linear(data, data.dtype, transfer)
     if data.dtype.kind == "f":
         return data.astype(np.float32)
     raise RawFormatError(f"expected 8-bit, 16-bit or float pixels, got {data.dtype}")
+
+
+def codes_to_linear(codes: np.ndarray, dtype: np.dtype, transfer: Transfer = Transfer.LINEAR) -> np.ndarray:
+    """Codes of an 8- or 16-bit file, in any numeric array (e.g. interpolated by demosaicing),
+    → linear float32 by the module's rule, clipped to [0, 1] (1.0 = ``dtype``'s largest code)."""
+    dtype = np.dtype(dtype)
+    if dtype not in (np.uint8, np.uint16):
+        raise RawFormatError(f"expected codes of 8- or 16-bit pixels, got {dtype}")
+    x = np.clip(np.asarray(codes, np.float32) / float(np.iinfo(dtype).max), 0.0, 1.0)
+    return srgb_to_linear(x) if dtype == np.uint8 and Transfer(transfer) is Transfer.SRGB else x
 
 
 def read_image(path: Path, transfer: Transfer = Transfer.LINEAR) -> np.ndarray:

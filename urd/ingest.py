@@ -31,7 +31,7 @@ from urd import raw as rawio
 from urd.align import Motion, align, apply_warp
 from urd.dataset import Dataset, Scene, atomic_path, sha256_file
 from urd.errors import AlignmentError, DatasetError, RawFormatError, UrdError
-from urd.images import IMAGE_SUFFIXES, Transfer, read_raw_codes, srgb_to_linear
+from urd.images import IMAGE_SUFFIXES, Transfer, codes_to_linear, read_raw_codes
 from urd.progress import Progress
 
 
@@ -278,7 +278,7 @@ def ingest_mosaic(ds: Dataset, path: Path, layout, demosaic, transfer: Transfer 
         if data.ndim != 2 or data.dtype not in (np.uint8, np.uint16):
             raise RawFormatError(f"{path}: expected a single-channel 8- or 16-bit mosaic image, got {data.dtype} {data.shape}")
         codes, angles = run_demosaic(data, layout, demosaic)
-        stack = _mosaic_linear(codes, data.dtype, transfer)
+        stack = codes_to_linear(codes, data.dtype, transfer)
         if stack.shape[-1] == 1:
             stack = np.repeat(stack, 3, axis=-1)
         options = {"mosaic": layout.value, "demosaic": str(getattr(demosaic, "value", demosaic)), "transfer": Transfer(transfer).value}
@@ -301,15 +301,6 @@ def ingest_mosaic(ds: Dataset, path: Path, layout, demosaic, transfer: Transfer 
         return SceneOutcome(scene.name, [path])
     except (UrdError, ValueError) as exc:
         return SceneOutcome(None, [path], str(exc), "failed")
-
-
-def _mosaic_linear(codes: np.ndarray, dtype: np.dtype, transfer: Transfer) -> np.ndarray:
-    """Demosaiced codes (in the frame's code units, any float or int type) → linear float32."""
-    peak = float(np.iinfo(dtype).max)
-    x = np.clip(codes.astype(np.float32) / peak, 0.0, 1.0)
-    if dtype == np.uint8 and Transfer(transfer) is Transfer.SRGB:
-        return srgb_to_linear(x)
-    return x
 
 
 def ingest(source: Path, root: Path, opts: IngestOptions, mosaic=None, demosaic="newton",

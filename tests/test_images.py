@@ -1,0 +1,74 @@
+"""One transfer rule for image files (`urd.images`): 8-bit codes follow --transfer, 16-bit and
+float files are linear, for `ingest --mosaic` and `separate --images` alike."""
+
+import json
+import os
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from urd.dataset import Dataset
+from urd.errors import RawFormatError
+from urd.images import Transfer, codes_to_linear, read_image, to_linear
+from urd.mosaic import ANGLES_DEG, MosaicLayout, build_mosaic
+
+SITE_CODES = (40, 128, 200, 90)          # 8-bit codes at 0/45/90/135°
+
+
+def srgb_decoded(code: float) -> float:
+    """IEC 61966-2-1 by hand, for one 8-bit code."""
+    v = code / 255
+    return v / 12.92 if v <= 0.04045 else ((v + 0.055) / 1.055) ** 2.4
+
+
+def test_8_bit_codes_follow_the_transfer_and_16_bit_and_float_stay_linear():
+    u8 = np.array([0, 10, 128, 255], np.uint8)
+    np.testing.assert_allclose(to_linear(u8), u8 / 255, rtol=1e-6)
+    np.testing.assert_allclose(to_linear(u8, Transfer.SRGB), [srgb_decoded(c) for c in u8], rtol=1e-5)
+    assert to_linear(u8, Transfer.SRGB)[2] == pytest.approx(0.21586, abs=1e-5)      # sRGB mid-grey
+    u16 = np.array([0, 32768, 65535], np.uint16)
+    np.testing.assert_array_equal(to_linear(u16, Transfer.SRGB), u16 / np.float32(65535))
+    floats = np.array([0.25, 1.5], np.float32)
+    np.testing.assert_array_equal(to_linear(floats, Transfer.SRGB), floats)
+    with pytest.raises(RawFormatError, match="int32"):
+        to_linear(np.array([1], np.int32))
+
+
+def test_interpolated_codes_follow_their_frames_rule_clipped_to_the_codes_range():
+    codes = np.array([-3.0, 127.5, 300.0])
+    np.testing.assert_allclose(codes_to_linear(codes, np.uint8, Transfer.SRGB),
+                               [0.0, srgb_decoded(127.5), 1.0], rtol=1e-5)
+    np.testing.assert_allclose(codes_to_linear(codes, np.uint16, Transfer.SRGB), [0.0, 127.5 / 65535, 300 / 65535], rtol=1e-6)
+    with pytest.raises(RawFormatError, match="float32"):
+        codes_to_linear(codes, np.float32)
+
+
+def test_separate_images_reads_8_bit_files_by_the_transfer(tmp_path):
+    path = tmp_path / "shot.png"
+    cv2.imwrite(str(path), np.full((4, 6, 3), 128, np.uint8))
+    assert read_image(path).shape == (4, 6, 3)
+    np.testing.assert_allclose(read_image(path), 128 / 255, rtol=1e-6)
+    np.testing.assert_allclose(read_image(path, Transfer.SRGB), srgb_decoded(128), rtol=1e-5)
+
+
+@pytest.mark.parametrize("transfer", list(Transfer))
+def test_ingest_mosaic_of_an_8_bit_frame_follows_the_transfer_end_to_end(tmp_path, transfer):
+    flat = np.stack([np.full((16, 24, 1), code, np.uint8) for code in SITE_CODES])
+    frame = tmp_path / "frame.png"
+    cv2.imwrite(str(frame), build_mosaic(flat, MosaicLayout.IMX250MZR))
+    env = {**os.environ, "COLUMNS": "200", "NO_COLOR": "1"}
+    out = subprocess.run([sys.executable, "-m", "urd.cli", "ingest", str(frame), str(tmp_path / "ds"), "--mosaic", "imx250mzr",
+                          "--demosaic", "bilinear", "--transfer", transfer.value],
+                         capture_output=True, text=True, timeout=300, env=env)
+    assert out.returncode == 0, out.stderr
+    scene = Dataset.open(tmp_path / "ds").scene("scene_01")
+    stack, angles = scene.load_stack()
+    assert angles == list(ANGLES_DEG)
+    decode = srgb_decoded if transfer is Transfer.SRGB else (lambda code: code / 255)
+    for shot, code in zip(stack, SITE_CODES):
+        np.testing.assert_allclose(shot, decode(code), atol=1.0 / 65535)        # 16-bit aligned TIFFs
+    manifest = json.loads(scene.manifest_path.read_text())
+    assert f'"transfer": "{transfer.value}"' in json.dumps(manifest)
