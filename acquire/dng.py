@@ -19,7 +19,8 @@ XYZ_TO_SRGB = (3.2406, -1.5372, -0.4986, -0.9689, 1.8758, 0.0415, 0.0557, -0.204
 CFA_CODES = {"RGGB": (0, 1, 1, 2), "BGGR": (2, 1, 1, 0), "GRBG": (1, 0, 2, 1), "GBRG": (1, 2, 0, 1)}
 
 
-def _rationals(values, signed: bool = False) -> list[int]:
+def _rationals(values) -> list[int]:
+    """Numerator, denominator of each value (signed or not), for TIFF (S)RATIONAL tags."""
     out = []
     for v in values:
         f = Fraction(v).limit_denominator(100000)

@@ -38,7 +38,9 @@ from urd.errors import CalibrationError
 
 @dataclasses.dataclass
 class OffsetFit:
-    """Result of a Malus-law sweep fit (degrees)."""
+    """Result of a Malus-law sweep fit: the mounting offset and its 1σ uncertainty (degrees),
+    the target's degree of linear polarization (``modulation``, unitless) and the fit's RMS
+    residual (intensity units)."""
 
     offset_deg: float
     uncertainty_deg: float
@@ -49,28 +51,34 @@ class OffsetFit:
         return {k: round(float(v), 5) for k, v in dataclasses.asdict(self).items()}
 
 
-def fit_offset(stage_angles_deg: np.ndarray, intensities: np.ndarray, target_angle_deg: float = 0.0) -> OffsetFit:
-    """Mounting offset from a sweep: mean intensities of the target at each stage angle."""
+def malus_fit(stage_angles_deg: np.ndarray, intensities: np.ndarray) -> tuple[np.ndarray, float]:
+    """Least-squares Malus-law fit of a sweep, I(a) = A(a)·S with A = `separate.optics.stokes_matrix`:
+    the target's Stokes vector S (3,) as seen by the stage, and the RMS residual (intensity
+    units, N − 3 degrees of freedom). CalibrationError unless there are at least 4 angles (deg)
+    with one intensity each."""
     a = np.radians(np.asarray(stage_angles_deg, np.float64))
     y = np.asarray(intensities, np.float64)
     if a.size < 4 or a.size != y.size:
         raise CalibrationError(f"expected at least 4 sweep angles with one intensity each, got {a.size} and {y.size}")
-    design = np.stack([np.ones_like(a), np.cos(2 * a), np.sin(2 * a)], axis=1)
-    coef, *_ = np.linalg.lstsq(design, y, rcond=None)
-    residual = y - design @ coef
-    dof = max(1, a.size - 3)
-    sigma2 = float(residual @ residual) / dof
-    cov = sigma2 * np.linalg.inv(design.T @ design)
-    c1, c2 = coef[1], coef[2]
-    amp2 = c1**2 + c2**2
-    modulation = float(np.sqrt(amp2) / coef[0]) if coef[0] > 0 else 0.0
+    design = optics.stokes_matrix(a)
+    stokes, *_ = np.linalg.lstsq(design, y, rcond=None)
+    residual = y - design @ stokes
+    return stokes, float(np.sqrt(residual @ residual / (a.size - 3)))
+
+
+def fit_offset(stage_angles_deg: np.ndarray, intensities: np.ndarray, target_angle_deg: float = 0.0) -> OffsetFit:
+    """Mounting offset from a sweep: mean intensities of the target at each stage angle (deg);
+    the target's polarization axis is at ``target_angle_deg``."""
+    stokes, rms = malus_fit(stage_angles_deg, intensities)
+    modulation = float(optics.dolp(stokes, eps=0.0)) if stokes[0] > 0 else 0.0
     if modulation < 0.05:
         raise CalibrationError(f"the sweep shows almost no Malus modulation ({modulation:.3f}); is the target polarized?")
-    grad = np.array([0.0, -0.5 * c2 / amp2, 0.5 * c1 / amp2])
-    phase = 0.5 * np.arctan2(c2, c1)
-    offset = (target_angle_deg - np.degrees(phase)) % 180.0
-    return OffsetFit(float(offset), float(np.degrees(np.sqrt(grad @ cov @ grad))), modulation,
-                     float(np.sqrt(sigma2)))
+    design = optics.stokes_matrix(np.radians(np.asarray(stage_angles_deg, np.float64)))
+    cov = rms**2 * np.linalg.inv(design.T @ design)
+    s1, s2 = stokes[1], stokes[2]
+    grad = np.array([0.0, -0.5 * s2, 0.5 * s1]) / (s1**2 + s2**2)      # of AoLP = ½·atan2(S2, S1)
+    offset = (target_angle_deg - np.degrees(optics.aolp(stokes))) % 180.0
+    return OffsetFit(float(offset), float(np.degrees(np.sqrt(grad @ cov @ grad))), modulation, rms)
 
 
 @dataclasses.dataclass
@@ -92,7 +100,7 @@ class ShotErrors:
         return {"errors_deg": [round(e, 4) for e in self.errors_deg],
                 "uncertainty_deg": [round(u, 4) for u in self.uncertainty_deg],
                 "unobservable_direction": None if self.unobservable is None else [round(u, 4) for u in self.unobservable],
-                "pixels": self.pixels, "iterations": self.iterations, "method": "stokes self-consistency, minimum-norm Gauss-Newton"}
+                "pixels": self.pixels, "iterations": self.iterations, "method": "stokes self-consistency, Levenberg-Marquardt (minimum-norm steps)"}
 
 
 def _residual(phi: np.ndarray, data: np.ndarray) -> np.ndarray:

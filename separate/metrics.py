@@ -23,14 +23,14 @@ def rmse(estimate: np.ndarray, truth: np.ndarray, axis=None) -> np.ndarray:
     return np.sqrt(mse(estimate, truth, axis))
 
 
-def psnr(estimate: np.ndarray, truth: np.ndarray, axis=None, peak: float = 1.0) -> np.ndarray:
-    """Peak signal-to-noise ratio (dB) over ``axis`` with peak ``peak``."""
-    return psnr_from_mse(mse(estimate, truth, axis), peak)
+def psnr(estimate: np.ndarray, truth: np.ndarray, axis=None) -> np.ndarray:
+    """Peak signal-to-noise ratio (dB, peak 1) over ``axis``."""
+    return psnr_from_mse(mse(estimate, truth, axis))
 
 
-def psnr_from_mse(mse_value: float | np.ndarray, peak: float = 1.0) -> np.ndarray:
-    """PSNR (dB) of a mean squared error, floored at `MSE_FLOOR`."""
-    return 10 * np.log10(peak**2 / np.maximum(mse_value, MSE_FLOOR))
+def psnr_from_mse(mse_value: float | np.ndarray) -> np.ndarray:
+    """PSNR (dB, peak 1) of a mean squared error, floored at `MSE_FLOOR`."""
+    return 10 * np.log10(1.0 / np.maximum(mse_value, MSE_FLOOR))
 
 
 def ssim(estimate: np.ndarray, truth: np.ndarray) -> float:

@@ -87,7 +87,7 @@ def _fresnel_amplitudes(theta: Array, n: float) -> tuple[Array, Array, Array, Ar
         raise ValueError(f"expected a refractive index n > 1, got {n}")
     xp = _xp(theta)
     cos_i = xp.cos(theta)
-    cos_t = xp.sqrt(1.0 - (xp.sin(theta) / n) ** 2)
+    cos_t = xp.cos(snell(theta, n))
     den_s, den_p = cos_i + n * cos_t, n * cos_i + cos_t
     return (cos_i - n * cos_t) / den_s, (n * cos_i - cos_t) / den_p, den_s, den_p
 
@@ -285,7 +285,8 @@ def intensity_from_stokes(stokes: Array, phi: float) -> Array:
 
 
 def dolp(stokes: Array, eps: float = 1e-8) -> Array:
-    """Degree of linear polarization sqrt(S1²+S2²)/S0 in [0, 1] for a (3, ...) stack."""
+    """Degree of linear polarization sqrt(S1²+S2²)/S0 for a (3, ...) stack: in [0, 1] for
+    physical Stokes vectors, above 1 where noise makes them unphysical (not clipped)."""
     xp = _xp(stokes)
     return xp.sqrt(stokes[1] ** 2 + stokes[2] ** 2) / (stokes[0] + eps)
 

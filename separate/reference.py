@@ -12,13 +12,13 @@ Physics (unpolarized layers, one pane): with ρ = (R_s+R_p)/2 and Δ = (R_s−R_
 
 so a pixel is polarized along φ⊥ where the reflected radiance exceeds the transmitted one
 (I_R > I_T) and along φ⊥ + 90° elsewhere. Its DoLP is at most Δ/ρ on the first side and at
-most Δ/(1−ρ) on the second (`separate.optics.dolp_limits`): 1.0 and 0.074 at Brewster's angle,
+most Δ/(1−ρ) on the second (`separate.optics.dolp_limits`): 1.0 and 0.073 at Brewster's angle,
 0.38 and 0.235 at 80°. Both sides share the axis, which `estimate_reference` takes from the
 DoLP-weighted axial mean of 4·AoLP (no 90° ambiguity on the axis); the side is chosen by the
 bound:
 
 * both orientations occur (``Basis.TAILS``): the one reaching the higher DoLP is the
-  reflection's (Δ/ρ > Δ/(1−ρ) below ~82°);
+  reflection's (Δ/ρ > Δ/(1−ρ) below ~83°);
 * one orientation, more polarized than transmitted light can be (DoLP above
   `TRANSMISSION_DOLP_MAX`; ``Basis.STRONG``): the reflection's;
 * one orientation, weakly polarized (``Basis.TRANSMISSION``): ambiguous in principle (a

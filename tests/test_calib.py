@@ -30,6 +30,8 @@ def test_malus_fit_recovers_a_known_offset():
     fit = fit_offset(stage, light + np.random.default_rng(0).normal(0, 1e-3, stage.size), target)
     assert fit.offset_deg == pytest.approx(offset, abs=0.15) and fit.uncertainty_deg < 0.1
     assert abs(fit.offset_deg - offset) < 4 * fit.uncertainty_deg
+    assert fit.modulation == pytest.approx(0.25 / 0.45, abs=0.005)     # (max − min)/(max + min) of the light
+    assert 0.5e-3 < fit.residual_rms < 2e-3                           # the 1e-3 noise
     with pytest.raises(CalibrationError, match="no Malus modulation"):
         fit_offset(stage, np.full(stage.size, 0.5))
 

@@ -84,7 +84,8 @@ def _calibration() -> CalibrationView:
 
     grid = np.arange(0.0, 180.5, 1.0)
     return CalibrationView(angles.tolist(), (curve(angles) + 0.004 * rng.standard_normal(angles.size)).tolist(),
-                           grid.tolist(), curve(grid).tolist(), offset_deg=(0.0 - peak) % 180.0, uncertainty_deg=0.8)
+                           grid.tolist(), curve(grid).tolist(), offset_deg=(0.0 - peak) % 180.0, uncertainty_deg=0.8,
+                           residual_rms=0.00412)
 
 
 def _scenes() -> list[SceneView]:
@@ -209,6 +210,7 @@ def test_report_shows_scene_content(report):
     # the calibration plot: one dot per sweep angle, the fit curve, the offset
     svg = page[page.index('id="calibration"'):page.index("</section>", page.index('id="calibration"'))]
     assert svg.count('class="pt"') == 12 and 'class="fit"' in svg and "147.000° ± 0.800°" in svg
+    assert "<dt>RMS residual</dt><dd>0.00412 (" in svg                  # the fit's own figure (calibration.json's)
     # the full views keep full resolution; the thumbnails are no larger than thumb_px
     full = cv2.imread(str(out / "img/s000-scene_01/shot_00.jpg"))
     assert full.shape == (H, W, 3)

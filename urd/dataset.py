@@ -463,9 +463,6 @@ class Scene:
         """True when every planned shot was taken (always for ingested RAW folders)."""
         return bool(self._data()["capture"].get("complete", True))
 
-    def source(self) -> str:
-        return self._data()["source"]
-
     def raw_paths(self) -> list[Path]:
         """Absolute paths of the RAW shots, in shot order (confined to the scene folder)."""
         return [confined_path(self.path, s.file, str(self.manifest_path)) for s in self.shots()]

@@ -3,8 +3,9 @@
 One transfer rule for every command: 16-bit (and 12-bit data stored in 16 bits) and float
 files are linear; 8-bit files are read with the chosen `Transfer`, by default ``linear``
 (the sensor codes of machine-vision and polarization cameras); ``srgb`` linearizes 8-bit
-PNG/JPEG photos from ordinary cameras with the IEC 61966-2-1 curve. Values are scaled so that
-1.0 is the file's largest code.
+PNG/JPEG photos from ordinary cameras with the IEC 61966-2-1 curve. Integer codes are scaled so
+that 1.0 is the largest code of their type (255, 65535: 12-bit data stored in 16 bits reaches
+4095/65535); float files are taken as they are.
 """
 
 from __future__ import annotations
@@ -51,7 +52,7 @@ def read_raw_codes(path: Path) -> np.ndarray:
 
 
 def to_linear(data: np.ndarray, transfer: Transfer = Transfer.LINEAR) -> np.ndarray:
-    """Pixel codes → linear float32 by the module's rule (1.0 = the largest code)."""
+    """Pixel codes → linear float32 by the module's rule (1.0 = the type's largest code; floats as they are)."""
     if data.dtype in (np.uint8, np.uint16):
         return codes_to_linear(data, data.dtype, transfer)
     if data.dtype.kind == "f":

@@ -73,6 +73,7 @@ def calibration_view(ds):
     """The Malus-law sweep behind the dataset's offset calibration (`urd.report_html.CalibrationView`)."""
     import numpy as np
 
+    from calib.polarizer import malus_fit
     from calib.store import sweep_intensities
     from separate.optics import stokes_matrix
     from urd.dataset import Scene
@@ -82,11 +83,10 @@ def calibration_view(ds):
     if calibration is None or calibration.sweep is None:
         return None
     angles, values = sweep_intensities(Scene(calibration.sweep))
-    design = stokes_matrix(np.radians(angles))
-    coef, *_ = np.linalg.lstsq(design, np.asarray(values), rcond=None)
+    stokes, rms = malus_fit(angles, values)
     grid = np.arange(0.0, 180.5, 1.0)
-    return CalibrationView(angles, values, grid.tolist(), (stokes_matrix(np.radians(grid)) @ coef).tolist(),
-                           calibration.offset_deg, calibration.uncertainty_deg)
+    return CalibrationView(angles, values, grid.tolist(), (stokes_matrix(np.radians(grid)) @ stokes).tolist(),
+                           calibration.offset_deg, calibration.uncertainty_deg, rms)
 
 
 def report_html(root, out, overwrite: bool = False, progress=None):

@@ -82,7 +82,8 @@ class ResultView:
 
 @dataclasses.dataclass
 class CalibrationView:
-    """A Malus-law sweep and its fit of the polarizer mounting offset (angles in degrees)."""
+    """A Malus-law sweep and its fit of the polarizer mounting offset (angles in degrees), with
+    the fit's RMS residual (intensity units, `calib.polarizer.malus_fit`) when known."""
 
     angles_deg: list[float]
     intensities: list[float]
@@ -90,6 +91,7 @@ class CalibrationView:
     fit_intensities: list[float]
     offset_deg: float
     uncertainty_deg: float
+    residual_rms: float | None = None
 
 
 @dataclasses.dataclass
@@ -402,18 +404,15 @@ def _calibration_svg(cal: CalibrationView) -> str:
 
 
 def _calibration_html(cal: CalibrationView) -> str:
-    fit_at = np.interp(np.asarray(cal.angles_deg, float), np.asarray(cal.fit_angles_deg, float),
-                       np.asarray(cal.fit_intensities, float)) if cal.fit_angles_deg else None
     facts = [f"<dt>polarizer offset</dt><dd><b>{_fmt(cal.offset_deg, 3)}° ± {_fmt(cal.uncertainty_deg, 3)}°</b></dd>",
              f"<dt>sweep</dt><dd>{len(cal.angles_deg)} stage angles</dd>"]
     if cal.fit_intensities:
         peak = float(cal.fit_angles_deg[int(np.argmax(cal.fit_intensities))])
         facts.append(f"<dt>fit maximum</dt><dd>stage angle {_fmt(peak, 1)}° (shaded: ± the offset's uncertainty)</dd>")
-    if fit_at is not None and len(cal.intensities):
-        rms = float(np.sqrt(np.mean((np.asarray(cal.intensities, float) - fit_at) ** 2)))
-        swing = max(cal.fit_intensities) - min(cal.fit_intensities)
-        rel = f" ({100 * rms / swing:.1f}% of the modulation)" if swing > 0 else ""
-        facts.append(f"<dt>RMS residual</dt><dd>{rms:.3g}{rel}</dd>")
+    if cal.residual_rms is not None:
+        swing = max(cal.fit_intensities) - min(cal.fit_intensities) if cal.fit_intensities else 0.0
+        rel = f" ({100 * cal.residual_rms / swing:.1f}% of the modulation)" if swing > 0 else ""
+        facts.append(f"<dt>RMS residual</dt><dd>{cal.residual_rms:.3g}{rel}</dd>")
     return (f'<section class="card" id="calibration"><h2>Polarizer calibration</h2>'
             '<p class="muted">Malus-law sweep of a polarized target: measured mean intensity per stage angle (dots) '
             "and the least-squares fit I(a) = c0 + c1·cos 2a + c2·sin 2a (line).</p>"

@@ -77,16 +77,6 @@ DY = DX.T
 LAPLACIAN = np.array([[0, 1, 0], [1, -4, 1], [0, 1, 0]], np.float64)
 
 
-def grad(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Forward differences (circular), per channel, of H×W(×C)."""
-    return np.roll(x, -1, axis=1) - x, np.roll(x, -1, axis=0) - x
-
-
-def grad_adjoint(gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
-    """Adjoint of `grad`."""
-    return (np.roll(gx, 1, axis=1) - gx) + (np.roll(gy, 1, axis=0) - gy)
-
-
 def half_quadratic(image: np.ndarray, prior_step, beta0: float, eps: float, beta_max: float = 1e5,
                    keep_below_input: bool = False) -> np.ndarray:
     """min_T ||Δ(T − I)||² + ε||T − I||² + prior(∇T), per channel, by half-quadratic splitting.
