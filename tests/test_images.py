@@ -12,7 +12,7 @@ import pytest
 
 from urd.dataset import Dataset
 from urd.errors import RawFormatError
-from urd.images import Transfer, codes_to_linear, read_image, to_linear
+from urd.images import Transfer, codes_to_linear, read_image, srgb_encode, srgb_to_linear, to_display, to_linear
 from urd.mosaic import ANGLES_DEG, MosaicLayout, build_mosaic
 
 SITE_CODES = (40, 128, 200, 90)          # 8-bit codes at 0/45/90/135°
@@ -72,3 +72,13 @@ def test_ingest_mosaic_of_an_8_bit_frame_follows_the_transfer_end_to_end(tmp_pat
         np.testing.assert_allclose(shot, decode(code), atol=1.0 / 65535)        # 16-bit aligned TIFFs
     manifest = json.loads(scene.manifest_path.read_text())
     assert f'"transfer": "{transfer.value}"' in json.dumps(manifest)
+
+
+def test_display_encoding_inverts_the_srgb_decoding_and_clips():
+    codes = np.arange(256, dtype=np.uint8)
+    np.testing.assert_array_equal(np.rint(srgb_encode(srgb_to_linear(codes / 255.0)) * 255), codes)
+    grey = np.array([[0.5, 2.0, np.nan]], np.float32)
+    shown = to_display(grey, gain=1.0)
+    assert shown.shape == (1, 3, 3) and shown.dtype == np.uint8
+    np.testing.assert_array_equal(shown[0, :, 0], [188, 255, 0])      # sRGB of linear 0.5 is 0.7354
+    np.testing.assert_array_equal(to_display(grey[..., None], gain=0.25)[0, 1], [188, 188, 188])   # 2.0 × 0.25

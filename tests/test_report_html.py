@@ -30,9 +30,9 @@ from urd.report_html import (
     SceneView,
     aolp_image,
     polarization_maps,
-    srgb_encode,
     write_html_report,
 )
+from urd.images import srgb_encode
 
 H, W = 96, 128
 EVIL_NAME = "scene <script>window.__xss = 1</script> & \"quoted\""

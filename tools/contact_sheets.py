@@ -19,7 +19,7 @@ from separate import optics
 from separate.methods import get_method
 from separate.reference import inspect_stack
 from urd import samples
-from urd.separation import srgb_encode
+from urd.images import srgb_to_linear, to_display
 
 parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
 parser.add_argument("--out", type=Path, default=Path("contact-sheets"))
@@ -31,8 +31,7 @@ args.out.mkdir(parents=True, exist_ok=True)
 
 def tile(image: np.ndarray, label: str, white: float) -> np.ndarray:
     """An sRGB 8-bit tile of a linear image (H×W×3 or H×W), with a label."""
-    rgb = image if image.ndim == 3 else np.repeat(image[..., None], 3, axis=2)
-    out = np.ascontiguousarray(np.rint(srgb_encode(np.clip(rgb / white, 0, 1)) * 255).astype(np.uint8))
+    out = np.ascontiguousarray(to_display(image, 1.0 / white))
     cv2.putText(out, label, (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 3, cv2.LINE_AA)
     cv2.putText(out, label, (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
     return out
@@ -44,7 +43,7 @@ def aolp_tile(stokes: np.ndarray) -> np.ndarray:
     hue = (np.degrees(optics.aolp(lum)) % 180.0).astype(np.float32)        # OpenCV hue: 0..180
     value = np.clip(optics.dolp(lum) * 4, 0, 1).astype(np.float32)
     hsv = np.stack([hue * 2, np.ones_like(hue), value], axis=-1)
-    return cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB) ** 2.2
+    return srgb_to_linear(cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB))
 
 
 for capture in samples.captures():

@@ -35,6 +35,23 @@ def srgb_to_linear(x: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
+def srgb_encode(linear: np.ndarray) -> np.ndarray:
+    """Linear [0, 1] → sRGB-encoded [0, 1] (IEC 61966-2-1), float32; input clipped to [0, 1], NaN → 0."""
+    x = np.clip(np.nan_to_num(np.asarray(linear, np.float32)), 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055).astype(np.float32)
+
+
+def to_display(image: np.ndarray, gain: float = 1.0) -> np.ndarray:
+    """H×W×C (C = 1 or 3) or H×W linear float image × ``gain`` → H×W×3 uint8 sRGB (values
+    above 1 after the gain clip to 255)."""
+    x = np.asarray(image, np.float32)
+    if x.ndim == 2:
+        x = x[..., None]
+    if x.shape[-1] == 1:
+        x = np.repeat(x, 3, axis=-1)
+    return np.rint(srgb_encode(x * np.float32(gain)) * 255.0).astype(np.uint8)
+
+
 def read_raw_codes(path: Path) -> np.ndarray:
     """The file's pixel codes as stored (H×W or H×W×3 in RGB order); RawFormatError if unreadable."""
     path = Path(path)

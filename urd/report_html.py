@@ -46,6 +46,7 @@ import numpy as np
 
 from separate.optics import aolp, dolp, stokes_from_images
 from urd.errors import DatasetError
+from urd.images import srgb_encode, to_display
 
 #: Percentile of S0 mapped to white (per scene).
 EXPOSURE_PERCENTILE = 99.5
@@ -119,22 +120,6 @@ class SceneView:
 
 # ---------------------------------------------------------------------------------------------
 # Pure image functions
-
-
-def srgb_encode(linear: np.ndarray) -> np.ndarray:
-    """Linear [0, 1] → sRGB-encoded [0, 1] (IEC 61966-2-1), float32; input clipped to [0, 1]."""
-    x = np.clip(np.nan_to_num(np.asarray(linear, np.float32)), 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055).astype(np.float32)
-
-
-def to_display(image: np.ndarray, gain: float) -> np.ndarray:
-    """H×W×C (C = 1 or 3) or H×W linear float image × ``gain`` → H×W×3 uint8 sRGB."""
-    x = np.asarray(image, np.float32)
-    if x.ndim == 2:
-        x = x[..., None]
-    if x.shape[-1] == 1:
-        x = np.repeat(x, 3, axis=-1)
-    return np.round(srgb_encode(x * gain) * 255.0).astype(np.uint8)
 
 
 def colormap_image(values: np.ndarray) -> np.ndarray:

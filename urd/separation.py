@@ -25,16 +25,10 @@ from separate import metrics
 from separate.reference import Inspection, inspect_stack
 from urd.dataset import Scene, atomic_path
 from urd.errors import DatasetError
-from urd.images import Transfer, read_image
+from urd.images import Transfer, read_image, to_display
 
 FULL_SCALE = 2.0
 PREVIEW_SIDE = 2048
-
-
-def srgb_encode(linear: np.ndarray) -> np.ndarray:
-    """Linear [0, 1] → sRGB-encoded [0, 1] (IEC 61966-2-1 transfer function)."""
-    x = np.clip(linear, 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
 
 
 def write_linear_tiff(path: Path, image: np.ndarray, overwrite: bool = False) -> None:
@@ -53,7 +47,7 @@ def write_preview(path: Path, image: np.ndarray, white: float, overwrite: bool =
     scale = min(1.0, max_side / max(image.shape[:2]))
     if scale < 1:
         image = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
-    rgb = np.rint(srgb_encode(image / white) * 255).astype(np.uint8)
+    rgb = to_display(image, 1.0 / white)
     with atomic_path(path, overwrite) as tmp:
         if not cv2.imwrite(str(tmp), rgb[..., ::-1]):
             raise DatasetError(f"cannot write {path}")

@@ -14,8 +14,6 @@ import numpy as np
 from separate import optics
 from separate.baselines.common import half_quadratic
 
-GAMMA = 2.2
-
 
 def suppress(image: np.ndarray, lam: float = 0.002, eps: float = 1e-8) -> np.ndarray:
     """T of a single H×W×C image (ℓ0 prior: hard thresholding of T's gradients)."""
@@ -30,6 +28,6 @@ def suppress(image: np.ndarray, lam: float = 0.002, eps: float = 1e-8) -> np.nda
 def separate(images: np.ndarray, angles_deg: list[float], lam: float = 0.002) -> tuple[np.ndarray, np.ndarray]:
     s0 = optics.stokes_from_images(images, np.radians(angles_deg))[0].astype(np.float32)
     scale = max(float(s0.max()), 1e-6)
-    encoded = np.clip(s0 / scale, 0, None) ** (1 / GAMMA)          # the paper works on ordinary photos
-    t_hat = (np.clip(suppress(encoded, lam), 0, None) ** GAMMA * scale).astype(np.float32)
+    encoded = np.clip(s0 / scale, 0, None) ** (1 / optics.GAMMA)          # the paper works on ordinary photos
+    t_hat = (np.clip(suppress(encoded, lam), 0, None) ** optics.GAMMA * scale).astype(np.float32)
     return (s0 - t_hat).astype(np.float32), t_hat
