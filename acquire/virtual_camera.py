@@ -67,9 +67,7 @@ class PolarizedTarget:
         return self.image.shape[:2]
 
     def render(self, phi: float) -> np.ndarray:
-        stokes = np.stack([self.image, self.image * self.dolp * np.cos(2 * self.angle),
-                           self.image * self.dolp * np.sin(2 * self.angle)])
-        return optics.intensity_from_stokes(stokes, phi)
+        return optics.intensity_from_stokes(optics.stokes_from_polarization(self.image, self.dolp, self.angle), phi)
 
     def layers(self) -> tuple[np.ndarray, np.ndarray]:
         return np.zeros_like(self.image), self.image

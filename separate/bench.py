@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from separate import metrics, optics
-from separate.synthesis import AngleMode, SynthesisConfig, Synthesizer, default_pool
+from separate.synthesis import AngleMode, SynthesisConfig, Synthesizer, default_pool, draw_noise_levels, noise_std
 
 SEED = 2018
 NOMINAL = [0.0, 45.0, 90.0]
@@ -38,12 +38,11 @@ def reshoot(sample: dict[str, np.ndarray], angles: np.ndarray, rng: np.random.Ge
     pipeline's sensor noise (gains drawn from ``rng``) and clipping; no new non-rigid
     deformation. Returns (N, P, P, 3) float32 in [0, 1]."""
     theta = sample["theta"]
-    rho = optics.expand_map(optics.reflectance(theta, n), sample["r"])
-    i_r, i_t = sample["r"] / rho, sample["t"] / (1.0 - rho)
+    i_r, i_t = optics.radiances_from_layers(sample["r"], sample["t"], theta, n)
     true = np.asarray(angles, np.float64) + np.radians(rng.uniform(-angle_noise_deg, angle_noise_deg, len(angles)))
     shots = np.stack([optics.render(i_r, i_t, theta, sample["phi_perp"], float(a), n) for a in true])
-    shot_gain, read_var = 10 ** rng.uniform(-4, -2.5), 10 ** rng.uniform(-7, -5)
-    shots = shots + rng.normal(0.0, 1.0, shots.shape) * np.sqrt(shot_gain * np.clip(shots, 0, None) + read_var)
+    shot_gain, read_var = draw_noise_levels(rng)
+    shots = shots + rng.normal(0.0, 1.0, shots.shape) * noise_std(shots, shot_gain, read_var)
     return np.clip(shots, 0.0, 1.0).astype(np.float32)
 
 

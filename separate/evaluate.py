@@ -59,7 +59,7 @@ import numpy as np
 
 from separate import metrics, optics
 from separate.bench import DIRECT_WEIGHTS, SEED, format_table, paired_gain
-from separate.synthesis import SHARED_NATURAL, AngleMode, SynthesisConfig, Synthesizer, load_image_pool
+from separate.synthesis import SHARED_NATURAL, AngleMode, SynthesisConfig, Synthesizer, load_image_pool, noise_std
 from urd.dataset import atomic_path
 from urd.errors import UrdError
 
@@ -289,8 +289,7 @@ def render_condition(layers: dict[str, np.ndarray], condition: Condition, draws:
     r, t, theta, phi_perp = layers["r"], layers["t"], layers["theta"], layers["phi_perp"]
     if draws.noise.shape[1:] != r.shape:
         raise ValueError(f"expected draws for layers of shape {r.shape}, got {draws.noise.shape[1:]}")
-    rho = optics.expand_map(optics.reflectance(theta, n), r)
-    i_r, i_t = r / rho, t / (1.0 - rho)
+    i_r, i_t = optics.radiances_from_layers(r, t, theta, n)
     offset = draws.phi_perp_offset_deg if condition.phi_perp_offset_deg is None else condition.phi_perp_offset_deg
     phi0_deg = float(np.degrees(phi_perp.flat[0])) - offset
     count = len(condition.angles_deg)
@@ -305,7 +304,7 @@ def render_condition(layers: dict[str, np.ndarray], condition: Condition, draws:
         shots.append(shot)
     shots = np.stack(shots)
     gain, read = NOISE_GAINS[condition.noise]
-    shots = shots + draws.noise[:count] * np.sqrt(gain * np.clip(shots, 0.0, None) + read)
+    shots = shots + draws.noise[:count] * noise_std(shots, gain, read)
     given = true if condition.calibrated else nominal
     return np.clip(shots, 0.0, 1.0).astype(np.float32), [float(a) for a in given], [float(a) for a in true]
 
@@ -495,7 +494,7 @@ def speed_stack(height: int, width: int, seed: int = 0) -> np.ndarray:
     for k in range(3):
         shot = stack[k]
         shot *= exposure
-        shot += rng.standard_normal(shot.shape, dtype=np.float32) * np.sqrt(gain * shot + read)
+        shot += rng.standard_normal(shot.shape, dtype=np.float32) * noise_std(shot, gain, read)
         np.clip(shot, 0.0, 1.0, out=shot)
     return stack
 

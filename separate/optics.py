@@ -199,6 +199,13 @@ def observable_layers(
     return rho * i_r, (1.0 - rho) * i_t
 
 
+def radiances_from_layers(r_obs: Array, t_obs: Array, theta: Array, n: float = N_GLASS) -> tuple[Array, Array]:
+    """Inverse of `observable_layers`: the radiances (I_R, I_T) at the glass, I_R = R_obs/ρ and
+    I_T = T_obs/(1−ρ), for layers H×W×C (or H×W) and ``theta`` (rad) a scalar or an H×W map."""
+    rho = expand_map(reflectance(theta, n), r_obs)
+    return r_obs / rho, t_obs / (1.0 - rho)
+
+
 def to_linear(img_u8: np.ndarray) -> np.ndarray:
     """Gamma-2.2 8-bit image (any shape, uint8) to linear float32 in [0, 1]."""
     return (img_u8.astype(np.float32) / 255.0) ** GAMMA
@@ -282,6 +289,12 @@ def stokes_from_images(images: Array, angles: Sequence[float]) -> Array:
 def intensity_from_stokes(stokes: Array, phi: float) -> Array:
     """Intensity behind an ideal polarizer at ``phi`` (rad) for Stokes stack (3, ...)."""
     return (stokes[0] + stokes[1] * np.cos(2 * phi) + stokes[2] * np.sin(2 * phi)) / 2
+
+
+def stokes_from_polarization(s0: np.ndarray, dolp: np.ndarray | float, aolp: np.ndarray | float) -> np.ndarray:
+    """Stokes stack (3, ...) of light of intensity ``s0`` with degree ``dolp`` and angle ``aolp``
+    (rad) of linear polarization: the inverse of `dolp` and `aolp` (numpy; arguments broadcast)."""
+    return np.stack(np.broadcast_arrays(s0, s0 * dolp * np.cos(2 * aolp), s0 * dolp * np.sin(2 * aolp)))
 
 
 def dolp(stokes: Array, eps: float = 1e-8) -> Array:

@@ -44,6 +44,21 @@ BUNDLED_PHOTOS = ("astronaut", "chelsea", "coffee", "rocket", "camera", "coins",
 #: the rotating polarizer's three and four angles, 60° steps, and six angles (30° steps).
 ANGLE_SETS_DEG = ((0.0, 45.0, 90.0), (0.0, 60.0, 120.0), (0.0, 45.0, 90.0, 135.0),
                   (0.0, 30.0, 60.0, 90.0, 120.0, 150.0))
+#: log10 ranges of the sensor noise levels drawn per sample: shot gain and read variance
+#: (linear units, white = 1).
+SHOT_GAIN_LOG10 = (-4.0, -2.5)
+READ_VAR_LOG10 = (-7.0, -5.0)
+
+
+def draw_noise_levels(rng: np.random.Generator) -> tuple[float, float]:
+    """A sample's sensor noise levels (shot gain, read variance), log-uniform in the module's ranges."""
+    return 10 ** rng.uniform(*SHOT_GAIN_LOG10), 10 ** rng.uniform(*READ_VAR_LOG10)
+
+
+def noise_std(x: np.ndarray, shot_gain: float, read_var: float) -> np.ndarray:
+    """Standard deviation of the sensor noise at linear values ``x`` (Poisson–Gaussian model:
+    variance shot_gain·x + read_var; negative values count as 0)."""
+    return np.sqrt(shot_gain * np.clip(x, 0.0, None) + read_var)
 
 
 class AngleMode(enum.Enum):
@@ -240,8 +255,8 @@ class Synthesizer:
         exposure = rng.uniform(0.1, 0.35) / max(float((r_obs + t_obs).mean()), 1e-6)
         obs, r_obs, t_obs = obs * exposure, r_obs * exposure, t_obs * exposure
         if cfg.noise:
-            shot_gain, read_var = 10 ** rng.uniform(-4, -2.5), 10 ** rng.uniform(-7, -5)
-            obs = obs + rng.normal(0.0, 1.0, obs.shape).astype(np.float32) * np.sqrt(shot_gain * obs + read_var)
+            shot_gain, read_var = draw_noise_levels(rng)
+            obs = obs + rng.normal(0.0, 1.0, obs.shape).astype(np.float32) * noise_std(obs, shot_gain, read_var)
         if (obs > 1.0).mean() > 0.01 or (r_obs + t_obs).mean() < 0.02 or t_obs.std() < 0.01:
             return None
         obs = np.clip(obs, 0.0, 1.0).astype(np.float32)

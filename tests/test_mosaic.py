@@ -99,7 +99,7 @@ def synthetic_truth(size=192, channels=1, seed=0):
     for inside, value, d, a in shapes:
         s0[inside], dolp[inside], aolp[inside] = value, d, a
         tint[inside] = rng.uniform(0.4, 1.0, channels) if channels > 1 else 1.0
-    stokes = np.stack([s0, s0 * dolp * np.cos(2 * aolp), s0 * dolp * np.sin(2 * aolp)])[..., None] * tint
+    stokes = optics.stokes_from_polarization(s0, dolp, aolp)[..., None] * tint
     images = [optics.intensity_from_stokes(stokes, phi).astype(np.float32) for phi in PHI]
     return np.stack([cv2.resize(im, (size, size), interpolation=cv2.INTER_AREA).reshape(size, size, channels) for im in images])
 

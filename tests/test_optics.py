@@ -182,3 +182,30 @@ def test_angle_span_check():
 def test_bad_refractive_index():
     with pytest.raises(ValueError, match="n > 1"):
         optics.fresnel_reflectance(np.array(0.3), 0.9)
+
+
+def test_stokes_from_polarization_inverts_dolp_and_aolp():
+    s0 = np.array([[0.2, 0.9], [0.5, 1.0]])
+    dolp, aolp = np.array([[0.0, 0.3], [0.7, 1.0]]), np.array([[0.1, -1.2], [0.6, 1.5]])
+    stokes = optics.stokes_from_polarization(s0, dolp, aolp)
+    assert stokes.shape == (3, 2, 2)
+    np.testing.assert_allclose(optics.dolp(stokes, eps=0.0), dolp, atol=1e-12)
+    np.testing.assert_allclose(optics.aolp(stokes)[dolp > 0], aolp[dolp > 0], atol=1e-12)
+    # Malus: behind a polarizer along the light's angle, S0·(1 + DoLP)/2; across it, S0·(1 − DoLP)/2
+    along = optics.intensity_from_stokes(optics.stokes_from_polarization(s0, 0.4, 0.3), 0.3)
+    across = optics.intensity_from_stokes(optics.stokes_from_polarization(s0, 0.4, 0.3), 0.3 + np.pi / 2)
+    np.testing.assert_allclose(along, s0 * 0.7, atol=1e-12)
+    np.testing.assert_allclose(across, s0 * 0.3, atol=1e-12)
+
+
+def test_radiances_from_layers_inverts_observable_layers():
+    rng = np.random.default_rng(5)
+    i_r, i_t = rng.uniform(0, 1, (2, 4, 5, 3))
+    theta = rng.uniform(0.2, 1.3, (4, 5))
+    r_obs, t_obs = optics.observable_layers(i_r, i_t, theta)
+    back = optics.radiances_from_layers(r_obs, t_obs, theta)
+    np.testing.assert_allclose(back[0], i_r, rtol=1e-12)
+    np.testing.assert_allclose(back[1], i_t, rtol=1e-12)
+    # at normal incidence ρ = ((n − 1)/(n + 1))², so I_R = R_obs/ρ
+    rho0 = ((optics.N_GLASS - 1) / (optics.N_GLASS + 1)) ** 2
+    np.testing.assert_allclose(optics.radiances_from_layers(np.full((2, 2), rho0), np.zeros((2, 2)), 0.0)[0], 1.0)

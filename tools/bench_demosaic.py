@@ -83,7 +83,7 @@ def synthetic_scene(size: int, channels: int, seed: int = 0) -> np.ndarray:
         y0, x0, r = rng.uniform(0.05, 0.95) * size, rng.uniform(0.5, 0.95) * size, rng.uniform(0.03, 0.12) * size
         shape = (np.hypot(yy - y0, xx - x0) < r) if rng.random() < 0.5 else (np.abs(yy - y0) < r) & (np.abs(xx - x0) < 0.6 * r)
         paint(shape, rng.uniform(0.05, 0.9), rng.choice([0.0, 0.0, 0.3, 0.6]), rng.uniform(-np.pi / 2, np.pi / 2))
-    stokes = np.stack([s0, s0 * dolp * np.cos(2 * aolp), s0 * dolp * np.sin(2 * aolp)])[..., None] * tint
+    stokes = optics.stokes_from_polarization(s0, dolp, aolp)[..., None] * tint
     images = np.stack([optics.intensity_from_stokes(stokes, phi) for phi in PHI]).astype(np.float32)
     return np.stack([cv2.resize(im, (size, size), interpolation=cv2.INTER_AREA).reshape(size, size, channels) for im in images])
 

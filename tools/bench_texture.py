@@ -31,6 +31,7 @@ import numpy as np
 from separate import metrics, optics
 from separate.bench import SEED, benchmark_set, reshoot
 from separate.methods import get_method
+from separate.synthesis import noise_std
 from urd import samples
 
 PERIOD = 8
@@ -64,9 +65,9 @@ def s0_of(shots: np.ndarray, angles_deg) -> np.ndarray:
 
 def shoot(t_obs: np.ndarray, r_obs: np.ndarray, theta: float, phi_perp: float, angles_deg, rng) -> np.ndarray:
     """Shots of observable layers through a polarizer (`separate.optics.render`), with sensor noise."""
-    rho = optics.reflectance(theta)
-    shots = np.stack([optics.render(r_obs / rho, t_obs / (1 - rho), theta, phi_perp, np.radians(a)) for a in angles_deg])
-    shots = shots + rng.normal(0.0, 1.0, shots.shape) * np.sqrt(1e-3 * np.clip(shots, 0, None) + 1e-6)
+    i_r, i_t = optics.radiances_from_layers(r_obs, t_obs, theta)
+    shots = np.stack([optics.render(i_r, i_t, theta, phi_perp, np.radians(a)) for a in angles_deg])
+    shots = shots + rng.normal(0.0, 1.0, shots.shape) * noise_std(shots, 1e-3, 1e-6)
     return np.clip(shots, 0.0, 1.0).astype(np.float32)
 
 
