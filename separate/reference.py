@@ -212,7 +212,7 @@ def _estimate(stokes: np.ndarray, usable: np.ndarray, fallback_deg: float) -> Re
     unit4 = ((s1**2 - s2**2) + 2j * s1 * s2) / np.maximum(lin, 1e-30) ** 2       # exp(4i·AoLP)
     resultant = (weight * unit4).sum() / total
     axis = float(np.angle(resultant)) / 4
-    signed = (s1 * np.cos(2 * axis) + s2 * np.sin(2 * axis)) / np.maximum(s0, 1e-12)
+    signed = _signed_dolp(np.stack([s0, s1, s2]), axis)
     lo, hi = (float(q) for q in np.percentile(signed, [TAIL_PERCENT, 100 - TAIL_PERCENT]))
     mass_pos = float((s0 * np.maximum(signed, 0) ** 2).sum())
     mass_neg = float((s0 * np.maximum(-signed, 0) ** 2).sum())

@@ -12,7 +12,17 @@ import pytest
 
 from urd.dataset import Dataset
 from urd.errors import RawFormatError
-from urd.images import Transfer, codes_to_linear, read_image, srgb_encode, srgb_to_linear, to_display, to_linear
+from urd.images import (
+    Transfer,
+    codes_to_linear,
+    linear_to_u16,
+    read_image,
+    srgb_encode,
+    srgb_to_linear,
+    to_display,
+    to_linear,
+    u16_to_linear,
+)
 from urd.mosaic import ANGLES_DEG, MosaicLayout, build_mosaic
 
 SITE_CODES = (40, 128, 200, 90)          # 8-bit codes at 0/45/90/135°
@@ -82,3 +92,17 @@ def test_display_encoding_inverts_the_srgb_decoding_and_clips():
     assert shown.shape == (1, 3, 3) and shown.dtype == np.uint8
     np.testing.assert_array_equal(shown[0, :, 0], [188, 255, 0])      # sRGB of linear 0.5 is 0.7354
     np.testing.assert_array_equal(to_display(grey[..., None], gain=0.25)[0, 1], [188, 188, 188])   # 2.0 × 0.25
+
+
+@pytest.mark.parametrize("full_scale", [1.0, 2.0])
+def test_16_bit_codes_of_linear_tiffs_round_trip_within_half_a_code(full_scale):
+    x = np.linspace(-0.1, 1.1 * full_scale, 1001, dtype=np.float32)
+    codes = linear_to_u16(x, full_scale)
+    assert codes.dtype == np.uint16 and codes[0] == 0 and codes[-1] == 65535          # clipped
+    assert linear_to_u16(np.float32(full_scale), full_scale) == 65535
+    inside = (x >= 0) & (x <= full_scale)
+    back = u16_to_linear(codes, full_scale)
+    assert back.dtype == np.float32
+    np.testing.assert_array_less(np.abs(back - x)[inside], 0.5 * full_scale / 65535 + 1e-7)
+    out = np.empty_like(back)
+    assert u16_to_linear(codes, full_scale, out=out) is out

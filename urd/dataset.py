@@ -585,6 +585,8 @@ class Scene:
         import numpy as np
         import tifffile
 
+        from urd.images import u16_to_linear
+
         ingest = self._data().get("ingest")
         if not self.is_complete():
             raise DatasetError(f"{self.name} is an incomplete capture ({len(self.shots())} of "
@@ -604,7 +606,7 @@ class Scene:
                 if codes:
                     images[i] = stored
                 else:
-                    np.multiply(stored, np.float32(1 / 65535.0), out=images[i])
+                    u16_to_linear(stored, out=images[i])
                 del stored
         return images, self.angles_deg()
 

@@ -35,6 +35,17 @@ def srgb_to_linear(x: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
+def linear_to_u16(image: np.ndarray, full_scale: float = 1.0) -> np.ndarray:
+    """Linear values → 16-bit codes of urd's linear TIFFs, ``full_scale`` mapping to 65535
+    (aligned shots: 1.0; results: 2.0), rounded and clipped."""
+    return np.clip(np.rint(image * (65535.0 / full_scale)), 0, 65535).astype(np.uint16)
+
+
+def u16_to_linear(codes: np.ndarray, full_scale: float = 1.0, out: np.ndarray | None = None) -> np.ndarray:
+    """Inverse of `linear_to_u16`: float32 linear values, into ``out`` when given (no copy)."""
+    return np.multiply(codes, np.float32(full_scale / 65535.0), out=out, dtype=np.float32)
+
+
 def srgb_encode(linear: np.ndarray) -> np.ndarray:
     """Linear [0, 1] → sRGB-encoded [0, 1] (IEC 61966-2-1), float32; input clipped to [0, 1], NaN → 0."""
     x = np.clip(np.nan_to_num(np.asarray(linear, np.float32)), 0.0, 1.0)

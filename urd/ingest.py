@@ -31,7 +31,7 @@ from urd import raw as rawio
 from urd.align import Motion, align, apply_warp
 from urd.dataset import Dataset, Scene, atomic_path, sha256_file
 from urd.errors import AlignmentError, DatasetError, RawFormatError, UrdError
-from urd.images import IMAGE_SUFFIXES, Transfer, codes_to_linear, read_raw_codes
+from urd.images import IMAGE_SUFFIXES, Transfer, codes_to_linear, linear_to_u16, read_raw_codes
 from urd.progress import Progress
 
 
@@ -133,10 +133,9 @@ def group_shots(files: list[Path], count: int, gap_s: float) -> tuple[list[list[
 
 
 def write_aligned(path: Path, image: np.ndarray) -> None:
-    """Write a linear image as 16-bit TIFF (value × 65535), atomically."""
-    data = np.clip(np.rint(image * 65535.0), 0, 65535).astype(np.uint16)
+    """Write a linear image as 16-bit TIFF (`urd.images.linear_to_u16`, 1.0 = 65535), atomically."""
     with atomic_path(path) as tmp:
-        tifffile.imwrite(tmp, data, photometric="rgb")
+        tifffile.imwrite(tmp, linear_to_u16(image), photometric="rgb")
 
 
 def process_scene(scene: Scene, opts: IngestOptions, progress: Progress | None = None) -> None:

@@ -37,9 +37,9 @@ def _shrink(image, max_side: int):
 def scene_view(scene, max_side: int = 2048):
     """What the HTML report shows of one scene (`urd.report_html.SceneView`), images at most
     ``max_side`` px long."""
-    import numpy as np
     import tifffile
 
+    from urd.images import u16_to_linear
     from urd.report_html import ResultView, SceneView
 
     status = scene.status()
@@ -57,8 +57,8 @@ def scene_view(scene, max_side: int = 2048):
         except (OSError, ValueError) as exc:
             notes.append(f"{method}: {exc}")
             continue
-        r, t = (_shrink(tifffile.imread(result.files[f"{name}.tiff"]).astype(np.float32) * (result.full_scale / 65535.0),
-                        max_side) for name in ("R", "T"))
+        r, t = (_shrink(u16_to_linear(tifffile.imread(result.files[f"{name}.tiff"]), result.full_scale), max_side)
+                for name in ("R", "T"))
         confidence = result.files.get("confidence.tiff")
         confidence = None if confidence is None else _shrink(tifffile.imread(confidence), max_side)
         reference = result.reference_deg if result.reference_deg is not None else reference

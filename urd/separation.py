@@ -25,7 +25,7 @@ from separate import metrics
 from separate.reference import Inspection, inspect_stack
 from urd.dataset import Scene, atomic_path
 from urd.errors import DatasetError
-from urd.images import Transfer, read_image, to_display
+from urd.images import Transfer, linear_to_u16, read_image, to_display
 
 FULL_SCALE = 2.0
 PREVIEW_SIDE = 2048
@@ -36,8 +36,7 @@ def write_linear_tiff(path: Path, image: np.ndarray, overwrite: bool = False) ->
     the conversion needs little memory)."""
     data = np.empty(image.shape, np.uint16)
     for y in range(0, image.shape[0], 512):
-        block = image[y : y + 512] * (65535.0 / FULL_SCALE)
-        data[y : y + 512] = np.clip(np.rint(block), 0, 65535)
+        data[y : y + 512] = linear_to_u16(image[y : y + 512], FULL_SCALE)
     with atomic_path(path, overwrite) as tmp:
         tifffile.imwrite(tmp, data, photometric="rgb")
 
