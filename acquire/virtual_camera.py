@@ -26,7 +26,7 @@ import tifffile
 from acquire.camera import CameraKind
 from acquire.dng import write_dng
 from separate import optics
-from separate.optics import parabola_aoi, to_linear
+from separate.optics import parabola_aoi, photo_to_linear
 from urd import raw as rawio
 
 
@@ -77,7 +77,7 @@ def make_polarized_target(width: int, height: int, angle_deg: float = 0.0) -> Po
     """A bundled photo seen through a sheet polarizer whose axis is at ``angle_deg``."""
     import skimage.data
 
-    return PolarizedTarget(to_linear(_cover(skimage.data.chelsea(), width, height)) * 0.8 + 0.05, np.radians(angle_deg))
+    return PolarizedTarget(photo_to_linear(_cover(skimage.data.chelsea(), width, height)) * 0.8 + 0.05, np.radians(angle_deg))
 
 
 def _cover(img: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -102,8 +102,8 @@ def make_glass_scene(width: int = 1536, height: int = 1024, reflection: Path | N
 
     refl_u8 = _read_rgb(reflection) if reflection else skimage.data.astronaut()
     trans_u8 = _read_rgb(transmission) if transmission else skimage.data.coffee()
-    refl = to_linear(_cover(refl_u8, width, height)) * 1.6
-    trans = to_linear(_cover(trans_u8, width, height)) * 0.9
+    refl = photo_to_linear(_cover(refl_u8, width, height)) * 1.6
+    trans = photo_to_linear(_cover(trans_u8, width, height)) * 0.9
     xs = np.linspace(-0.5, 0.5, width)
     theta_row = parabola_aoi(np.radians(theta_center_deg), 2.0, 1.5, 0.03 if curved else 0.0, 1, xs)
     theta = np.repeat(theta_row[None, :], height, axis=0).astype(np.float32)

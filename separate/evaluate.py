@@ -95,7 +95,7 @@ def to_pool_image(image: np.ndarray, max_side: int = MAX_SIDE) -> np.ndarray:
     """A decoded photo as the synthesizer's pool holds it: (H, W, 3) uint8 RGB.
 
     The synthesizer crops and resizes 8-bit display-encoded photos and decodes them with
-    `separate.optics.to_linear` (v/255)^2.2, so 16-bit values are taken as display-encoded too
+    `separate.optics.photo_to_linear` (v/255)^2.2, so 16-bit values are taken as display-encoded too
     (as 16-bit PNG and TIFF exports of photos are) and rounded to 8 bits, v/257.
 
     Args:
@@ -482,7 +482,7 @@ def speed_stack(height: int, width: int, seed: int = 0) -> np.ndarray:
 
     if height < 64 or width < 64:
         raise ValueError(f"expected at least 64 × 64 px, got {width} × {height}")
-    refl, trans = (optics.to_linear(cv2.resize(getattr(skimage.data, name)(), (width, height), interpolation=cv2.INTER_CUBIC))
+    refl, trans = (optics.photo_to_linear(cv2.resize(getattr(skimage.data, name)(), (width, height), interpolation=cv2.INTER_CUBIC))
                    for name in ("astronaut", "coffee"))
     theta = np.radians(55.0)
     rng = np.random.default_rng(seed)

@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 
 from separate import optics
-from separate.optics import parabola_aoi, to_linear
+from separate.optics import parabola_aoi, photo_to_linear
 from separate.reference import estimate_reference_deg, present
 
 SHARED_NATURAL = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "natural"
@@ -224,8 +224,8 @@ class Synthesizer:
     def _draw(self) -> dict[str, np.ndarray] | None:
         cfg, rng, p = self.cfg, self.rng, self.cfg.patch
         i, j = rng.choice(len(self.pool), 2, replace=False)
-        refl = to_linear(random_crop(rng, self.pool[i], p))
-        trans = to_linear(random_crop(rng, self.pool[j], p))
+        refl = photo_to_linear(random_crop(rng, self.pool[i], p))
+        trans = photo_to_linear(random_crop(rng, self.pool[j], p))
         if cfg.dynamic_range:
             beta = rng.uniform(1.0, cfg.k_max)
             refl, trans = refl * beta, trans / beta

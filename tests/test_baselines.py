@@ -21,8 +21,8 @@ ANGLES = [0.0, 45.0, 90.0]
 
 
 def layers(size=256):
-    refl = optics.to_linear(cv2.resize(skimage.data.astronaut(), (size, size), interpolation=cv2.INTER_AREA))
-    trans = optics.to_linear(cv2.resize(skimage.data.coffee()[:, 100:500], (size, size), interpolation=cv2.INTER_AREA))
+    refl = optics.photo_to_linear(cv2.resize(skimage.data.astronaut(), (size, size), interpolation=cv2.INTER_AREA))
+    trans = optics.photo_to_linear(cv2.resize(skimage.data.coffee()[:, 100:500], (size, size), interpolation=cv2.INTER_AREA))
     return refl.astype(np.float32), trans.astype(np.float32)
 
 

@@ -26,8 +26,8 @@ ANGLE_SETS = [(0.0, 45.0, 90.0, 135.0), (0.0, 60.0, 120.0)]
 
 
 def layers(size=SIZE, k_r=1.5, k_t=0.6):
-    refl = optics.to_linear(cv2.resize(skimage.data.astronaut(), (size, size), interpolation=cv2.INTER_AREA)) * k_r
-    trans = optics.to_linear(cv2.resize(skimage.data.coffee()[:, 100:500], (size, size), interpolation=cv2.INTER_AREA)) * k_t
+    refl = optics.photo_to_linear(cv2.resize(skimage.data.astronaut(), (size, size), interpolation=cv2.INTER_AREA)) * k_r
+    trans = optics.photo_to_linear(cv2.resize(skimage.data.coffee()[:, 100:500], (size, size), interpolation=cv2.INTER_AREA)) * k_t
     return refl, trans
 
 

@@ -93,7 +93,7 @@ def glass_scene(reflection: Path, transmission: Path) -> np.ndarray:
     def load(path: Path) -> np.ndarray:
         image = cv2.imread(str(path))[..., ::-1]
         image = image if image.shape[0] < image.shape[1] else np.rot90(image)
-        return optics.to_linear(np.ascontiguousarray(image[:320, :480])).astype(np.float32)
+        return optics.photo_to_linear(np.ascontiguousarray(image[:320, :480])).astype(np.float32)
 
     i_r, i_t = load(reflection), load(transmission)
     return np.stack([optics.render(3 * i_r, i_t, np.radians(55.0), np.radians(10.0), phi) for phi in PHI]).astype(np.float32)
