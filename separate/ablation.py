@@ -132,15 +132,14 @@ def curve_at(curve: dict[int, float], step: int) -> float:
     return curve[max(logged)] if logged else float("nan")
 
 
-def format_curves(runs: Sequence[AblationRun], budget: int) -> str:
-    """Markdown: each run's validation T̂ PSNR at a quarter, half, three quarters and all of the
-    budget, to judge how far from convergence the runs are."""
+def format_curves(curves: dict[str, dict[int, float]], budget: int) -> str:
+    """Markdown: each run's validation T̂ PSNR (``curves``: run label → `validation_curve`) at a
+    quarter, half, three quarters and all of the budget, to judge how far from convergence the runs are."""
     marks = [budget * k // 4 for k in (1, 2, 3, 4)]
     lines = ["Validation T̂ PSNR (dB) during training (the runs' own validation set: bsds500/val, full pipeline), "
              "by step:", "", "| run | " + " | ".join(str(m) for m in marks) + " |", "|---|" + "---|" * len(marks)]
-    for run in runs:
-        curve = validation_curve(run)
-        lines.append(f"| {run.label} | " + " | ".join(f"{curve_at(curve, m):.2f}" for m in marks) + " |")
+    for label, curve in curves.items():
+        lines.append(f"| {label} | " + " | ".join(f"{curve_at(curve, m):.2f}" for m in marks) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -193,7 +192,8 @@ def run_ablation(out_dir: Path, runs_dir: Path, seeds: Sequence[int] = (0, 1), j
               f"`{runs[0].config.parent.name}/ablation-*.toml` with its seed ({budget} steps), scored at its best-validation "
               f"checkpoint; benchmark: {count} patches of {size}² (seed {SEED}, full pipeline, reference auto), scored in "
               f"{time.perf_counter() - started:.0f} s. Weights and cards: `weights/` (not shipped).")
-    write_text(out_dir / "ablation.md", format_ablation(runs, rows, header) + "\n" + format_curves(runs, budget))
+    curves = {run.label: validation_curve(run) for run in runs}
+    write_text(out_dir / "ablation.md", format_ablation(runs, rows, header) + "\n" + format_curves(curves, budget))
     by_label = {r["method"]: r for r in rows}
     write_csv(out_dir / "ablation.csv", ["pipeline", "seed", "rmse_t", "psnr_t", "ssim_t", "rmse_r", "psnr_r", "ssim_r"],
               [[run.pipeline, run.seed] + [by_label[run.label][k] for k in ("rmse_t", "psnr_t", "ssim_t", "rmse_r", "psnr_r", "ssim_r")]
@@ -202,7 +202,6 @@ def run_ablation(out_dir: Path, runs_dir: Path, seeds: Sequence[int] = (0, 1), j
     plot_bars(out_dir / "ablation.png", list(PIPELINES),
               {f"seed {s}": [by_label[f"{p}/s{s}"]["psnr_t"] for p in PIPELINES] for s in seeds},
               "Ablation: T PSNR on the synthetic benchmark", "T PSNR (dB)", "training pipeline")
-    curves = {run.label: validation_curve(run) for run in runs}
     steps = sorted({step for curve in curves.values() for step in curve})
     every = -(-len(steps) // 12)                                        # at most 12 step labels
     plot_lines(out_dir / "ablation-curves.png", [str(step) if i % every == 0 else "" for i, step in enumerate(steps)],
