@@ -22,7 +22,6 @@ from separate import metrics, optics
 from separate.synthesis import AngleMode, SynthesisConfig, Synthesizer, default_pool, draw_noise_levels, noise_std
 
 SEED = 2018
-NOMINAL = [0.0, 45.0, 90.0]
 DIRECT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "urd-direct.pt"
 
 
@@ -71,7 +70,7 @@ def run_benchmark(methods: list[str], count: int = 64, size: int = 256, direct_w
         scores = {k: [] for k in ("rmse_r", "psnr_r", "ssim_r", "rmse_t", "psnr_t", "ssim_t")}
         started = time.perf_counter()
         for obs, r, t in zip(data["obs"], data["r"], data["t"]):
-            r_hat, t_hat = run(obs, NOMINAL)
+            r_hat, t_hat = run(obs, list(optics.PAPER_ANGLES_DEG))
             for layer, est, ref in (("r", r_hat, r), ("t", t_hat, t)):
                 scores[f"rmse_{layer}"].append(float(metrics.rmse(est, ref)))
                 scores[f"psnr_{layer}"].append(float(metrics.psnr(est, ref)))

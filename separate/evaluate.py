@@ -215,7 +215,7 @@ class Condition:
     misalign_px: float = 0.0
     noise: Noise = Noise.MEDIUM
     phi_perp_offset_deg: float | None = None
-    angles_deg: tuple[float, ...] = (0.0, 45.0, 90.0)
+    angles_deg: tuple[float, ...] = optics.PAPER_ANGLES_DEG
     calibrated: bool = False
 
     def __post_init__(self):
@@ -387,7 +387,7 @@ def _mean(values: Sequence[float]) -> float:
     return float(np.mean(finite)) if finite else float("nan")
 
 
-def cross_validate(data: dict[str, np.ndarray], methods: dict[str, Callable], angles_deg: Sequence[float] = (0.0, 45.0, 90.0),
+def cross_validate(data: dict[str, np.ndarray], methods: dict[str, Callable], angles_deg: Sequence[float] = optics.PAPER_ANGLES_DEG,
                    progress: Progress | None = None, label: str = "cross-validation") -> list[dict]:
     """Score each method on a synthetic set; rows as `separate.bench.run_benchmark` gives them
     (means of RMSE/PSNR/SSIM of R̂ and T̂, ``seconds_per_patch``, ``psnr_t_per_patch``) plus
@@ -488,7 +488,7 @@ def speed_stack(height: int, width: int, seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(seed)
     gain, read = NOISE_GAINS[Noise.MEDIUM]
     stack = np.empty((3, height, width, 3), np.float32)
-    for k, angle in enumerate(np.radians([0.0, 45.0, 90.0])):
+    for k, angle in enumerate(np.radians(optics.PAPER_ANGLES_DEG)):
         stack[k] = optics.render(refl, trans, theta, 0.0, float(angle)) * 0.8
     exposure = 0.2 / float(stack.mean(dtype=np.float64) * 2)
     for k in range(3):
@@ -526,7 +526,7 @@ def time_method(name: str, height: int, width: int) -> dict:
     exact = _reset_peak()
     before = _status_mb("VmRSS")
     started = time.perf_counter()
-    run(stack, [0.0, 45.0, 90.0])
+    run(stack, list(optics.PAPER_ANGLES_DEG))
     seconds = time.perf_counter() - started
     import resource
 

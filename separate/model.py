@@ -31,7 +31,7 @@ from torch import nn
 
 from separate import optics
 
-NOMINAL_ANGLES = tuple(np.radians([0.0, 45.0, 90.0]))
+NOMINAL_ANGLES = tuple(np.radians(optics.PAPER_ANGLES_DEG))
 VARIANTS = ("canonical", "direct")
 UPSAMPLING = ("transposed", "resize")
 TARGET_MEAN = 0.25

@@ -75,8 +75,6 @@ WEAK_DOLP = 0.02
 IDENTICAL = 0.002
 #: Share of clipped pixels (`clipped_mask`) above which the scene is warned about.
 CLIPPED_WARN = 0.01
-#: Offsets (deg) of the presented shots from the reference.
-PRESENTED_OFFSETS_DEG = (0.0, 45.0, 90.0)
 
 
 class Basis(enum.Enum):
@@ -238,7 +236,7 @@ def estimate_reference_deg(images: np.ndarray, angles_deg: Sequence[float], whit
 def presented_angles_deg(reference_deg: float) -> list[float]:
     """The angles (deg) `present` renders at: reference + 0/45/90°, reference taken mod 180."""
     ref = float(np.mod(reference_deg, 180.0))
-    return [ref + offset for offset in PRESENTED_OFFSETS_DEG]
+    return [ref + offset for offset in optics.PAPER_ANGLES_DEG]
 
 
 def presenting_matrix(angles_deg: Sequence[float], reference_deg: float) -> np.ndarray:

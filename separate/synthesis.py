@@ -234,7 +234,7 @@ class Synthesizer:
         theta, phi_perp = surface_maps(rng, cfg)
         if cfg.angles is AngleMode.CLASSIC:
             phi0 = phi_perp[0, 0] - rng.uniform(-np.pi / 4, np.pi / 4)
-            nominal = phi0 + np.radians([0.0, 45.0, 90.0])
+            nominal = phi0 + np.radians(optics.PAPER_ANGLES_DEG)
         else:
             offsets = cfg.angle_sets_deg[int(rng.integers(len(cfg.angle_sets_deg)))]
             nominal = rng.uniform(0.0, np.pi) + np.radians(offsets)
