@@ -2,7 +2,9 @@
 
 Configured by a TOML file (see `TrainConfig`; `configs/` holds the paper's and a CPU
 setting). A run folder holds ``config.toml`` as used, ``last.pt`` (resumed automatically),
-``best.pt`` (best validation PSNR of T̂), and ``log.jsonl``. Works on CPU and CUDA; with
+``best.pt`` (best validation PSNR of T̂; a run started from ``--init`` weights validates them
+first, as step 0, so fine-tuning never leaves a best.pt worse than where it started), and
+``log.jsonl``. Works on CPU and CUDA; with
 ``torchrun --nproc_per_node K`` it runs DistributedDataParallel (gloo on CPU, nccl on CUDA),
 each rank drawing its own synthetic stream.
 """
@@ -203,15 +205,16 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
     elapsed_before = 0.0
     origin = None
     last = run_dir / "last.pt"
-    if last.exists() or init is not None:
-        source = last if last.exists() else init
+    resumed = last.exists()
+    if resumed or init is not None:
+        source = last if resumed else init
         state = load_checkpoint(source, device)
         stored = {"channels": 3, **state.get("model_config", {})}
         if stored != {"channels": 3, **model.config()}:
             raise WeightsError(f"{source} holds a network {stored}, not the {model.config()} of this config "
                                "(for resize up-sampling from transposed weights: tools/resize_upsampling.py)")
         model.load_state_dict(state["model"])
-        if last.exists():
+        if resumed:
             check_resumable(state["train_config"], cfg, last)
             optim.load_state_dict(state["optim"])
             step, best = state["step"], state.get("best_psnr_t", -math.inf)
@@ -229,6 +232,14 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
     use_bf16 = resolve(cfg.precision, device) is Precision.BF16
     record: dict = {}
     log = open(run_dir / "log.jsonl", "a") if rank == 0 else None
+    if rank == 0 and init is not None and not resumed:          # the starting weights compete for best.pt
+        record = {"step": 0, "lr": lr_at(cfg, 0), "wall_s": 0.0, "patches_seen": 0, **evaluate(model, val, device)}
+        best = record["psnr_t"]
+        save_checkpoint(run_dir / "best.pt", model, None, 0, cfg, {"best_psnr_t": best, "val": record, "wall_s": 0.0, "init": origin})
+        log.write(json.dumps(record) + "\n")
+        log.flush()
+        if progress is not None:
+            progress(record)
     while step < cfg.steps:
         for group in optim.param_groups:
             group["lr"] = lr_at(cfg, step)

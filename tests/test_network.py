@@ -304,6 +304,12 @@ def test_training_continues_from_the_shipped_weights(tmp_path):
     origin = torch.load(tmp_path / "tuned" / "last.pt", weights_only=True)["init"]
     assert origin["sha256"] == hashlib.sha256(DEFAULT_WEIGHTS.read_bytes()).hexdigest()
     assert torch.load(tmp_path / "scratch" / "last.pt", weights_only=True)["init"] is None
+    log = [json.loads(line) for line in (tmp_path / "tuned" / "log.jsonl").read_text().splitlines()]
+    assert log[0]["step"] == 0 and log[0]["patches_seen"] == 0 and log[0]["psnr_t"] > scratch["psnr_t"] + 3   # the starting weights, validated
+    best = torch.load(tmp_path / "tuned" / "best.pt", weights_only=True)
+    assert best["best_psnr_t"] == max(log[0]["psnr_t"], tuned["psnr_t"])
+    assert best["step"] == (0 if log[0]["psnr_t"] >= tuned["psnr_t"] else 1)
+    assert json.loads((tmp_path / "scratch" / "log.jsonl").read_text().splitlines()[0])["step"] == 1
 
     export = [sys.executable, "tools/export_weights.py", tmp_path / "tuned" / "last.pt", tmp_path / "w.pt"]
     root = Path(__file__).resolve().parents[1]

@@ -399,7 +399,8 @@ def train(
         bar(record["step"], cfg.steps, "train")
         if "psnr_t" in record:
             bar.close()
-            typer.echo(f"step {record['step']}: loss {record['loss']:.5f}, val PSNR T {record['psnr_t']:.2f} dB, R {record['psnr_r']:.2f} dB")
+            loss = f"loss {record['loss']:.5f}" if "loss" in record else "the --init weights"
+            typer.echo(f"step {record['step']}: {loss}, val PSNR T {record['psnr_t']:.2f} dB, R {record['psnr_r']:.2f} dB")
 
     record = run_guarded(train_run, cfg, run_dir, init, progress=show)
     bar.close()
