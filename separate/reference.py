@@ -410,7 +410,8 @@ def _warnings(images: np.ndarray, angles_deg: Sequence[float], lum: np.ndarray, 
     if estimate.basis is Basis.TRANSMISSION:
         other = np.mod(estimate.reference_deg + 90.0, 180.0)
         warnings.append(f"the polarization is weak and has one orientation: urd assumes the transmission dominates "
-                        f"(reference {estimate.reference_deg:.1f} deg); if the reflection dominates the photo, "
+                        f"(reference {estimate.reference_deg:.1f} deg); if the reflection dominates the photo, as it "
+                        f"usually does when the glass is seen within ~35 deg of head-on with a bright reflection, "
                         f"pass --reference {other:.1f}")
     return warnings
 

@@ -185,6 +185,9 @@ def test_warnings_name_the_likely_cause():
     weak = np.stack([s0 / 2 * (1 + 0.008 * np.cos(2 * np.radians(a - 30))) for a in angles]).astype(np.float32)
     found = polarization_warnings(weak, angles)
     assert len(found) == 1 and "too little polarization" in found[0]
+    seen_through, _, _ = scene(100.0, angles, theta_deg=65.0, k_r=0.05, k_t=1.0)      # Basis.TRANSMISSION
+    found = polarization_warnings(seen_through, angles)
+    assert len(found) == 1 and "assumes the transmission dominates" in found[0] and "--reference 10.0" in found[0]
 
 
 def test_one_inspection_gives_what_the_three_functions_give_and_codes_read_as_floats():
