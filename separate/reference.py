@@ -42,9 +42,9 @@ T̂ PSNR is 0.89 / 0.94 dB below what the true φ⊥ gives. Nearly all misses (8
 98) are ``Basis.TRANSMISSION`` on reflection-dominated patches at low incidence (θ ≤ 35°),
 where a visible reflection already means I_R > I_T. Lowering `TRANSMISSION_DOLP_MAX` to 0.1
 would recover 0.3–0.4 dB of that on synthetic data (0.6 dB if, besides, a lighter orientation
-whose tail reaches a higher DoLP were read as the reflection), but real glass polarizes transmitted light more
-than the single interface of `separate.optics.dolp_limits` (a pane has two surfaces, double
-glazing four): on the Lapray wine glass (one orientation, DoLP up to 0.27, transmission
+whose tail reaches a higher DoLP were read as the reflection), but real glass polarizes
+transmitted light more than the single interface of `separate.optics.dolp_limits` (a pane has
+two surfaces, double glazing four): on the Lapray wine glass (one orientation, DoLP up to 0.27, transmission
 dominated) it turns T̂ ≈ S0 into a blotchy split with half the light in R̂. urd keeps the
 conservative side; the synthetic benchmark pays for it.
 
