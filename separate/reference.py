@@ -44,9 +44,9 @@ where a visible reflection already means I_R > I_T. Lowering `TRANSMISSION_DOLP_
 would recover 0.3–0.4 dB of that on synthetic data (0.6 dB if, besides, a lighter orientation
 whose tail reaches a higher DoLP were read as the reflection), but real glass polarizes
 transmitted light more than the single interface of `separate.optics.dolp_limits` (a pane has
-two surfaces, double glazing four): on the Lapray wine glass (one orientation, DoLP up to 0.27, transmission
-dominated) it turns T̂ ≈ S0 into a blotchy split with half the light in R̂. urd keeps the
-conservative side; the synthetic benchmark pays for it.
+two surfaces, double glazing four): on the Lapray wine glass (one orientation, DoLP up to
+0.27, transmission dominated) it turns T̂ ≈ S0 into a blotchy split with half the light in R̂.
+urd keeps the conservative side; the synthetic benchmark pays for it.
 
 Functions take stacks (N, H, W, C) float32 linear (1.0 = sensor white), or their codes
 (uint16, 65535 = 1.0; `separate.optics.code_scale`), and the N polarizer angles in degrees,
