@@ -51,11 +51,11 @@ class OffsetFit:
         return {k: round(float(v), 5) for k, v in dataclasses.asdict(self).items()}
 
 
-def malus_fit(stage_angles_deg: np.ndarray, intensities: np.ndarray) -> tuple[np.ndarray, float]:
+def malus_fit(stage_angles_deg: np.ndarray, intensities: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
     """Least-squares Malus-law fit of a sweep, I(a) = A(a)·S with A = `separate.optics.stokes_matrix`:
-    the target's Stokes vector S (3,) as seen by the stage, and the RMS residual (intensity
-    units, N − 3 degrees of freedom). CalibrationError unless there are at least 4 angles (deg)
-    with one intensity each."""
+    the target's Stokes vector S (3,) as seen by the stage, the RMS residual (intensity units,
+    N − 3 degrees of freedom) and S's covariance (3, 3). CalibrationError unless there are at
+    least 4 angles (deg) with one intensity each."""
     a = np.radians(np.asarray(stage_angles_deg, np.float64))
     y = np.asarray(intensities, np.float64)
     if a.size < 4 or a.size != y.size:
@@ -63,18 +63,17 @@ def malus_fit(stage_angles_deg: np.ndarray, intensities: np.ndarray) -> tuple[np
     design = optics.stokes_matrix(a)
     stokes, *_ = np.linalg.lstsq(design, y, rcond=None)
     residual = y - design @ stokes
-    return stokes, float(np.sqrt(residual @ residual / (a.size - 3)))
+    rms = float(np.sqrt(residual @ residual / (a.size - 3)))
+    return stokes, rms, rms**2 * np.linalg.inv(design.T @ design)
 
 
 def fit_offset(stage_angles_deg: np.ndarray, intensities: np.ndarray, target_angle_deg: float = 0.0) -> OffsetFit:
     """Mounting offset from a sweep: mean intensities of the target at each stage angle (deg);
     the target's polarization axis is at ``target_angle_deg``."""
-    stokes, rms = malus_fit(stage_angles_deg, intensities)
+    stokes, rms, cov = malus_fit(stage_angles_deg, intensities)
     modulation = float(optics.dolp(stokes, eps=0.0)) if stokes[0] > 0 else 0.0
     if modulation < 0.05:
         raise CalibrationError(f"the sweep shows almost no Malus modulation ({modulation:.3f}); is the target polarized?")
-    design = optics.stokes_matrix(np.radians(np.asarray(stage_angles_deg, np.float64)))
-    cov = rms**2 * np.linalg.inv(design.T @ design)
     s1, s2 = stokes[1], stokes[2]
     grad = np.array([0.0, -0.5 * s2, 0.5 * s1]) / (s1**2 + s2**2)      # of AoLP = ½·atan2(S2, S1)
     offset = (target_angle_deg - np.degrees(optics.aolp(stokes))) % 180.0

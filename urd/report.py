@@ -83,7 +83,7 @@ def calibration_view(ds):
     if calibration is None or calibration.sweep is None:
         return None
     angles, values = sweep_intensities(Scene(calibration.sweep))
-    stokes, rms = malus_fit(angles, values)
+    stokes, rms, _ = malus_fit(angles, values)
     grid = np.arange(0.0, 180.5, 1.0)
     return CalibrationView(angles, values, grid.tolist(), (stokes_matrix(np.radians(grid)) @ stokes).tolist(),
                            calibration.offset_deg, calibration.uncertainty_deg, rms)
