@@ -16,6 +16,9 @@ From two natural photos, in linear light (inverse gamma 2.2):
    nominal angles (`separate.reference.estimate_reference_deg`) and the shots re-rendered at
    it + 0/45/90° from their Stokes fit (`separate.reference.present`), clipped below at 0 as
    `separate.infer` does;
+   ``AngleMode.ANY_TRUE_SIDE``: as ANY, but an estimate on the wrong side of φ⊥ (more than 45°
+   away) is turned by 90°, so the network is taught only the canonical mapping and deciding
+   the side is left to the reference estimator (ANY teaches it to hedge against a wrong side);
 6. exposure, shot and read noise, and rejection of flat, dark or saturated patches.
 
 Every step has a switch in `SynthesisConfig`; a generator seeded with the same seed yields
@@ -66,6 +69,7 @@ class AngleMode(enum.Enum):
 
     CLASSIC = "classic"
     ANY = "any"
+    ANY_TRUE_SIDE = "any-true-side"
 
 
 @dataclasses.dataclass
@@ -187,13 +191,21 @@ def surface_maps(rng: np.random.Generator, cfg: SynthesisConfig) -> tuple[np.nda
     return np.minimum(theta, np.radians(85.0)).astype(np.float32), phi_perp
 
 
+def true_side_deg(reference_deg: float, phi_perp_deg: float) -> float:
+    """``reference_deg``, or it + 90° if it lies more than 45° from ``phi_perp_deg`` modulo
+    180° (deg)."""
+    off = (reference_deg - phi_perp_deg + 90.0) % 180.0 - 90.0
+    return reference_deg + 90.0 if abs(off) > 45.0 else reference_deg
+
+
 class Synthesizer:
     """Draws training samples from an image pool; deterministic for a seed.
 
     A sample is a dict of float32 arrays: ``obs`` 3×P×P×3 (the network's input: CLASSIC, the
-    shots at φ0, φ0+45°, φ0+90°; ANY, the shots presented at the estimated reference), ``r`` and
-    ``t`` P×P×3 (the observable layers R_obs, T_obs), ``theta`` and ``phi_perp`` P×P, ``angles``
-    (3,) the angles of ``obs`` (rad; CLASSIC: the true polarizer angles; ANY: reference +
+    shots at φ0, φ0+45°, φ0+90°; ANY and ANY_TRUE_SIDE, the shots presented at the estimated
+    reference), ``r`` and ``t`` P×P×3 (the observable layers R_obs, T_obs), ``theta`` and
+    ``phi_perp`` P×P, ``angles``
+    (3,) the angles of ``obs`` (rad; CLASSIC: the true polarizer angles; ANY modes: reference +
     0/45/90° in the nominal angles' frame, which is φ⊥'s frame), and ``shots`` () the number
     of shots taken (3 in CLASSIC).
     """
@@ -260,9 +272,12 @@ class Synthesizer:
         if (obs > 1.0).mean() > 0.01 or (r_obs + t_obs).mean() < 0.02 or t_obs.std() < 0.01:
             return None
         obs = np.clip(obs, 0.0, 1.0).astype(np.float32)
-        if cfg.angles is AngleMode.ANY:
+        if cfg.angles is not AngleMode.CLASSIC:
             nominal_deg = np.degrees(nominal)
-            obs, presented_deg = present(obs, nominal_deg, estimate_reference_deg(obs, nominal_deg))
+            reference_deg = estimate_reference_deg(obs, nominal_deg)
+            if cfg.angles is AngleMode.ANY_TRUE_SIDE:
+                reference_deg = true_side_deg(reference_deg, float(np.degrees(phi_perp[0, 0])))
+            obs, presented_deg = present(obs, nominal_deg, reference_deg)
             obs, angles = np.maximum(obs, 0.0), np.radians(presented_deg).astype(np.float32)
         return {
             "obs": obs.astype(np.float32),

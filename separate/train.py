@@ -40,8 +40,9 @@ class TrainConfig:
     ``variant`` is "canonical" (the paper's network), "direct", or "ceilnet" (the CEILNet
     baseline, with ``blocks`` residual blocks per stage). ``angles`` is the synthesis angle mode
     of the training and validation data (`separate.synthesis.AngleMode`): "classic" (the
-    paper's φ0 + 0/45/90° near φ⊥, the shipped weights' first three stages) or "any" (random
-    angle sets, shots presented at the estimated reference, as `urd separate` does).
+    paper's φ0 + 0/45/90° near φ⊥, the shipped weights' first three stages), "any" (random
+    angle sets, shots presented at the estimated reference, as `urd separate` does) or
+    "any-true-side" (as "any", the reference on φ⊥'s side).
     """
 
     variant: str = "canonical"

@@ -17,7 +17,7 @@ from rig import capture_virtual
 from separate import optics
 from separate.infer import DEFAULT_WEIGHTS, WEIGHTS_DIR, load_model, match_histograms, separate_stack, tile_spans
 from separate.model import NOMINAL_ANGLES, SeparationNet, canonical_inputs
-from separate.synthesis import SynthesisConfig, Synthesizer, load_image_pool
+from separate.synthesis import AngleMode, SynthesisConfig, Synthesizer, load_image_pool, true_side_deg
 from separate.train import TrainConfig, run_lock, train
 from urd.dataset import Dataset
 from urd.errors import TrainingError, WeightsError
@@ -41,6 +41,27 @@ def test_synthesis_is_deterministic_and_physically_consistent():
     for obs, r, t, angles in zip(clean["obs"], clean["r"], clean["t"], clean["angles"]):
         s0 = optics.stokes_from_images(obs, angles)[0]
         np.testing.assert_allclose(s0, r + t, atol=2e-5)
+
+
+def test_any_angle_modes_present_the_shots_at_the_estimated_reference():
+    assert [true_side_deg(r, 100.0) for r in (10.0, 50.0, 140.0, 145.0)] == [100.0, 140.0, 140.0, 145.0]
+    assert true_side_deg(170.0, 5.0) == 170.0 and true_side_deg(120.0, 5.0) == 210.0
+    cfg = SynthesisConfig(patch=64, angles=AngleMode.ANY)
+    anyside = Synthesizer(POOL, cfg, seed=5).batch(48)
+    trueside = Synthesizer(POOL, dataclasses.replace(cfg, angles=AngleMode.ANY_TRUE_SIDE), seed=5).batch(48)
+    for batch in (anyside, trueside):
+        np.testing.assert_allclose(np.degrees(batch["angles"] - batch["angles"][:, :1]) % 180, [[0, 45, 90]] * 48, atol=1e-3)
+    assert set(anyside["shots"]) == {3.0, 4.0, 6.0}
+
+    def off_deg(batch):
+        return (np.degrees(batch["angles"][:, 0] - batch["phi_perp"][:, 0, 0]) + 90.0) % 180.0 - 90.0
+
+    wrong = np.abs(off_deg(anyside)) > 45.0
+    # the same scenes; where the estimate is on the wrong side, the true-side mode turns it by 90°
+    assert 0 < wrong.sum() < 24 and np.abs(off_deg(trueside)).max() <= 45.0
+    np.testing.assert_allclose(np.degrees(trueside["angles"][:, 0] - anyside["angles"][:, 0]) % 180, np.where(wrong, 90.0, 0.0), atol=1e-3)
+    np.testing.assert_array_equal(trueside["obs"][~wrong], anyside["obs"][~wrong])
+    np.testing.assert_array_equal(trueside["t"], anyside["t"])
 
 
 def tan2_quadratic_fit(theta: np.ndarray, phi_perp: float) -> tuple[float, float]:
