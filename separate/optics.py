@@ -315,6 +315,12 @@ def aolp(stokes: Array) -> Array:
     return 0.5 * xp.arctan2(stokes[2], stokes[1])
 
 
+def axis_gap_deg(a_deg: Array, b_deg: Array) -> Array:
+    """Signed difference a − b of two polarizer or polarization axes (deg, numpy), wrapped to
+    [−90°, 90°): an axis repeats every 180°."""
+    return np.mod(np.asarray(a_deg) - b_deg + 90.0, 180.0) - 90.0
+
+
 def canonical_projection(stokes: Array, phi_ref: float = 0.0) -> tuple[Array, Array, Array]:
     """Project onto the canonical polarization angles (paper Eq. 2).
 

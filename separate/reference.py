@@ -284,8 +284,7 @@ def present(images: np.ndarray, angles_deg: Sequence[float], reference_deg: floa
         raise ValueError(f"expected a finite reference angle (deg), got {reference_deg}")
     angles3 = presented_angles_deg(reference_deg)
     if images.shape[0] == 3 and images.dtype == np.float32:
-        gap = np.mod(np.degrees(phi) - angles3 + 90.0, 180.0) - 90.0
-        if np.all(np.abs(gap) < 1e-9):
+        if np.all(np.abs(optics.axis_gap_deg(np.degrees(phi), angles3)) < 1e-9):
             return images, angles3
     mixing = presenting_matrix(angles_deg, reference_deg)
     out = np.empty((3,) + images.shape[1:], np.float32)

@@ -194,8 +194,7 @@ def surface_maps(rng: np.random.Generator, cfg: SynthesisConfig) -> tuple[np.nda
 def true_side_deg(reference_deg: float, phi_perp_deg: float) -> float:
     """``reference_deg``, or it + 90° if it lies more than 45° from ``phi_perp_deg`` modulo
     180° (deg)."""
-    off = (reference_deg - phi_perp_deg + 90.0) % 180.0 - 90.0
-    return reference_deg + 90.0 if abs(off) > 45.0 else reference_deg
+    return reference_deg + 90.0 if abs(optics.axis_gap_deg(reference_deg, phi_perp_deg)) > 45.0 else reference_deg
 
 
 class Synthesizer:
@@ -204,10 +203,9 @@ class Synthesizer:
     A sample is a dict of float32 arrays: ``obs`` 3×P×P×3 (the network's input: CLASSIC, the
     shots at φ0, φ0+45°, φ0+90°; ANY and ANY_TRUE_SIDE, the shots presented at the estimated
     reference), ``r`` and ``t`` P×P×3 (the observable layers R_obs, T_obs), ``theta`` and
-    ``phi_perp`` P×P, ``angles``
-    (3,) the angles of ``obs`` (rad; CLASSIC: the true polarizer angles; ANY modes: reference +
-    0/45/90° in the nominal angles' frame, which is φ⊥'s frame), and ``shots`` () the number
-    of shots taken (3 in CLASSIC).
+    ``phi_perp`` P×P, ``angles`` (3,) the angles of ``obs`` (rad; CLASSIC: the true polarizer
+    angles; ANY modes: reference + 0/45/90° in the nominal angles' frame, which is φ⊥'s frame),
+    and ``shots`` () the number of shots taken (3 in CLASSIC).
     """
 
     def __init__(self, pool: list[np.ndarray], cfg: SynthesisConfig, seed: int):
