@@ -26,7 +26,9 @@ import numpy as np
 import torch
 
 from separate.bench import SEED, paired_gain, run_benchmark
-from separate.evaluate import cpu_model, environment, plot_bars, plot_lines, write_csv, write_text
+from separate.bench_report import write_csv, write_text
+from separate.plots import plot_bars, plot_lines
+from separate.provenance import cpu_model, environment
 from separate.train import TrainConfig, export_weights, load_checkpoint, train
 from urd.errors import TrainingError
 

@@ -16,7 +16,7 @@ import subprocess
 import sys
 import time
 
-from separate.evaluate import cpu_model
+from separate.provenance import cpu_model
 
 
 # A wrapper process runs one command and reports its own children's peak RSS (KiB): the

@@ -19,7 +19,8 @@ from pathlib import Path
 
 
 def main() -> int:
-    from separate.evaluate import DEFAULT_OUT, BenchmarkMismatch, run_evaluation
+    from separate.bench_check import BenchmarkMismatch
+    from separate.bench_run import DEFAULT_OUT, run_evaluation
     from urd.progress import TerminalProgress
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)

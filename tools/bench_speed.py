@@ -41,7 +41,7 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from separate.infer import OVERLAP, TILE, FusedNet, load_model, separate_stack, tile_spans
 from separate.precision import Precision, describe, native_bf16, resolve
-from separate.evaluate import cpu_model
+from separate.provenance import cpu_model
 
 ANGLES = [float(a) for a in np.radians([0.0, 45.0, 90.0])]
 SCALE = torch.tensor([0.5])
