@@ -28,6 +28,7 @@ from acquire.dng import write_dng
 from separate import optics
 from separate.optics import parabola_aoi, photo_to_linear
 from urd import raw as rawio
+from urd.dataset import TRUTH_FILE, atomic_path, write_truth_record
 
 
 @dataclasses.dataclass
@@ -204,17 +205,22 @@ class VirtualCamera:
 
     def write_truth(self, folder: Path) -> None:
         """Write the ground truth in decoded units: R_obs.tiff, T_obs.tiff (float32 H×W×3),
-        for glass scenes theta_deg.tiff and phi_perp_deg.tiff (float32 H×W), and truth.json."""
+        for glass scenes theta_deg.tiff and phi_perp_deg.tiff (float32 H×W), each atomically,
+        then truth.json (gain, camera, and each file's size and SHA-256,
+        `urd.dataset.write_truth_record`): its presence marks the folder complete, and
+        ``urd verify`` checks the files against it. Existing files are replaced."""
         folder.mkdir(parents=True, exist_ok=True)
         s = self.scene
         r_obs, t_obs = s.layers()
         arrays = [("R_obs", r_obs * self.gain), ("T_obs", t_obs * self.gain)]
         if isinstance(s, GlassScene):
             arrays += [("theta_deg", np.degrees(s.theta)), ("phi_perp_deg", np.degrees(s.phi_perp))]
+        (folder / TRUTH_FILE).unlink(missing_ok=True)              # incomplete until rewritten
         for name, array in arrays:
             array = np.asarray(array, np.float32)
-            tifffile.imwrite(folder / f"{name}.tiff", array, photometric="rgb" if array.ndim == 3 else "minisblack")
-        (folder / "truth.json").write_text(json.dumps({"gain": self.gain, "camera": self.describe()}, indent=2))
+            with atomic_path(folder / f"{name}.tiff", overwrite=True) as tmp:
+                tifffile.imwrite(tmp, array, photometric="rgb" if array.ndim == 3 else "minisblack")
+        write_truth_record(folder, {"gain": self.gain, "camera": self.describe()})
 
 
 def shot_truth(path: Path) -> dict | None:

@@ -14,7 +14,8 @@ Layout::
         scene.json              scene manifest (schema "urd.scene")
         raw/                    the RAW shots as captured, e.g. shot_00_000.0deg.dng
         aligned/                16-bit linear TIFF per shot, aligned to the first shot
-        truth/                  ground truth, for scenes from the virtual camera only
+        truth/                  ground truth, for scenes from the virtual camera only; its
+                                truth.json, written last, holds each file's size and SHA-256
         results/METHOD/         R.tiff, T.tiff (linear 16-bit), sRGB previews, extra maps
 
 Guarantees, all kept here:
@@ -23,11 +24,14 @@ Guarantees, all kept here:
   manifest key. Every field is checked on load, with errors naming the file and the field;
   newer schema versions are refused.
 * **atomic**: every write goes to a temporary file that is renamed into place; new outputs of
-  a re-run (``--redo``, ``--force``) are staged beside the old ones and swapped in only on
-  success, so the manifest never names a missing file.
+  a re-run (``--redo``, ``--force``) are staged beside the old ones and the manifest is the
+  commit point (`Scene._commit`): it names the old files, then the staged new ones, then the
+  new ones under their final names, never a missing file; old files go only after that. A run
+  killed in between is rolled forward when the dataset's lock is next taken (`Dataset.recover`).
 * **confined**: file paths in a manifest are relative and stay inside their scene folder.
-* **verified**: files are checked against their size and SHA-256 before use (a size + mtime
-  cache avoids re-hashing unchanged files); `Scene.verify` checks everything.
+* **verified**: files are checked against their size and SHA-256 before use (a cache keyed by
+  size, mtime, ctime and inode avoids re-hashing unchanged files); `Scene.verify` hashes
+  everything in full, ground truth included.
 * **locked**: commands that write take the dataset's lock; a second one is told who holds it.
 * **idempotent**: `Dataset.shot_index` maps RAW content hashes to scenes, so ingest skips
   shots it already has.
@@ -43,6 +47,7 @@ import datetime as _dt
 import fcntl
 import hashlib
 import json
+import math
 import os
 import re
 import shutil
@@ -51,7 +56,7 @@ from pathlib import Path, PurePosixPath
 from typing import Any, Callable, Iterator
 
 from urd import __version__
-from urd.errors import DatasetBusyError, DatasetError, ManifestError
+from urd.errors import DatasetBusyError, DatasetError, ManifestError, UrdError
 
 SCHEMA_VERSION = 1
 DATASET_MANIFEST = "dataset.json"
@@ -59,7 +64,11 @@ SCENE_MANIFEST = "scene.json"
 CALIBRATION_FILE = "calibration.json"
 LOCK_FILE = ".urd.lock"
 HASH_CACHE = ".urd-hashes.json"
+TRUTH_FILE = "truth.json"
 STAGING_PREFIX = ".staging-"
+MAX_DEPTH = 32                          # nesting levels a manifest may have (urd writes at most 5)
+MAX_ANGLE_DEG = 720.0                   # largest |angle| a manifest may hold (deg): two turns
+TEMPORARY = re.compile(r"^\..+(\.tmp(\.[^.]+)?|\.\d+\.link)$")   # `atomic_path` and `_place` leftovers
 SCENE_NAME = re.compile(r"^scene_(\d{2,})$")
 SHA256 = re.compile(r"^[0-9a-f]{64}$")
 
@@ -147,13 +156,32 @@ def write_json_atomic(path: Path, record: dict, overwrite: bool = True) -> None:
 
 
 def read_json(path: Path) -> Any:
-    """Read a JSON file; ManifestError when missing or unparsable."""
+    """Read a JSON file; ManifestError when missing, unparsable, or nested deeper than
+    `MAX_DEPTH` levels (no urd manifest is; such a file would overflow Python's stack)."""
     try:
-        return json.loads(Path(path).read_text())
+        record = json.loads(Path(path).read_text())
     except FileNotFoundError as exc:
         raise ManifestError(f"{path}: manifest not found") from exc
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+    except RecursionError:
+        record = None
+    except (ValueError, UnicodeDecodeError) as exc:
         raise ManifestError(f"{path}: not valid JSON ({exc})") from exc
+    if record is None or not _nesting_within(record, MAX_DEPTH):
+        raise ManifestError(f"{path}: nested more than {MAX_DEPTH} levels deep, which no urd manifest is "
+                            "(damaged or not written by urd); restore it from a backup")
+    return record
+
+
+def _nesting_within(value: Any, limit: int) -> bool:
+    """True when lists and objects in ``value`` nest at most ``limit`` levels (no recursion)."""
+    pending = [(value, 1)]
+    while pending:
+        item, depth = pending.pop()
+        if isinstance(item, (dict, list)):
+            if depth > limit:
+                return False
+            pending.extend((child, depth + 1) for child in (item.values() if isinstance(item, dict) else item))
+    return True
 
 
 # ---------------------------------------------------------------- validation
@@ -175,6 +203,8 @@ def _check(record: Any, where: str, required: dict[str, Any], optional: dict[str
         if not isinstance(value, kind) or (isinstance(value, bool) and bool not in _as_tuple(kind)):
             raise ManifestError(f"{where}: field '{key}' has type {type(value).__name__}, "
                                 f"expected {' or '.join(t.__name__ for t in _as_tuple(kind))}")
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ManifestError(f"{where}: field '{key}' is {value}, expected a finite number")
     return record
 
 
@@ -182,9 +212,22 @@ def _as_tuple(kind: Any) -> tuple:
     return kind if isinstance(kind, tuple) else (kind,)
 
 
-def _check_numbers(values: Any, where: str) -> None:
+def _check_numbers(values: Any, where: str, limit: float = math.inf) -> None:
+    """A list of finite numbers of magnitude at most ``limit``; ManifestError otherwise."""
     if not isinstance(values, list) or not all(isinstance(v, NUMBER) and not isinstance(v, bool) for v in values):
         raise ManifestError(f"{where}: expected a list of numbers, got {values!r:.80}")
+    for i, value in enumerate(values):
+        if not (math.isfinite(value) and abs(value) <= limit):
+            raise ManifestError(f"{where}[{i}]: is {value!r:.40}, expected a finite number"
+                                + (f" within ±{limit:g}" if math.isfinite(limit) else ""))
+
+
+def _check_angles(record: dict, where: str, keys: tuple[str, ...]) -> None:
+    """The angle fields ``keys`` of ``record`` (deg; absent or None allowed) lie within ±`MAX_ANGLE_DEG`."""
+    for key in keys:
+        value = record.get(key)
+        if value is not None and not abs(value) <= MAX_ANGLE_DEG:
+            raise ManifestError(f"{where}: field '{key}' is {value!r:.40} deg, expected an angle within ±{MAX_ANGLE_DEG:g} deg")
 
 
 def _check_schema(record: dict, where: str, schema: str) -> None:
@@ -225,22 +268,27 @@ def _check_file(record: Any, where: str, base: Path) -> None:
 SHOT_REQUIRED = {"index": int, "angle_commanded_deg": NUMBER, "angle_measured_deg": OPTIONAL_NUMBER,
                  "angle_calibrated_deg": OPTIONAL_NUMBER, "file": str, "size": int, "sha256": str, "time": str}
 SHOT_OPTIONAL = {"stage_position_deg": OPTIONAL_NUMBER, "camera": (dict, type(None))}
+SHOT_ANGLES = ("angle_commanded_deg", "angle_measured_deg", "angle_calibrated_deg", "stage_position_deg")
 
 
 def validate_scene(record: Any, where: str, base: Path) -> dict:
     """Check every field of a scene manifest; ManifestError naming file and field."""
     _check(record, where, {"schema": str, "schema_version": int, "name": str, "created": str, "source": str,
                            "capture": dict, "shots": list, "provenance": list},
-           {"ingest": dict, "results": dict, "calibration": dict})
+           {"ingest": dict, "results": dict, "calibration": dict, "swap": dict})
     _check_schema(record, where, "urd.scene")
     capture = _check(record["capture"], f"{where}: capture", {}, {"angles_deg": list, "complete": bool,
                                                                    "offset_deg": NUMBER, "tolerance_deg": NUMBER})
     if "angles_deg" in capture:
-        _check_numbers(capture["angles_deg"], f"{where}: capture.angles_deg")
+        _check_numbers(capture["angles_deg"], f"{where}: capture.angles_deg", MAX_ANGLE_DEG)
+    _check_angles(capture, f"{where}: capture", ("offset_deg",))
     indices = []
     for i, shot in enumerate(record["shots"]):
         _check(shot, f"{where}: shots[{i}]", SHOT_REQUIRED, SHOT_OPTIONAL)
         _check_file(shot, f"{where}: shots[{i}]", base)
+        _check_angles(shot, f"{where}: shots[{i}]", SHOT_ANGLES)
+        if shot["index"] < 0:
+            raise ManifestError(f"{where}: shots[{i}]: field 'index' is {shot['index']}, expected 0 or more")
         indices.append(shot["index"])
     if len(set(indices)) != len(indices):
         raise ManifestError(f"{where}: shots: duplicate shot indices {sorted(indices)}")
@@ -250,7 +298,7 @@ def validate_scene(record: Any, where: str, base: Path) -> dict:
         ingest = _check(record["ingest"], f"{where}: ingest", {"time": str, "ok": bool, "options": dict,
                                                               "angles_deg": list, "aligned": list},
                         {"alignment": (list, str), "error": str, "shot_hashes": list})
-        _check_numbers(ingest["angles_deg"], f"{where}: ingest.angles_deg")
+        _check_numbers(ingest["angles_deg"], f"{where}: ingest.angles_deg", MAX_ANGLE_DEG)
         for i, entry in enumerate(ingest["aligned"]):
             _check_file(entry, f"{where}: ingest.aligned[{i}]", base)
         if ingest["ok"] and len(ingest["aligned"]) < 3:
@@ -259,13 +307,20 @@ def validate_scene(record: Any, where: str, base: Path) -> dict:
             raise ManifestError(f"{where}: ingest: missing field 'error' of a failed ingest")
     for method, entry in record.get("results", {}).items():
         _check(entry, f"{where}: results.{method}", {"time": str, "method": str, "files": list},
-               {"angles_deg": list, "parameters": dict, "truth_metrics": (dict, type(None))})
+               {"angles_deg": list, "parameters": dict, "truth_metrics": (dict, type(None)), "stale": str})
+        if "angles_deg" in entry:
+            _check_numbers(entry["angles_deg"], f"{where}: results.{method}.angles_deg", MAX_ANGLE_DEG)
         for i, f in enumerate(entry["files"]):
             _check_file(f, f"{where}: results.{method}.files[{i}]", base)
     if "calibration" in record:
         calib = _check(record["calibration"], f"{where}: calibration", {"time": str, "applied": bool, "errors_deg": list,
                                                                         "uncertainty_deg": list})
-        _check_numbers(calib["errors_deg"], f"{where}: calibration.errors_deg")
+        _check_numbers(calib["errors_deg"], f"{where}: calibration.errors_deg", MAX_ANGLE_DEG)
+        _check_numbers(calib["uncertainty_deg"], f"{where}: calibration.uncertainty_deg")
+    if "swap" in record:
+        swap = _check(record["swap"], f"{where}: swap", {"remove": list})
+        for i, name in enumerate(swap["remove"]):
+            confined_path(base, name, f"{where}: swap.remove[{i}]")
     return record
 
 
@@ -283,6 +338,7 @@ def validate_calibration(record: Any, where: str) -> dict:
               "target_angle_deg": NUMBER, "history": list}
     _check(record, where, fields, {"modulation": NUMBER, "sweep": str, "residual_rms": NUMBER})
     _check_schema(record, where, "urd.calibration")
+    _check_angles(record, where, ("offset_deg", "target_angle_deg"))
     for i, old in enumerate(record["history"]):
         _check(old, f"{where}: history[{i}]", {"time": str, "offset_deg": NUMBER})
     return record
@@ -291,6 +347,51 @@ def validate_calibration(record: Any, where: str) -> dict:
 def provenance(step: str, parameters: dict) -> dict:
     """A provenance entry: which step ran, when, with which urd version and parameters."""
     return {"step": step, "time": now_iso(), "urd_version": __version__, "parameters": parameters}
+
+
+def _file_records(record: dict) -> list[dict]:
+    """Every file record a scene manifest names (shots, aligned stack, results), the live dicts."""
+    files = list(record["shots"]) + list(record.get("ingest", {}).get("aligned", []))
+    return files + [rec for entry in record.get("results", {}).values() for rec in entry["files"]]
+
+
+def _final_name(name: str) -> str:
+    """The final name of a manifest file name: ``.staging-XXXX/aligned/shot_00.tiff`` →
+    ``aligned/shot_00.tiff`` (a staged file of a committed swap); other names are final."""
+    parts = PurePosixPath(name).parts
+    return PurePosixPath(*parts[1:]).as_posix() if parts[0].startswith(STAGING_PREFIX) and len(parts) > 1 else name
+
+
+def _path_chain(base: Path, relative: str) -> list[Path]:
+    """``base/a``, ``base/a/b``, ... ``base/relative``: each path on the way to a relative name."""
+    parts = PurePosixPath(relative).parts
+    return [Path(base).joinpath(*parts[: i + 1]) for i in range(len(parts))]
+
+
+def _place(source: Path, target: Path) -> None:
+    """Give ``target`` the content of ``source`` in one step (a hard link, else a copy, renamed
+    onto it); ``source`` stays."""
+    link = target.with_name(f".{target.name}.{os.getpid()}.link")
+    link.unlink(missing_ok=True)
+    try:
+        os.link(source, link)
+    except OSError:
+        shutil.copy2(source, link)
+    try:
+        os.replace(link, target)
+    except BaseException:
+        link.unlink(missing_ok=True)
+        raise
+
+
+def write_truth_record(folder: Path, info: dict) -> None:
+    """Write a ground-truth folder's ``truth.json``: ``info`` (gain, camera, ...) and the size
+    and SHA-256 of every other file in ``folder``. Write it last: its presence marks the folder
+    complete, and `Scene.verify` checks the files against it."""
+    folder = Path(folder)
+    files = [{"file": p.name, "size": p.stat().st_size, "sha256": sha256_file(p)}
+             for p in sorted(folder.iterdir()) if p.is_file() and p.name != TRUTH_FILE and not p.name.startswith(".")]
+    write_json_atomic(folder / TRUTH_FILE, {**info, "files": files})
 
 
 # ---------------------------------------------------------------- shots and status
@@ -335,6 +436,7 @@ class SceneStatus:
     methods: list[str]
     calibrated: bool = False
     problem: str | None = None
+    stale: tuple[str, ...] = ()
 
     def describe(self) -> str:
         """One line for a terminal."""
@@ -348,14 +450,17 @@ class SceneStatus:
             parts.append({"captured": "not ingested", "ingested": "aligned",
                           "alignment failed": "ALIGNMENT FAILED"}[self.state])
         parts.append("angles calibrated" if self.calibrated else "nominal angles")
-        parts.append(", ".join(self.methods) if self.methods else "no results")
+        methods = [f"{m} (STALE: from an earlier alignment; separate again with --force)" if m in self.stale else m
+                   for m in self.methods]
+        parts.append(", ".join(methods) if methods else "no results")
         return ", ".join(parts)
 
 
 @dataclasses.dataclass(frozen=True)
 class Result:
     """A method's stored results: files by name (``R.tiff`` → path), the reference angle it was
-    given (deg), warnings about its input, the TIFF full scale, PSNR/SSIM against ground truth
+    given (deg), warnings about its input (and that the results are stale, computed from an
+    earlier alignment, when they are), the TIFF full scale, PSNR/SSIM against ground truth
     (virtual scenes), and the rest of its record (parameters, weights, time) as ``description``."""
 
     method: str
@@ -384,15 +489,26 @@ class OffsetCalibration:
 # ---------------------------------------------------------------- hash cache
 
 
-def _cached_hash(scene_dir: Path, path: Path, cache: dict) -> str:
-    """SHA-256 of ``path``, taken from ``cache`` when size and mtime are unchanged."""
+def _stamp(path: Path) -> list[int]:
+    """What changes whenever a file's bytes can have changed: size, mtime and ctime (ns), inode
+    (ctime cannot be set back, and a copied or restored file gets a new inode)."""
     stat = path.stat()
+    return [stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns, stat.st_ino]
+
+
+def _hash(scene_dir: Path, path: Path, cache: dict, full: bool) -> str:
+    """SHA-256 of ``path``, taken from ``cache`` when its `_stamp` is unchanged (never with
+    ``full``); the cache entry is refreshed from what was hashed."""
     key = path.relative_to(scene_dir).as_posix()
+    stamp = _stamp(path)
     hit = cache.get(key)
-    if isinstance(hit, list) and hit[:2] == [stat.st_size, stat.st_mtime_ns]:
-        return hit[2]
+    if not full and isinstance(hit, list) and len(hit) == 5 and hit[:4] == stamp and isinstance(hit[4], str):
+        return hit[4]
     digest = sha256_file(path)
-    cache[key] = [stat.st_size, stat.st_mtime_ns, digest]
+    if _stamp(path) == stamp:
+        cache[key] = stamp + [digest]
+    else:
+        cache.pop(key, None)
     return digest
 
 
@@ -492,8 +608,9 @@ class Scene:
         if verify:
             self.check_files(entry["files"])
         files = {Path(f["file"]).name: confined_path(self.path, f["file"], str(self.manifest_path)) for f in entry["files"]}
-        known = ("files", "reference_deg", "warnings", "full_scale", "truth_metrics")
-        return Result(method, files, entry.get("reference_deg"), list(entry.get("warnings", [])),
+        known = ("files", "reference_deg", "warnings", "full_scale", "truth_metrics", "stale")
+        warnings = list(entry.get("warnings", [])) + ([f"STALE: {entry['stale']}"] if "stale" in entry else [])
+        return Result(method, files, entry.get("reference_deg"), warnings,
                       float(entry.get("full_scale", 2.0)), copy.deepcopy(entry.get("truth_metrics")),
                       {k: copy.deepcopy(v) for k, v in entry.items() if k not in known})
 
@@ -535,48 +652,102 @@ class Scene:
         else:
             state = "ingested" if data["ingest"]["ok"] else "alignment failed"
         calibrated = bool(data.get("calibration", {}).get("applied"))
+        results = data.get("results", {})
         return SceneStatus(self.name, state, len(shots), expected, [s.angle_commanded_deg for s in shots],
-                           sorted(data.get("results", {})), calibrated)
+                           sorted(results), calibrated, stale=tuple(sorted(m for m, e in results.items() if "stale" in e)))
 
     # -- integrity
 
-    def check_files(self, records: list[dict]) -> None:
-        """Every listed file exists inside the scene with its recorded size and SHA-256
-        (unchanged files are recognized by size and mtime); ManifestError otherwise."""
-        cache_path = self.path / HASH_CACHE
+    def _load_cache(self) -> dict:
+        """The hash cache (`_hash`); empty when missing or unreadable."""
         try:
-            cache = json.loads(cache_path.read_text())
-        except (OSError, ValueError):
-            cache = {}
-        cache = cache if isinstance(cache, dict) else {}
-        before = dict(cache)
-        for rec in records:
-            path = confined_path(self.path, rec["file"], str(self.manifest_path))
-            if not path.is_file():
-                raise ManifestError(f"{path}: listed in the manifest but missing")
-            if path.stat().st_size != rec["size"] or _cached_hash(self.path, path, cache) != rec["sha256"]:
-                raise ManifestError(f"{path}: SHA-256 or size does not match the manifest (corrupted or changed); "
-                                    f"run 'urd verify' to check the whole dataset")
-        if cache != before:
-            with contextlib.suppress(DatasetError):            # a read-only dataset still verifies
-                write_json_atomic(cache_path, cache)
+            cache = read_json(self.path / HASH_CACHE)
+        except (ManifestError, OSError):
+            return {}
+        return cache if isinstance(cache, dict) else {}
+
+    def _save_cache(self, cache: dict) -> None:
+        with contextlib.suppress(DatasetError, OSError):          # a read-only dataset still verifies
+            write_json_atomic(self.path / HASH_CACHE, cache)
+
+    def _check_intact(self, rec: dict, cache: dict, full: bool) -> None:
+        """ManifestError unless the file of ``rec`` exists inside the scene with its size and SHA-256."""
+        path = confined_path(self.path, rec["file"], str(self.manifest_path))
+        if not path.is_file():
+            raise ManifestError(f"{path}: listed in the manifest but missing")
+        if path.stat().st_size != rec["size"] or _hash(self.path, path, cache, full) != rec["sha256"]:
+            raise ManifestError(f"{path}: SHA-256 or size does not match the manifest (corrupted or changed); "
+                                f"run 'urd verify' to check the whole dataset")
+
+    def check_files(self, records: list[dict], full: bool = False) -> None:
+        """Every listed file exists inside the scene with its recorded size and SHA-256;
+        ManifestError otherwise. Unchanged files are recognized by their `_stamp` unless
+        ``full``, which hashes every byte."""
+        cache = self._load_cache()
+        before = copy.deepcopy(cache)
+        try:
+            for rec in records:
+                self._check_intact(rec, cache, full)
+        finally:
+            if cache != before:
+                self._save_cache(cache)
 
     def verify(self) -> list[str]:
-        """Problems of this scene (empty when every listed file is present and intact)."""
+        """Problems of this scene (empty when every listed file is present and intact), every
+        file hashed in full: shots, aligned stack, results and the virtual camera's ground truth."""
         try:
             data = self.reload()._data()
         except (ManifestError, OSError) as exc:
             return [str(exc)]
-        groups = [data["shots"], data.get("ingest", {}).get("aligned", [])]
-        groups += [entry["files"] for entry in data.get("results", {}).values()]
+        records = data["shots"] + data.get("ingest", {}).get("aligned", [])
+        records += [rec for entry in data.get("results", {}).values() for rec in entry["files"]]
         problems = []
-        for records in groups:
-            for rec in records:
-                try:
-                    self.check_files([rec])
-                except ManifestError as exc:
-                    problems.append(str(exc))
+        try:
+            records += self._truth_records()
+        except (ManifestError, DatasetError) as exc:
+            problems.append(str(exc))
+        cache = {}
+        for rec in records:
+            try:
+                self._check_intact(rec, cache, full=True)
+            except (ManifestError, OSError) as exc:
+                problems.append(str(exc))
+        self._save_cache(cache)
         return problems
+
+    def _truth_records(self) -> list[dict]:
+        """File records (relative to the scene) of the ground truth that ``truth/truth.json``
+        lists; empty without a truth folder or for one of an older urd (no file list).
+        DatasetError for a truth folder a stopped capture left incomplete."""
+        folder = self.truth_dir()
+        if not folder.is_dir():
+            return []
+        where = folder / TRUTH_FILE
+        try:
+            record = read_json(where)
+        except ManifestError as exc:
+            raise DatasetError(f"{folder}: incomplete ground truth ({exc}; a capture was stopped while writing it); "
+                               f"move the folder away and resume the capture with 'urd capture --scene {self.name}' "
+                               "to write it again") from exc
+        _check(record, str(where), {}, {"files": list})
+        records = []
+        for i, rec in enumerate(record.get("files", [])):
+            _check_file(rec, f"{where}: files[{i}]", folder)
+            records.append({**rec, "file": f"{folder.name}/{rec['file']}"})
+        return records
+
+    def truth_files(self) -> dict[str, Path] | None:
+        """The virtual camera's ground truth files by name (``R_obs.tiff`` → path), checked
+        against the sizes and SHA-256 in ``truth/truth.json`` (not those of an older urd, which
+        wrote none); None when the scene has no ground truth. ManifestError for a damaged file,
+        DatasetError for an incomplete truth folder."""
+        records = self._truth_records()
+        if not self.truth_dir().is_dir():
+            return None
+        self.check_files(records)
+        if records:
+            return {Path(rec["file"]).name: self.path / rec["file"] for rec in records}
+        return {p.name: p for p in sorted(self.truth_dir().glob("*.tiff"))}
 
     def load_stack(self, codes: bool = False) -> tuple["Any", list[float]]:
         """The aligned stack (N, H, W, 3) float32 linear, hash-verified, and its best known
@@ -651,60 +822,148 @@ class Scene:
     @contextlib.contextmanager
     def staging(self) -> Iterator[Path]:
         """A hidden folder inside the scene for outputs being computed; removed afterwards
-        (files swapped in with `set_ingest` / `add_result` are kept)."""
+        (files handed to `set_ingest` / `add_result` / ... have been moved out of it)."""
         folder = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=self.path))
         try:
             yield folder
         finally:
             shutil.rmtree(folder, ignore_errors=True)
 
-    def _swap_in(self, staged: dict[str, Path], set_files) -> list[dict]:
-        """Move staged files to their final names (relative to the scene) without the manifest
-        ever naming a missing file: first the manifest names the staged files, then each final
-        name is replaced by a hard link of its staged file, then the manifest names the final
-        files and the staged names go. ``set_files(records)`` stores the file records."""
-        staged_records = [self.file_record(path) for path in staged.values()]
-        set_files(staged_records)
-        self._save()
-        final_records = []
-        for (relative, path), rec in zip(staged.items(), staged_records):
-            final = confined_path(self.path, relative, "output")
-            final.parent.mkdir(parents=True, exist_ok=True)
-            link = final.with_name(f".{final.name}.{os.getpid()}.link")
-            link.unlink(missing_ok=True)
-            os.link(path, link)
-            os.replace(link, final)
-            final_records.append({**rec, "file": relative})
-        set_files(final_records)
-        self._save()
-        for path in staged.values():
-            path.unlink(missing_ok=True)
-        return final_records
+    def _output_path(self, relative: str) -> Path:
+        """The final path of an output named ``relative`` (to the scene); DatasetError, before
+        anything changes, when it would leave the scene or a file stands where a folder must be."""
+        try:
+            path = confined_path(self.path, relative, str(self.manifest_path))
+        except ManifestError as exc:
+            links = [p for p in _path_chain(self.path, relative) if p.is_symlink()]
+            where = f"replace the link {links[0]} by a folder" if links else "fix the output name"
+            raise DatasetError(f"{self.name}: cannot store {relative}: {exc}. Nothing was changed (the earlier "
+                               f"outputs are kept); {where} and run the command again") from exc
+        for parent in _path_chain(self.path, relative)[:-1]:
+            if parent.exists() and not parent.is_dir():
+                raise DatasetError(f"{self.name}: cannot store {relative}: {parent} is a file, not a folder. Nothing "
+                                   "was changed (the earlier outputs are kept); move it away and run the command again")
+        return path
+
+    def _commit(self, staged: dict[str, Path], change: Callable[[list[dict]], None]) -> None:
+        """Change the manifest and swap in new output files (final name relative to the scene →
+        staged path) so that it never names a missing file, with the manifest as the commit point:
+
+        1. the staged files move to ``.staging-XXXX/<final name>`` (the manifest still names the old files);
+        2. ``change(records)`` stores their file records, the manifest saved with them and the old
+           files no longer named listed in ``swap`` — the commit;
+        3. `_finish_swap` links each to its final name, removes the old files and saves the final manifest.
+
+        An error or interrupt before 2 changes nothing; after it, the swap is finished by the next
+        `recover` (on taking the dataset's lock) if it was not here.
+        """
+        for relative in staged:
+            self._output_path(relative)
+        data = self._data()
+        before = {rec["file"] for rec in _file_records(data)}
+        folder = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=self.path))
+        try:
+            records = []
+            for relative, path in staged.items():
+                target = folder / relative
+                target.parent.mkdir(parents=True, exist_ok=True)
+                shutil.move(path, target)
+                records.append(self.file_record(target))
+            change(records)
+            after = {_final_name(rec["file"]) for rec in _file_records(data)}
+            data["swap"] = {"remove": sorted(before - after)}
+            self._save()
+        except BaseException:
+            self._record = None
+            if not self._on_disk_names(folder.name):
+                shutil.rmtree(folder, ignore_errors=True)
+            raise
+        self._finish_swap()
+        shutil.rmtree(folder, ignore_errors=True)
+
+    def _on_disk_names(self, folder: str) -> bool:
+        """True when the saved manifest names a file inside the scene's folder ``folder`` (or
+        cannot be read: then nothing may be removed)."""
+        try:
+            return any(rec["file"].startswith(f"{folder}/") for rec in _file_records(read_json(self.manifest_path)))
+        except (ManifestError, OSError, TypeError, KeyError, AttributeError):
+            return True
+
+    def _finish_swap(self) -> None:
+        """Finish a committed swap (see `_commit`): each file the manifest names under a staging
+        folder gets its final name (a hard link, else a copy), the old files listed in ``swap``
+        are removed, the manifest is saved without ``swap``, and the emptied staging folders go.
+        DatasetError (the manifest still consistent) when a file cannot be put in place."""
+        data = self._data()
+        folders = set()
+        try:
+            for rec in _file_records(data):
+                final = _final_name(rec["file"])
+                if final == rec["file"]:
+                    continue
+                source = self.path / rec["file"]
+                try:
+                    target = self._output_path(final)
+                    target.parent.mkdir(parents=True, exist_ok=True)
+                    _place(source, target)
+                except OSError as exc:
+                    raise DatasetError(f"{self.name}: the new {final} is stored as {source} but cannot be put in "
+                                       f"place ({exc.strerror or exc}); fix that and run the command again "
+                                       "(it finishes this first)") from exc
+                folders.add(PurePosixPath(rec["file"]).parts[0])
+                rec["file"] = final
+            named = {rec["file"] for rec in _file_records(data)}
+            for name in data.get("swap", {}).get("remove", []):
+                if name not in named:
+                    confined_path(self.path, name, str(self.manifest_path)).unlink(missing_ok=True)
+            data.pop("swap", None)
+            self._save()
+        except BaseException:
+            self._record = None
+            raise
+        for name in folders:
+            shutil.rmtree(self.path / name, ignore_errors=True)
 
     def set_ingest(self, ok: bool, options: dict, alignment: list | str, staged: dict[str, Path],
                    error: str | None = None, shot_hashes: list[str] | None = None) -> None:
         """Record an ingest: staged aligned files (final name → staged path) are swapped in;
-        aligned files of an earlier ingest that are no longer named are removed."""
-        data = self._data()
-        old = {f["file"] for f in data.get("ingest", {}).get("aligned", [])}
-        record = {"time": now_iso(), "ok": ok, "options": options, "angles_deg": self.angles_deg(),
-                  "alignment": alignment, "aligned": []}
+        aligned files of an earlier ingest that are no longer named are removed. What was
+        computed from an earlier alignment is superseded: results are marked stale (kept, with
+        the command that renews them), a per-shot angle calibration is removed (its record and
+        the calibrated angles are kept in the provenance)."""
+        record = {"time": now_iso(), "ok": ok, "options": options, "alignment": alignment, "aligned": []}
         if error is not None:
             record["error"] = error
         if shot_hashes:
             record["shot_hashes"] = shot_hashes
-        if ok:
-            def set_files(files: list[dict]) -> None:
-                data["ingest"] = {**record, "aligned": files}
 
-            kept = {f["file"] for f in self._swap_in(staged, set_files)}
-        else:
-            data["ingest"] = record
-            kept = set()
-        data["provenance"].append(provenance("ingest", options))
-        self._save()
-        for name in sorted(old - kept):
-            (self.path / name).unlink(missing_ok=True)
+        def change(files: list[dict]) -> None:
+            data = self._data()
+            earlier = self._supersede(data) if "ingest" in data else None
+            data["ingest"] = {**record, "angles_deg": self.angles_deg(), "aligned": files}
+            if earlier:
+                data["provenance"].append(provenance("supersede", earlier))
+            data["provenance"].append(provenance("ingest", options))
+
+        self._commit(staged if ok else {}, change)
+
+    def _supersede(self, data: dict) -> dict:
+        """Mark results stale and remove the per-shot calibration of ``data`` (before a new
+        alignment); returns what was superseded, for the provenance (empty when nothing)."""
+        earlier = {}
+        for method, entry in data.get("results", {}).items():
+            if "stale" not in entry:
+                entry["stale"] = (f"computed from an earlier alignment (the scene was ingested again at {now_iso()}); "
+                                  f"renew with: urd separate {self.name} --method {method} --force")
+                earlier.setdefault("stale_results", []).append(method)
+        if "calibration" in data:
+            earlier["calibration"] = data.pop("calibration")
+            earlier["angles_calibrated_deg"] = [s.get("angle_calibrated_deg") for s in data["shots"]]
+            for shot in data["shots"]:
+                shot["angle_calibrated_deg"] = None
+        if earlier:
+            earlier["reason"] = "computed from the earlier alignment"
+        return earlier
 
     def check_no_results(self, method: str) -> None:
         """DatasetError if the manifest already records results of ``method`` (replacing them takes --force)."""
@@ -716,21 +975,16 @@ class Scene:
         """Record a method's results: staged files (final name → staged path) are swapped in
         over the previous results (only with ``replace``); ``entry`` holds the method's
         description (parameters, weights, metrics). Returns the stored entry."""
-        data = self._data()
-        results = data.setdefault("results", {})
         if not replace:
             self.check_no_results(method)
-        old = {f["file"] for f in results.get(method, {}).get("files", [])}
         base = {**entry, "time": now_iso(), "method": method}
 
-        def set_files(files: list[dict]) -> None:
-            results[method] = {**base, "files": files}
+        def change(files: list[dict]) -> None:
+            data = self._data()
+            data.setdefault("results", {})[method] = {**base, "files": files}
+            data["provenance"].append(provenance(f"separate {method}", entry.get("parameters", {})))
 
-        kept = {f["file"] for f in self._swap_in(staged, set_files)}
-        data["provenance"].append(provenance(f"separate {method}", entry.get("parameters", {})))
-        self._save()
-        for name in sorted(old - kept):
-            (self.path / name).unlink(missing_ok=True)
+        self._commit(staged, change)
         return self.result(method, verify=False)
 
     def set_shot_calibration(self, record: dict, calibrated_deg: list[float] | None) -> None:
@@ -743,14 +997,54 @@ class Scene:
         data["provenance"].append(provenance("calibrate shots", {"apply": calibrated_deg is not None}))
         self._save()
 
-    def remove_stale(self) -> list[Path]:
-        """Remove what killed runs left: staging folders and temporary files no manifest names.
-        Returns what was removed. Call with the dataset's lock held."""
+    def recover(self) -> list[Path]:
+        """Finish what a killed run left (call with the dataset's lock held): a committed swap is
+        rolled forward (`_finish_swap`); staging folders and temporary files that the manifest
+        does not name are removed; a truth folder left incomplete is moved aside to
+        ``truth-incomplete-N`` (so that resuming the capture writes it again). A scene whose
+        manifest cannot be read is left as it is. Returns what was removed or moved."""
+        inside = self.path.resolve()
+        folders = [self.path, self.path / "raw", self.path / "aligned", self.truth_dir()]
+        folders += [p for p in (self.path / "results").glob("*") if p.resolve().is_relative_to(inside)]
+        staging = sorted(self.path.glob(f"{STAGING_PREFIX}*"))
+        temporary = [p for folder in folders if folder.is_dir() and folder.resolve().is_relative_to(inside)
+                     for p in folder.glob(".*") if TEMPORARY.match(p.name) and p.is_file()]
+        truth = self.truth_dir()
+        torn = truth.is_dir() and not (truth / TRUTH_FILE).is_file()
+        if not (staging or temporary or torn) or not self.exists():
+            return []
+        try:
+            data = self.reload()._data()
+            if "swap" in data:
+                self._finish_swap()
+                data = self._data()
+        except (ManifestError, DatasetError, OSError):
+            return []
+        named = {rec["file"] for rec in _file_records(data)}
+        used = {PurePosixPath(name).parts[0] for name in named}
         removed = []
-        for path in self.path.glob(f"{STAGING_PREFIX}*"):
-            shutil.rmtree(path, ignore_errors=True)
-            removed.append(path)
-        named = {s["file"] for s in self._data()["shots"]} if self.exists() else set()
+        for path in staging:
+            if path.name not in used:
+                shutil.rmtree(path, ignore_errors=True)
+                removed.append(path)
+        for path in temporary:
+            if path.exists() and path.relative_to(self.path).as_posix() not in named:
+                path.unlink(missing_ok=True)
+                removed.append(path)
+        if torn:
+            n = 1
+            while (self.path / f"truth-incomplete-{n}").exists():
+                n += 1
+            truth.rename(self.path / f"truth-incomplete-{n}")
+            removed.append(truth)
+        return removed
+
+    def remove_stale(self) -> list[Path]:
+        """Remove what killed runs left (`recover`), and unrecorded hidden files in ``raw/`` and
+        ``aligned/`` (e.g. a shot downloaded but not stored). Returns what was removed. Call
+        with the dataset's lock held."""
+        removed = self.recover()
+        named = {rec["file"] for rec in _file_records(self._data())} if self.exists() else set()
         for folder in (self.path / "raw", self.path / "aligned"):
             for path in folder.glob(".*") if folder.is_dir() else []:
                 if path.is_file() and path.relative_to(self.path).as_posix() not in named:
@@ -842,9 +1136,19 @@ class Dataset:
                       unopenable=lambda exc: DatasetError(f"cannot lock dataset {self.root}: {exc.strerror or exc}")):
             _HELD[key] = 1
             try:
+                self.recover()
                 yield
             finally:
                 del _HELD[key]
+
+    def recover(self) -> None:
+        """Finish or clean up what killed runs left (called on taking the lock): staged scenes
+        never adopted are removed; each scene and calibration sweep is recovered (`Scene.recover`)."""
+        self.remove_stale()
+        sweeps = sorted((self.root / "calibration").glob("sweep_*"))
+        for scene in self.scenes() + [Scene(path) for path in sweeps if path.is_dir()]:
+            with contextlib.suppress(UrdError, OSError):
+                scene.recover()
 
     def scene_names(self) -> list[str]:
         """Names of the scene folders present (readable or not), sorted by number."""
@@ -898,7 +1202,7 @@ class Dataset:
             shutil.rmtree(folder, ignore_errors=True)
 
     def remove_stale(self) -> None:
-        """Remove staging folders left by killed runs (call with the lock held)."""
+        """Remove staging folders (scenes being assembled) left by killed runs (call with the lock held)."""
         for path in self.root.glob(f"{STAGING_PREFIX}*"):
             shutil.rmtree(path, ignore_errors=True)
 

@@ -14,7 +14,9 @@ Processing decodes every shot to linear RGB (`urd.raw.decode`), aligns shots 1..
 ECC (`urd.align`), and writes ``aligned/shot_NN.tiff``: 16-bit linear RGB, value/65535 being the
 decoded linear value. Outputs are staged and swapped in only on success (`Scene.set_ingest`).
 New scenes are assembled in a hidden folder and moved into place only when complete. A scene
-whose alignment fails is flagged in its manifest and gets no aligned stack.
+whose alignment fails is flagged in its manifest and gets no aligned stack. Ingesting a scene
+again (``redo``) supersedes what was computed from its earlier alignment: its results are
+marked stale and its per-shot angle calibration is removed (kept in the provenance).
 """
 
 from __future__ import annotations

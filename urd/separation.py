@@ -52,13 +52,24 @@ def write_preview(path: Path, image: np.ndarray, white: float, overwrite: bool =
             raise DatasetError(f"cannot write {path}")
 
 
-def _read_mapped(path: Path) -> np.ndarray:
-    """A TIFF's image, memory-mapped read-only where the file allows it (uncompressed, one
-    contiguous strip; no copy of a 24 MP truth image), else read."""
+def _read_mapped(path: Path, shape: tuple[int, ...], scene: Scene) -> np.ndarray:
+    """A ground-truth TIFF of ``shape`` (H, W, 3), memory-mapped read-only where the file
+    allows it (uncompressed, one contiguous strip; no copy of a 24 MP truth image), else read.
+    DatasetError naming the file, and what to do, when it cannot be read or has another shape."""
     try:
-        return tifffile.memmap(path, mode="r")
-    except ValueError:
-        return tifffile.imread(path)
+        try:
+            image = tifffile.memmap(path, mode="r")
+        except ValueError:
+            image = tifffile.imread(path)
+    except (OSError, ValueError) as exc:              # tifffile.TiffFileError is a ValueError
+        problem = f"cannot be read ({exc})"
+    else:
+        if image.shape == shape:
+            return image
+        problem = f"has shape {image.shape}, expected {shape} (the results' shape)"
+    raise DatasetError(f"{scene.name}: ground truth {path} {problem}; move {scene.truth_dir()} away to separate "
+                       f"without ground-truth figures, or resume the capture with 'urd capture --scene {scene.name}' "
+                       "to write it again")
 
 
 def truth_metrics(scene: Scene, r_hat: np.ndarray, t_hat: np.ndarray, rows: int = 256) -> dict | None:
@@ -66,12 +77,13 @@ def truth_metrics(scene: Scene, r_hat: np.ndarray, t_hat: np.ndarray, rows: int 
 
     Figures are computed 5% inside the border (aligned shots are padded there), with peak 1;
     PSNR over ``rows`` rows at a time (no full-size temporaries), SSIM on the central
-    1024×1024 pixels at most.
+    1024×1024 pixels at most. The truth files are checked first (`Scene.truth_files`).
     """
-    truth = scene.truth_dir()
-    if not (truth / "T_obs.tiff").is_file():
+    truth = scene.truth_files()
+    if truth is None or "T_obs.tiff" not in truth:
         return None
-    r_true, t_true = _read_mapped(truth / "R_obs.tiff"), _read_mapped(truth / "T_obs.tiff")
+    r_true, t_true = (_read_mapped(truth.get(name, scene.truth_dir() / name), t_hat.shape, scene)
+                      for name in ("R_obs.tiff", "T_obs.tiff"))
     h, w = t_true.shape[:2]
     top, bottom, cols = h // 20, h - h // 20, slice(w // 20, w - w // 20)
     pairs = {"R": lambda region: (r_hat[region], r_true[region]), "T": lambda region: (t_hat[region], t_true[region]),
@@ -154,6 +166,7 @@ def separate_scene(scene: Scene, method: str, run, info: dict, force: bool = Fal
         scene.reload()
         if not force:
             scene.check_no_results(method)
+        scene.truth_files()                                    # damaged ground truth stops it before the work
         images, angles = scene.load_stack(codes=True)          # uint16: half the memory of float32
         r_hat, t_hat, inspection = _separate(images, angles, run, reference)
         del images                                            # the largest array: free it before writing
