@@ -51,7 +51,7 @@ import numpy as np
 import torch
 
 from separate import optics
-from separate.model import TARGET_MEAN, ResBlock, ResizeUp, SeparationNet, canonical_inputs
+from separate.model import TARGET_MEAN, ResBlock, ResizeUp, SeparationNet, canonical_inputs, fresnel_bases, theta_channel
 from separate.networks import build_model
 from separate.precision import Precision, resolve
 from urd.errors import WeightsError
@@ -92,9 +92,18 @@ def load_model(path: Path | str | None = None) -> tuple[torch.nn.Module, dict]:
     except Exception as exc:  # noqa: BLE001 - any failure to read means the file is unusable
         raise WeightsError(f"weights file {path} is corrupt or does not fit the model: {exc}") from exc
     model.eval()
-    card = path.with_suffix(".json")
-    info = {"file": str(path), "sha256": digest, "config": state["model_config"],
-            "card": json.loads(card.read_text()) if card.is_file() else None}
+    card_path = path.with_suffix(".json")
+    card = None
+    if card_path.is_file():
+        try:
+            card = json.loads(card_path.read_text())
+            problem = None if isinstance(card, dict) else f"a JSON {type(card).__name__}, not an object"
+        except (OSError, ValueError, RecursionError) as exc:
+            problem = str(exc)
+        if problem:
+            raise WeightsError(f"model card {card_path} (beside the weights {path.name}) is unreadable: {problem:.200}; "
+                               "restore it, or move it away to use the weights without their card")
+    info = {"file": str(path), "sha256": digest, "config": state["model_config"], "card": card}
     return model, info
 
 
@@ -166,29 +175,35 @@ class FusedNet:
         return torch.ops.mkldnn._convolution_pointwise.binary(y, x, w, b, conv.padding, conv.stride, conv.dilation,
                                                               conv.groups, "add", 1.0, "relu", [], "")
 
-    def _network_input(self, obs: torch.Tensor, angles: Sequence[float], gain: torch.Tensor,
+    def _network_input(self, obs: torch.Tensor, angles: Sequence[float], gain: torch.Tensor, theta: torch.Tensor | None,
                        rows: int = 128) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The model's network input ``cat(shots, I⊥, I∥) · gain``, replicate-padded to the
-        8-px grid, as one ``dtype`` channels-last tensor, and I⊥, I∥ (float32; empty for the
-        direct variant). Built ``rows`` rows at a time (`canonical_inputs` is per pixel), so
-        its temporaries stay small."""
+        """The model's network input ``cat(shots, I⊥, I∥[, B_T]) · gain [, θ]``, replicate-padded
+        to the 8-px grid, as one ``dtype`` channels-last tensor, and the residual bases B_R, B_T
+        (float32, unscaled; empty for the direct variant). Built ``rows`` rows at a time
+        (`canonical_inputs` is per pixel), so its temporaries stay small."""
         b, _, c, h, w = obs.shape
         canonical = self.model.variant == "canonical"
-        x = torch.empty((b, c * (5 if canonical else 3), -(-h // 8) * 8, -(-w // 8) * 8), dtype=self.dtype,
-                        memory_format=torch.channels_last)
+        fresnel = self.model.base == "fresnel"
+        n_in = c * (5 if canonical else 3) + (c + 1 if fresnel else 0)
+        x = torch.empty((b, n_in, -(-h // 8) * 8, -(-w // 8) * 8), dtype=self.dtype, memory_format=torch.channels_last)
         shape = (b, c, h, w) if canonical else (b, c, 0, 0)         # channels-last: so are R̂ and T̂
-        i_perp, i_par = (torch.empty(shape, memory_format=torch.channels_last) for _ in range(2))
+        base_r, base_t = (torch.empty(shape, memory_format=torch.channels_last) for _ in range(2))
         for y in range(0, h, rows):
             y1 = min(h, y + rows)
             shots, perp, par = canonical_inputs(obs[..., y:y1, :], angles)
             parts = [*shots.unbind(1)] + ([perp, par] if canonical else [])
+            if fresnel:
+                base_r[..., y:y1, :], base_t[..., y:y1, :] = fresnel_bases(perp, par, theta)
+                parts.append(base_t[..., y:y1, :])
+            elif canonical:
+                base_r[..., y:y1, :], base_t[..., y:y1, :] = perp - par, 2.0 * par
             for k, part in enumerate(parts):
                 torch.mul(part, gain, out=x[:, k * c : (k + 1) * c, y:y1, :w])
-            if canonical:
-                i_perp[..., y:y1, :], i_par[..., y:y1, :] = perp, par
+        if fresnel:
+            x[:, -1:, :h, :w] = theta_channel(theta, x[:, :1, :h, :w])
         x[:, :, h:, :w] = x[:, :, h - 1 : h, :w]
         x[:, :, :, w:] = x[:, :, :, w - 1 : w]
-        return x, i_perp, i_par
+        return x, base_r, base_t
 
     def _run(self, ops: Sequence[ResBlock | tuple[torch.nn.Conv2d, str]], x: torch.Tensor) -> torch.Tensor:
         """``ops`` (residual blocks and (convolution, unary) pairs) applied to ``x`` in turn."""
@@ -245,25 +260,28 @@ class FusedNet:
             x = self._chain(list(m.dec[i]) + ([(m.tail, "none")] if i == 0 else []), x, i)
         return x
 
-    def __call__(self, obs: torch.Tensor, angles: Sequence[float], scale: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """`SeparationNet.forward`: (B, N, C, H, W) float32 linear shots at ``angles`` (rad)
-        and (B,) exposure scale → (R̂, T̂), each (B, C, H, W) float32 (channels-last strides).
-        Pass ``obs`` as a temporary to let its memory go once the network's input is built."""
+    def __call__(self, obs: torch.Tensor, angles: Sequence[float], scale: torch.Tensor,
+                 theta: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """`SeparationNet.forward`: (B, N, C, H, W) float32 linear shots at ``angles`` (rad),
+        (B,) exposure scale and, for ``base="fresnel"``, (B,) θ (rad) → (R̂, T̂), each
+        (B, C, H, W) float32 (channels-last strides). Pass ``obs`` as a temporary to let its
+        memory go once the network's input is built."""
+        if (theta is None) != (self.model.base != "fresnel"):
+            raise ValueError(f"expected theta exactly when base is 'fresnel', got base {self.model.base!r}")
         gain = (TARGET_MEAN / scale.float()).view(-1, 1, 1, 1)
         c, h, w = obs.shape[-3:]
-        x, i_perp, i_par = self._network_input(obs.float(), angles, gain)
+        x, base_r, base_t = self._network_input(obs.float(), angles, gain, theta)
         del obs
         held = [x]
         del x
         _release_freed_memory()                              # the input's temporaries (saves ~50 B/px of peak)
         out = self.backbone(held.pop())[..., :h, :w]         # the only reference: x goes after the first level
-        canonical = self.model.variant == "canonical"
-        if not canonical:
+        if self.model.variant != "canonical":
             return out[:, :c].float() / gain, out[:, c : 2 * c].float() / gain
         xi = torch.sigmoid(out[:, 2 * c :].float())          # ξ∥, ξ⊥
-        r_hat = torch.lerp(i_perp - i_par, out[:, c : 2 * c].float() / gain, xi[:, 1:])   # ξ⊥·R̃ + (1 − ξ⊥)·B_R
-        del i_perp
-        t_hat = torch.lerp(2.0 * i_par, out[:, :c].float() / gain, xi[:, :1])             # ξ∥·T̃ + (1 − ξ∥)·B_T
+        r_hat = torch.lerp(base_r, out[:, c : 2 * c].float() / gain, xi[:, 1:])   # ξ⊥·R̃ + (1 − ξ⊥)·B_R
+        del base_r
+        t_hat = torch.lerp(base_t, out[:, :c].float() / gain, xi[:, :1])          # ξ∥·T̃ + (1 − ξ∥)·B_T
         return r_hat, t_hat
 
 
@@ -275,9 +293,11 @@ def runner(model: torch.nn.Module, precision: str | Precision = "auto") -> Calla
     if isinstance(model, SeparationNet) and FusedNet.available():
         return FusedNet(model, torch.bfloat16 if bf16 else torch.float32)
 
-    def run(obs: torch.Tensor, angles: Sequence[float], scale: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def run(obs: torch.Tensor, angles: Sequence[float], scale: torch.Tensor,
+            theta: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        extra = {} if theta is None else {"theta": theta}
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-            r_hat, t_hat = model(obs, angles, scale)[:2]
+            r_hat, t_hat = model(obs, angles, scale, **extra)[:2]
         return r_hat.float(), t_hat.float()
 
     return run
@@ -345,7 +365,8 @@ def tile_spans(size: int, tile: int, overlap: int) -> list[tuple[int, int]]:
 def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[float], tile: int = TILE,
                    overlap: int = OVERLAP, precision: str = "auto",
                    progress: Callable[[int, int], None] | None = None,
-                   reference_deg: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   reference_deg: float | np.ndarray | None = None,
+                   theta_deg: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Separate an aligned stack into (R̂, T̂), each H×W×C float32 linear.
 
     Args:
@@ -363,15 +384,30 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
         reference_deg: if given, the network sees the shots presented at this reference + 0/45/90°
             (`separate.reference.present`'s matrix, `presenting_matrix`), rendered tile by
             tile: the same results as presenting the stack first, without a second stack in memory.
+            An H×W map (deg, `separate.reference.field_at`) presents each pixel at its own
+            reference (`separate.reference.present_field`), again tile by tile.
+        theta_deg: the angle of incidence (deg) of a physics-anchored network (``base="fresnel"``);
+            estimated from the shots at the reference when None
+            (`separate.reference.estimate_incidence_deg`). Ignored by other networks.
     """
     check_inputs(images, angles_deg)
     tile, overlap = check_tiling(tile, overlap)
     n, h, w, c = images.shape
     if c not in (1, model.channels):
         raise ValueError(f"expected shots with 1 or {model.channels} channels for this network, got {c}")
-    if reference_deg is not None and not np.isfinite(reference_deg):
-        raise ValueError(f"expected a finite reference angle (deg) or None, got {reference_deg}")
+    field = reference_deg is not None and np.ndim(reference_deg) == 2
+    if field and np.shape(reference_deg) != (h, w):
+        raise ValueError(f"expected a reference map of shape {(h, w)}, got {np.shape(reference_deg)}")
+    if reference_deg is not None and not np.isfinite(reference_deg).all():
+        raise ValueError("expected a finite reference angle (deg), map or None, got non-finite values")
     run = runner(model, precision)
+    extra = {}
+    if getattr(model, "base", "canonical") == "fresnel":
+        from separate.reference import estimate_incidence_deg
+
+        if theta_deg is None:
+            theta_deg = estimate_incidence_deg(images, angles_deg, angles_deg[0] if reference_deg is None else reference_deg)
+        extra["theta"] = torch.tensor([np.radians(theta_deg)], dtype=torch.float32)
     mono = c == 1 or _equal_channels(images)
     angles = [float(a) for a in np.radians(angles_deg)]
     unit = optics.code_scale(images)
@@ -379,11 +415,17 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
     s0_mean = float(np.linalg.pinv(optics.stokes_matrix(angles))[0] @ shot_means)
     scale = torch.tensor([max(s0_mean, 1e-6)])
     mixing = np.eye(n, dtype=np.float32)
-    if reference_deg is not None:
+    rendering = None
+    if field:
+        mixing = np.linalg.pinv(optics.stokes_matrix(angles)).astype(np.float32)           # shots → Stokes
+        rendering = torch.from_numpy(optics.stokes_matrix(np.radians(optics.PAPER_ANGLES_DEG)).astype(np.float32))
+        reference_rad = np.radians(np.asarray(reference_deg, np.float32))
+        angles = [float(a) for a in np.radians(optics.PAPER_ANGLES_DEG)]
+    elif reference_deg is not None:
         from separate.reference import presented_angles_deg, presenting_matrix
 
-        mixing = presenting_matrix(angles_deg, reference_deg)
-        angles = [float(a) for a in np.radians(presented_angles_deg(reference_deg))]
+        mixing = presenting_matrix(angles_deg, float(reference_deg))
+        angles = [float(a) for a in np.radians(presented_angles_deg(float(reference_deg)))]
     mixing = torch.from_numpy(mixing * np.float32(unit))
     wrappable = images.dtype in (np.uint8, np.uint16, np.float32, np.float64)     # native byte order
     source = images if wrappable and images.flags.writeable and all(s > 0 for s in images.strides) else None
@@ -396,7 +438,11 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
         else:
             shots = torch.from_numpy(source)[:, y:y1, x:x1]
         shots = shots.permute(0, 3, 1, 2).to(torch.float32, memory_format=torch.contiguous_format)
-        out = torch.matmul(mixing, shots.view(n, -1)).view(len(mixing), c, y1 - y, x1 - x).clamp_(min=0.0)[None]
+        out = torch.matmul(mixing, shots.view(n, -1)).view(len(mixing), c, y1 - y, x1 - x)
+        if rendering is not None:                           # Stokes → each pixel's frame → its 0/45/90° shots
+            local = optics.rotate_stokes(out, torch.from_numpy(reference_rad[y:y1, x:x1]))
+            out = torch.matmul(rendering, local.reshape(3, -1)).view(3, c, y1 - y, x1 - x)
+        out = out.clamp_(min=0.0)[None]
         return out.expand(-1, -1, model.channels, -1, -1) if c == 1 else out
 
     # torch's zeroing touches the memory on every thread up front; np.zeros leaves it to the first tile
@@ -407,7 +453,7 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
     done, total = 0, len(rows) * len(cols)
     for (y, y1), wy in zip(rows, row_weights):
         for (x, x1), wx in zip(cols, col_weights):
-            r_hat, t_hat = run(patch(y, y1, x, x1), angles, scale)      # a temporary: freed inside once used
+            r_hat, t_hat = run(patch(y, y1, x, x1), angles, scale, **extra)      # a temporary: freed inside once used
             weight = torch.from_numpy(wy[:, None, None] * wx[None, :, None])
             for out, hat in ((r_out, r_hat), (t_out, t_hat)):
                 hat = hat[0].permute(1, 2, 0)                            # (h, w, C)

@@ -11,9 +11,11 @@ Reference policy of the polarization methods (network, schechner, kong, farid): 
 re-rendered at reference + 0/45/90° (`separate.reference.present`, from the least-squares
 Stokes fit of all N shots; the network's tiles are presented one by one inside
 `separate.infer.separate_stack`) and the method reads φ⊥ within ±45° of the reference. The reference
-is ``reference_deg`` when ``run`` is given one; otherwise the method's ``reference`` option:
-"auto" estimates the glass's s-direction from the shots (`separate.reference.
-estimate_reference_deg`), a number (deg) forces it. The methods that see only the unpolarized
+is ``reference_deg`` when ``run`` is given one (a number, or an H×W map in degrees, which
+presents each pixel at its own reference: `separate.reference.present_field`); otherwise the
+method's ``reference`` option: "auto" estimates the glass's s-direction per pixel, a smooth
+field (`separate.reference.estimate_reference_field`), "global" one angle for the whole view
+(`separate.reference.estimate_reference_deg`), a number (deg) forces it. The methods that see only the unpolarized
 image S0 (none, li-brown, arvanitopoulos, ceilnet) take and ignore the reference: S0 is the
 same for every presentation, so they skip it (and its full-resolution copy).
 """
@@ -27,41 +29,55 @@ from typing import Callable
 import numpy as np
 
 from separate import optics
-from separate.reference import estimate_reference_deg, present
+from separate.reference import estimate_reference_deg, estimate_reference_field, field_at, present, present_field
 
 Run = Callable[..., tuple[np.ndarray, np.ndarray]]
 Reference = str | float
+#: The estimated references: a per-pixel field, or one angle for the view.
+ESTIMATED = ("auto", "global")
 
 
 def check_reference(reference: Reference) -> Reference:
-    """``reference`` as "auto" or a finite float (deg); ValueError otherwise."""
+    """``reference`` as "auto", "global" or a finite float (deg); ValueError otherwise."""
     if isinstance(reference, str):
-        if reference == "auto":
+        if reference in ESTIMATED:
             return reference
-        raise ValueError(f"expected reference 'auto' or an angle in degrees, got {reference!r}")
+        raise ValueError(f"expected reference 'auto', 'global' or an angle in degrees, got {reference!r}")
     if isinstance(reference, bool) or not isinstance(reference, (int, float)) or not math.isfinite(reference):
-        raise ValueError(f"expected reference 'auto' or a finite angle in degrees, got {reference!r}")
+        raise ValueError(f"expected reference 'auto', 'global' or a finite angle in degrees, got {reference!r}")
     return float(reference)
 
 
 def reference_policy(reference: Reference) -> str:
     """The reference policy of a polarization method, as recorded in its ``info``."""
     if reference == "auto":
-        return "auto: the glass's s-direction estimated from the shots (separate.reference); shots presented at it + 0/45/90 deg"
+        return ("auto: the glass's s-direction estimated per pixel from the shots, a smooth field (separate.reference); "
+                "each pixel presented at it + 0/45/90 deg")
+    if reference == "global":
+        return "global: one s-direction estimated from the shots (separate.reference); shots presented at it + 0/45/90 deg"
     return f"fixed: {reference:g} deg; shots presented at it + 0/45/90 deg"
 
 
-def chooser(reference: Reference) -> Callable[[np.ndarray, list[float], float | None], float]:
-    """A function (images, angles_deg, reference_deg) → the reference (deg) to present at:
-    ``reference_deg`` if given, else ``reference`` ("auto": estimated; module docstring)."""
+def chooser(reference: Reference) -> Callable[[np.ndarray, list[float], float | np.ndarray | None], float | np.ndarray]:
+    """A function (images, angles_deg, reference_deg) → the reference to present at (deg, a
+    number or an H×W map): ``reference_deg`` if given, else ``reference`` (module docstring)."""
     reference = check_reference(reference)
 
-    def choose(images: np.ndarray, angles_deg: list[float], reference_deg: float | None) -> float:
+    def choose(images: np.ndarray, angles_deg: list[float], reference_deg: float | np.ndarray | None) -> float | np.ndarray:
         if reference_deg is not None:
-            return float(reference_deg)
-        return estimate_reference_deg(images, angles_deg) if reference == "auto" else float(reference)
+            return reference_deg if np.ndim(reference_deg) == 2 else float(reference_deg)
+        if reference == "auto":
+            return field_at(estimate_reference_field(images, angles_deg), images.shape[1:3])
+        return estimate_reference_deg(images, angles_deg) if reference == "global" else float(reference)
 
     return choose
+
+
+def present_at(images: np.ndarray, angles_deg: list[float], reference: float | np.ndarray) -> tuple[np.ndarray, list[float]]:
+    """`present` at one reference (deg) or `present_field` at an H×W map of them."""
+    if np.ndim(reference) == 2:
+        return present_field(images, angles_deg, reference)
+    return present(images, angles_deg, float(reference))
 
 
 def network(weights: Path | None = None, tile: int | None = None, precision: str = "auto", colour_match: bool = False,
@@ -77,10 +93,12 @@ def network(weights: Path | None = None, tile: int | None = None, precision: str
     chosen = resolve(precision).value
     choose = chooser(reference)
 
-    def run(images: np.ndarray, angles_deg: list[float], reference_deg: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def run(images: np.ndarray, angles_deg: list[float],
+            reference_deg: float | np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         # separate_stack presents the shots tile by tile (no second full-size stack)
         chosen_deg = choose(images, angles_deg, reference_deg) if uses_reference else None
-        r_hat, t_hat = separate_stack(model, images, list(angles_deg), tile, OVERLAP, chosen, progress, reference_deg=chosen_deg)
+        r_hat, t_hat = separate_stack(model, images, list(angles_deg), tile, OVERLAP, chosen, progress,
+                                      reference_deg=chosen_deg)
         if colour_match:
             darkest = int(np.argmin([shot.mean(dtype=np.float64) for shot in images]))
             t_hat = match_histograms(t_hat, optics.to_float(images[darkest]))
@@ -109,7 +127,7 @@ def no_separation(reference: Reference = "auto") -> tuple[Run, dict]:
     """The reference point: T̂ = S0 (the unpolarized image), R̂ = 0."""
     check_reference(reference)
 
-    def run(images: np.ndarray, angles_deg: list[float], reference_deg: float | None = None,
+    def run(images: np.ndarray, angles_deg: list[float], reference_deg: float | np.ndarray | None = None,
             rows: int = 256) -> tuple[np.ndarray, np.ndarray]:
         s0 = np.empty(images.shape[1:], np.float32)           # a block of rows at a time: codes stay codes
         for y in range(0, images.shape[1], rows):
@@ -135,10 +153,11 @@ def baseline(module_name: str, s0_only: bool) -> Callable[..., tuple[Run, dict]]
             raise ValueError(f"unknown parameters {unknown} for {module_name}; expected some of {accepted}")
         choose = chooser(reference)
 
-        def run(images: np.ndarray, angles_deg: list[float], reference_deg: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        def run(images: np.ndarray, angles_deg: list[float],
+                reference_deg: float | np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
             if s0_only:
                 return module.separate(optics.to_float(images), list(angles_deg), **params)
-            shots, angles = present(images, angles_deg, choose(images, angles_deg, reference_deg))
+            shots, angles = present_at(images, angles_deg, choose(images, angles_deg, reference_deg))
             return module.separate(shots, angles, **params)
 
         policy = "not used: S0 only" if s0_only else reference_policy(check_reference(reference))
@@ -160,7 +179,7 @@ METHODS: dict[str, Callable[..., tuple[Run, dict]]] = {
 
 
 def get_method(name: str, reference: Reference = "auto", **options) -> tuple[Run, dict]:
-    """The method called ``name`` with its options and reference policy ("auto" or degrees);
+    """The method called ``name`` with its options and reference policy ("auto", "global" or degrees);
     ValueError naming the known methods, or the bad reference."""
     if name not in METHODS:
         raise ValueError(f"unknown method {name!r}; expected one of {sorted(METHODS)}")

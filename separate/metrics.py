@@ -36,3 +36,14 @@ def psnr_from_mse(mse_value: float | np.ndarray) -> np.ndarray:
 def ssim(estimate: np.ndarray, truth: np.ndarray) -> float:
     """Structural similarity of two H×W×C linear images (data range 1)."""
     return float(structural_similarity(estimate, truth, channel_axis=-1, data_range=1.0))
+
+
+def mutual_information(a: np.ndarray, b: np.ndarray, bins: int = 32) -> float:
+    """Mutual information (nats) of two images' values from a joint histogram (1–99% range)."""
+    lo_a, hi_a = np.percentile(a, [1, 99])
+    lo_b, hi_b = np.percentile(b, [1, 99])
+    joint, _, _ = np.histogram2d(a.ravel(), b.ravel(), bins=bins, range=[[lo_a, hi_a + 1e-9], [lo_b, hi_b + 1e-9]])
+    p = joint / max(joint.sum(), 1)
+    pa, pb = p.sum(axis=1, keepdims=True), p.sum(axis=0, keepdims=True)
+    nz = p > 0
+    return float((p[nz] * np.log(p[nz] / (pa @ pb)[nz])).sum())

@@ -16,6 +16,12 @@ Brewster angle these are the layers themselves up to the small R_s·I∥ term; t
 I⊥, I∥ are half the scale of the transmission target. The "direct" variant is the same network
 fed the three shots alone, predicting R̂ and T̂ with no projection and no residual.
 
+With ``base="fresnel"`` (the physics-anchored network) the bases are instead the closed-form
+Fresnel inversion of I⊥, I∥ at an estimated angle of incidence θ (`fresnel_bases`: the
+layers themselves wherever one flat pane at θ explains the shots, the Schechner baseline's
+answer), and the network also sees B_T and θ as input channels, so it learns where to trust
+the inversion (ξ → 0) and where to correct it.
+
 Inputs of any exposure are scaled so that mean(S0) = 0.25 before the network and back after.
 `separate.networks.build_model` makes a network from its config.
 """
@@ -34,6 +40,7 @@ from separate import optics
 NOMINAL_ANGLES = tuple(np.radians(optics.PAPER_ANGLES_DEG))
 VARIANTS = ("canonical", "direct")
 UPSAMPLING = ("transposed", "resize")
+BASES = ("canonical", "fresnel")
 TARGET_MEAN = 0.25
 
 
@@ -67,6 +74,35 @@ def canonical_inputs(obs: torch.Tensor, angles: Sequence[float] = NOMINAL_ANGLES
         shots = torch.stack([optics.intensity_from_stokes(stokes, phi_ref + a) for a in NOMINAL_ANGLES], dim=1)
     i_perp, i_par = optics.canonical_intensities(stokes, phi_ref)
     return shots, i_perp, i_par
+
+
+def fresnel_bases(i_perp: torch.Tensor, i_par: torch.Tensor, theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The Fresnel inversion of canonical images at angle of incidence θ, as residual bases.
+
+    Args:
+        i_perp, i_par: (B, C, H, W) canonical images (linear, ≥ 0 up to noise).
+        theta: (B,) or (B, 1, H, W) angle of incidence (rad), in (0, π/2).
+
+    Returns:
+        (B_R, B_T), each (B, C, H, W): T_obs of `separate.optics.mixture_inverse` clipped to
+        [0, S0] (the inversion amplifies noise where R_s ≈ R_p), and B_R = S0 − B_T.
+    """
+    if theta.ndim == 1:
+        theta = theta.view(-1, 1, 1, 1)
+    r_s, r_p = optics.fresnel_reflectance(theta.to(i_perp.dtype))
+    s0 = (i_perp + i_par).clamp_min(0.0)
+    _, t_obs = optics.mixture_inverse(i_perp, i_par, r_s, r_p)
+    base_t = torch.minimum(t_obs.clamp_min(0.0), s0)
+    return s0 - base_t, base_t
+
+
+def theta_channel(theta: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """θ (rad, (B,) or (B, 1, H, W)) as one input channel θ/(π/2), the shape of ``like``'s
+    (B, ·, H, W) with one channel."""
+    b, _, h, w = like.shape
+    if theta.ndim == 1:
+        theta = theta.view(-1, 1, 1, 1)
+    return (theta.to(like.dtype) / (np.pi / 2)).expand(b, 1, h, w)
 
 
 class ResBlock(nn.Module):
@@ -113,16 +149,21 @@ class SeparationNet(nn.Module):
         variant: "canonical" (paper) or "direct" (no projection layer, no residual).
         channels: colour channels per shot.
         upsample: the decoder's up-sampling, "transposed" (the paper's) or "resize" (`ResizeUp`).
+        base: the residual bases of the canonical variant, "canonical" (2·I∥ and I⊥ − I∥) or
+            "fresnel" (`fresnel_bases` at an estimated θ, which ``forward`` then needs).
     """
 
-    def __init__(self, width: int = 16, variant: str = "canonical", channels: int = 3, upsample: str = "transposed"):
+    def __init__(self, width: int = 16, variant: str = "canonical", channels: int = 3, upsample: str = "transposed",
+                 base: str = "canonical"):
         super().__init__()
         if variant not in VARIANTS:
             raise ValueError(f"expected variant in {VARIANTS}, got {variant!r}")
         if upsample not in UPSAMPLING:
             raise ValueError(f"expected upsample in {UPSAMPLING}, got {upsample!r}")
-        self.variant, self.width, self.channels, self.upsample = variant, width, channels, upsample
-        n_in = channels * (5 if variant == "canonical" else 3)
+        if base not in BASES or (base == "fresnel" and variant != "canonical"):
+            raise ValueError(f"expected base in {BASES} ('fresnel' only for the canonical variant), got {base!r}")
+        self.variant, self.width, self.channels, self.upsample, self.base = variant, width, channels, upsample, base
+        n_in = channels * (5 if variant == "canonical" else 3) + (channels + 1 if base == "fresnel" else 0)
         n_out = 2 * channels + (2 if variant == "canonical" else 0)
         widths = [width, 2 * width, 4 * width, 8 * width]
         self.head = nn.Conv2d(n_in, width, 3, padding=1)
@@ -138,7 +179,9 @@ class SeparationNet(nn.Module):
 
     def config(self) -> dict:
         config = {"width": self.width, "variant": self.variant, "channels": self.channels}
-        return config if self.upsample == "transposed" else {**config, "upsample": self.upsample}
+        if self.upsample != "transposed":
+            config["upsample"] = self.upsample
+        return config if self.base == "canonical" else {**config, "base": self.base}
 
     def backbone(self, x: torch.Tensor) -> torch.Tensor:
         """The encoder-decoder on a (B, n_in, H, W) tensor, H and W multiples of 8."""
@@ -154,7 +197,8 @@ class SeparationNet(nn.Module):
         return self.tail(x)
 
     def forward(
-        self, obs: torch.Tensor, angles: Sequence[float] = NOMINAL_ANGLES, scale: torch.Tensor | None = None
+        self, obs: torch.Tensor, angles: Sequence[float] = NOMINAL_ANGLES, scale: torch.Tensor | None = None,
+        theta: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Separate a batch.
 
@@ -163,10 +207,15 @@ class SeparationNet(nn.Module):
             angles: polarizer angles (rad) of the N shots.
             scale: (B,) exposure scale; default mean(S0) per sample. Pass one global value
                 when separating tiles of one image.
+            theta: (B,) estimated angle of incidence (rad), for ``base="fresnel"`` only
+                (`separate.reference.estimate_incidence_deg`).
 
         Returns:
             (R̂, T̂), each (B, C, H, W), linear, in the units of ``obs``.
         """
+        if (theta is None) != (self.base != "fresnel"):
+            raise ValueError(f"expected theta exactly when base is 'fresnel', got base {self.base!r} and "
+                             f"theta {'None' if theta is None else tuple(theta.shape)}")
         with torch.autocast(obs.device.type, enabled=False):      # the optics stay float32 under bf16
             shots, i_perp, i_par = canonical_inputs(obs.float(), angles)
         if scale is None:
@@ -174,7 +223,12 @@ class SeparationNet(nn.Module):
         gain = (TARGET_MEAN / scale).view(-1, 1, 1, 1).to(obs.dtype)
         b, _, c, h, w = shots.shape
         parts = [shots.reshape(b, 3 * c, h, w)] + ([i_perp, i_par] if self.variant == "canonical" else [])
+        if self.base == "fresnel":
+            base_r, base_t = fresnel_bases(i_perp, i_par, theta.float())
+            parts.append(base_t)
         x = torch.cat(parts, dim=1) * gain
+        if self.base == "fresnel":
+            x = torch.cat([x, theta_channel(theta, x)], dim=1)
         pad_h, pad_w = (-h) % 8, (-w) % 8
         x = F.pad(x, (0, pad_w, 0, pad_h), mode="replicate")
         out = self.backbone(x)[..., :h, :w].float()
@@ -182,8 +236,11 @@ class SeparationNet(nn.Module):
             return out[:, :c] / gain, out[:, c : 2 * c] / gain
         t_res, r_res = out[:, :c], out[:, c : 2 * c]
         xi_par, xi_perp = torch.sigmoid(out[:, 2 * c : 2 * c + 1]), torch.sigmoid(out[:, 2 * c + 1 :])
-        base_t = 2.0 * i_par * gain
-        base_r = (i_perp - i_par) * gain
+        if self.base == "fresnel":
+            base_t, base_r = base_t * gain, base_r * gain
+        else:
+            base_t = 2.0 * i_par * gain
+            base_r = (i_perp - i_par) * gain
         r_hat = xi_perp * r_res + (1 - xi_perp) * base_r
         t_hat = xi_par * t_res + (1 - xi_par) * base_t
         return r_hat / gain, t_hat / gain
@@ -204,4 +261,17 @@ def with_resize_upsampling(model: SeparationNet) -> SeparationNet:
     out.load_state_dict({k: v for k, v in model.state_dict().items() if not k.startswith("up.")}, strict=False)
     for i, up in enumerate(model.up):
         out.up[i] = ResizeUp.from_transposed(up)
+    return out
+
+
+def with_fresnel_base(model: SeparationNet) -> SeparationNet:
+    """A copy of a canonical-base network with ``base="fresnel"``, every weight kept and the
+    head's weights for the new input channels (B_T and θ) zero: the start for fine-tuning it."""
+    if model.variant != "canonical" or model.base != "canonical":
+        raise ValueError(f"expected a canonical network with canonical bases, got {model.config()}")
+    out = SeparationNet(model.width, model.variant, model.channels, model.upsample, base="fresnel")
+    state = model.state_dict()
+    head = torch.zeros_like(out.head.weight)
+    head[:, : state["head.weight"].shape[1]] = state["head.weight"]
+    out.load_state_dict({**state, "head.weight": head})
     return out

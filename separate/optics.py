@@ -321,6 +321,32 @@ def axis_gap_deg(a_deg: Array, b_deg: Array) -> Array:
     return np.mod(np.asarray(a_deg) - b_deg + 90.0, 180.0) - 90.0
 
 
+def rotate_stokes(stokes: Array, phi_ref: Array) -> Array:
+    """Stokes stack (3, ...) in the frame of the polarizer angle ``phi_ref`` (rad; a scalar or a
+    map broadcasting against ``stokes[0]``): S1' = S1 cos 2φ + S2 sin 2φ, S2' = −S1 sin 2φ +
+    S2 cos 2φ, so that I at ``phi_ref`` + ψ is (S0 + S1' cos 2ψ + S2' sin 2ψ)/2."""
+    xp = _xp(stokes)
+    two_phi = 2 * _like(phi_ref, stokes)
+    c, s = xp.cos(two_phi), xp.sin(two_phi)
+    return xp.stack([stokes[0], stokes[1] * c + stokes[2] * s, -stokes[1] * s + stokes[2] * c])
+
+
+def mixture_coefficients(r_s: Array, r_p: Array) -> tuple[Array, Array]:
+    """(a, b) with R_obs = a·I⊥ + b·I∥ (and T_obs = I⊥ + I∥ − R_obs) for reflectances R_s > R_p:
+    the inverse of Eq. 1 at the canonical angles, a = q(1 − R_p), b = −q(1 − R_s),
+    q = (R_s + R_p)/(R_s − R_p) (numpy or torch, broadcasting)."""
+    ratio = (r_s + r_p) / (r_s - r_p)
+    return ratio * (1 - r_p), -ratio * (1 - r_s)
+
+
+def mixture_inverse(i_perp: Array, i_par: Array, r_s: Array, r_p: Array) -> tuple[Array, Array]:
+    """The observable layers (R_obs, T_obs) of canonical images I⊥, I∥ for reflectances R_s > R_p
+    (`mixture_coefficients`; numpy or torch, broadcasting); they sum to S0 = I⊥ + I∥."""
+    a, b = mixture_coefficients(r_s, r_p)
+    r_obs = a * i_perp + b * i_par
+    return r_obs, i_perp + i_par - r_obs
+
+
 def canonical_projection(stokes: Array, phi_ref: float = 0.0) -> tuple[Array, Array, Array]:
     """Project onto the canonical polarization angles (paper Eq. 2).
 

@@ -62,7 +62,7 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from separate import optics
+from separate import metrics, optics
 
 #: Long side (px) of the reduced luminance used for the statistics.
 MAX_SIDE = 512
@@ -86,6 +86,16 @@ WEAK_DOLP = 0.02
 IDENTICAL = 0.002
 #: Share of clipped pixels (`clipped_mask`) above which the scene is warned about.
 CLIPPED_WARN = 0.01
+#: Ridge weight (relative to the total evidence) pulling the reference field's polynomial
+#: towards the global φ⊥: where few pixels are polarized the field stays the global estimate.
+FIELD_PRIOR = 0.02
+#: Pixels whose axis is further than this (deg) from the field are left out of its next fit.
+FIELD_OUTLIER_DEG = 15.0
+#: Fits of the reference field (the first uses every pixel, the others drop the outliers).
+FIELD_ITERATIONS = 3
+#: The angles of incidence (deg) searched by `estimate_incidence_deg` and its step.
+INCIDENCE_RANGE_DEG = (10.0, 80.0)
+INCIDENCE_STEP_DEG = 2.0
 
 
 class Basis(enum.Enum):
@@ -356,6 +366,134 @@ def feasible_theta_deg(dolp_lo: float, dolp_hi: float, bounds_deg: tuple[float, 
     return float(grid[feasible].min()), float(grid[feasible].max())
 
 
+def _field(stokes: np.ndarray, usable: np.ndarray, reference_deg: float) -> np.ndarray:
+    """The reference field on reduced Stokes images (3, h, w): h×w float32 deg (docstring of
+    `estimate_reference_field`)."""
+    s0, s1, s2 = stokes
+    h, w = s0.shape
+    dolp = np.hypot(s1, s2) / np.maximum(s0, 1e-12)
+    weight = np.where(usable, np.clip(dolp, 0.0, 1.0) ** 2 * np.maximum(s0, 0.0), 0.0).ravel()
+    gap = np.mod(np.degrees(0.5 * np.arctan2(s2, s1)) - reference_deg + 45.0, 90.0).ravel() - 45.0
+    ys, xs = np.mgrid[-1.0 : 1.0 : h * 1j, -1.0 : 1.0 : w * 1j]
+    terms = np.stack([np.ones(h * w), xs.ravel(), ys.ravel(), xs.ravel() ** 2, (xs * ys).ravel(), ys.ravel() ** 2], axis=1)
+    total = weight.sum()
+    if total <= 0:
+        return np.full((h, w), reference_deg, np.float32)
+    coef = np.zeros(terms.shape[1])
+    for _ in range(FIELD_ITERATIONS):
+        residual = np.abs(gap - terms @ coef)
+        fit_weight = weight * (residual < FIELD_OUTLIER_DEG)
+        normal = (terms * fit_weight[:, None]).T @ terms + FIELD_PRIOR * total * np.eye(terms.shape[1])
+        coef = np.linalg.solve(normal, (terms * fit_weight[:, None]).T @ gap)
+    field = reference_deg + np.clip(terms @ coef, -45.0, 45.0)
+    return field.reshape(h, w).astype(np.float32)
+
+
+def estimate_reference_field(images: np.ndarray, angles_deg: Sequence[float], white: float = 1.0) -> np.ndarray:
+    """A smooth per-pixel s-direction φ⊥(x, y) (deg), for views in which it varies: a wide
+    field of view through a flat pane (φ⊥ turns with the plane of incidence across the frame)
+    or a curved pane.
+
+    Each usable pixel's axis is taken on the branch within ±45° of the global φ⊥
+    (`estimate_reference`: the side is decided once for the view), and its deviation from it is
+    fitted by a quadratic in x and y (weights DoLP²·S0, a ridge of `FIELD_PRIOR` towards the
+    global φ⊥, `FIELD_ITERATIONS` fits dropping pixels further than `FIELD_OUTLIER_DEG`): the
+    field of a flat pane seen through a wide lens or of a gently curved one. A view with no
+    usable polarization gets a constant field.
+
+    Args:
+        images: (N, H, W, C) linear shots (float, or uint16 codes), N ≥ 3.
+        angles_deg: the N polarizer angles (deg).
+        white: the sensor's white level (for saturation).
+
+    Returns:
+        h×w float32 φ⊥ (deg, continuous: the global φ⊥ ± 45°) on the reduced grid of at most
+        `MAX_SIDE` px; `field_at` resizes it.
+    """
+    return inspect_stack(images, angles_deg, white=white).field
+
+
+def field_at(field_deg: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """A reference field (h×w deg, `estimate_reference_field`) resized bilinearly to ``shape``
+    (H, W): H×W float32 deg. The field is continuous (no 180° wrap), so interpolating it is exact."""
+    h, w = shape
+    return cv2.resize(np.asarray(field_deg, np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
+
+
+def present_field(images: np.ndarray, angles_deg: Sequence[float], field_deg: np.ndarray,
+                  rows: int = 256) -> tuple[np.ndarray, list[float]]:
+    """Re-render a stack at φ(x, y) + 0/45/90° for a per-pixel reference ``field_deg`` (H×W deg,
+    `field_at`): `present` with a reference that varies over the image. The shots come back in
+    each pixel's own frame, so their angles are 0/45/90° and every method reads φ⊥ there.
+
+    Args:
+        images: (N, H, W, C) linear shots (float, or uint16 codes), N ≥ 3.
+        angles_deg: the N polarizer angles (deg).
+        field_deg: H×W reference (deg).
+        rows: image rows processed at a time.
+
+    Returns:
+        (images3, [0, 45, 90]): (3, H, W, C) float32.
+    """
+    phi = check_stack(images, angles_deg)
+    field_deg = np.asarray(field_deg, np.float32)
+    if field_deg.shape != images.shape[1:3] or not np.isfinite(field_deg).all():
+        raise ValueError(f"expected a finite reference field of shape {images.shape[1:3]}, got {field_deg.shape}")
+    pinv = np.linalg.pinv(optics.stokes_matrix(phi)).astype(np.float32)
+    out = np.empty((3,) + images.shape[1:], np.float32)
+    for y in range(0, images.shape[1], rows):
+        stokes = np.tensordot(pinv, optics.to_float(images[:, y : y + rows]), axes=1)
+        local = optics.rotate_stokes(stokes, np.radians(field_deg[y : y + rows])[..., None])
+        for k, offset in enumerate(np.radians(optics.PAPER_ANGLES_DEG)):
+            out[k, y : y + rows] = optics.intensity_from_stokes(local, offset)
+    return out, list(optics.PAPER_ANGLES_DEG)
+
+
+def estimate_incidence_deg(images: np.ndarray, angles_deg: Sequence[float], reference: float | np.ndarray,
+                           grid_deg: np.ndarray | None = None) -> float:
+    """The angle of incidence (deg) whose Fresnel inversion (`separate.optics.mixture_inverse`)
+    leaves the least mutual information between the recovered layers (Schechner et al. 2000),
+    on the luminance reduced to at most `MAX_SIDE` px; Brewster's angle when the minimum lies on
+    the grid's first or last point (a degenerate mixture, `separate.baselines.schechner`).
+
+    Args:
+        images: (N, H, W, C) linear shots (float, or uint16 codes), N ≥ 3.
+        angles_deg: the N polarizer angles (deg).
+        reference: φ⊥ (deg), a number or an H×W field.
+        grid_deg: the angles searched (deg, ascending, ≥ 3); default `INCIDENCE_RANGE_DEG` in
+            steps of `INCIDENCE_STEP_DEG`.
+    """
+    phi = check_stack(images, angles_deg)
+    if grid_deg is None:
+        grid_deg = np.arange(INCIDENCE_RANGE_DEG[0], INCIDENCE_RANGE_DEG[1] + INCIDENCE_STEP_DEG / 2, INCIDENCE_STEP_DEG)
+    lum, _ = _reduce_stack(images, np.zeros(images.shape[1:3], bool))
+    reference = np.asarray(reference, np.float64)
+    if reference.ndim == 2:
+        reference = field_at(reference, lum.shape[1:])
+    stokes = optics.rotate_stokes(optics.stokes_from_images(lum, phi), np.radians(reference))
+    i_perp, i_par = optics.canonical_intensities(stokes, 0.0)
+    return float(np.degrees(incidence_by_information(i_perp, i_par, grid_deg)))
+
+
+def incidence_by_information(i_perp: np.ndarray, i_par: np.ndarray, grid_deg: np.ndarray) -> float:
+    """The angle of incidence (rad) over ``grid_deg`` (deg, ascending, ≥ 3) minimizing the mutual
+    information of the layers that canonical luminances I⊥, I∥ (h×w) invert to; Brewster's angle
+    if the minimum is on the grid's first or last point. At most ~256 px per side are used."""
+    grid_deg = np.asarray(grid_deg, dtype=np.float64)
+    if grid_deg.ndim != 1 or grid_deg.size < 3:
+        raise ValueError(f"expected a grid of at least 3 angles (deg), got {grid_deg.tolist()}")
+    small = (slice(None, None, max(1, i_perp.shape[0] // 256)), slice(None, None, max(1, i_perp.shape[1] // 256)))
+    i_perp, i_par = np.asarray(i_perp[small], np.float64), np.asarray(i_par[small], np.float64)
+    scores = []
+    for theta in np.radians(grid_deg):
+        r, t = optics.mixture_inverse(i_perp, i_par, *optics.fresnel_reflectance(theta))
+        scores.append(metrics.mutual_information(r, t))
+    best = int(np.argmin(scores))
+    if best in (0, grid_deg.size - 1):
+        return optics.brewster_angle()
+    return float(np.radians(grid_deg[best]))
+
+
 def polarization_warnings(images: np.ndarray, angles_deg: Sequence[float], white: float = 1.0) -> list[str]:
     """Scene-level warnings about a stack, each naming the likely cause.
 
@@ -427,6 +565,9 @@ class Inspection:
         presence: the reflection-presence map at the reduced size (h×w float32 in [0, 1]),
             along ``reference_deg``; `presence_at` gives it at full size.
         clipped: H×W bool, `clipped_mask`.
+        field: the reference field at the reduced size (h×w float32 deg,
+            `estimate_reference_field`), around ``reference_deg``; constant when a reference
+            was given.
     """
 
     estimate: ReferenceEstimate
@@ -434,6 +575,7 @@ class Inspection:
     warnings: list[str]
     presence: np.ndarray
     clipped: np.ndarray
+    field: np.ndarray
 
     def presence_at(self, shape: tuple[int, int]) -> np.ndarray:
         """The presence map resized bilinearly to ``shape`` (H, W): H×W float32 in [0, 1]."""
@@ -458,5 +600,9 @@ def inspect_stack(images: np.ndarray, angles_deg: Sequence[float], reference_deg
     lum, stokes, usable, clipped = _statistics(images, phi, white)
     estimate = _estimate(stokes, usable, float(np.mod(np.degrees(phi[0]), 180.0)))
     reference = estimate.reference_deg if reference_deg is None else float(reference_deg)
+    if reference_deg is None and estimate.basis is not Basis.NONE:
+        field = _field(stokes, usable, reference)
+    else:
+        field = np.full(stokes.shape[1:], reference, np.float32)
     return Inspection(estimate, reference, _warnings(images, list(angles_deg), lum, stokes, usable, estimate, clipped),
-                      _presence(stokes, usable, reference), clipped)
+                      _presence(stokes, usable, reference), clipped, field)

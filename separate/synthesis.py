@@ -21,6 +21,22 @@ From two natural photos, in linear light (inverse gamma 2.2):
    the side is left to the reference estimator (ANY teaches it to hedge against a wrong side);
 6. exposure, shot and read noise, and rejection of flat, dark or saturated patches.
 
+Three further switches, off by default (the paper's pipeline and the benchmark's data stay as
+they were), on in training the physics-anchored network (``configs/cpu-fresnel.toml``):
+
+* ``phi_field_prob``: φ⊥ turning linearly across the patch by up to ``phi_field_max_deg`` (a
+  wide view through a flat pane, or a curved one);
+* ``no_glass_prob``: no glass at all: the photo seen directly, with a polarization of its own
+  (a smooth DoLP up to ``no_glass_dolp_max`` at a smoothly varying angle: sheen, varnish,
+  glossy surfaces); the target is R = 0, T = S0;
+* ``reference_field``: the ANY modes present the shots at the estimated per-pixel reference
+  field (`separate.reference.estimate_reference_field`, turned to φ⊥'s side in
+  ANY_TRUE_SIDE), as `urd separate` does, instead of at one global reference; ``angles`` are
+  then 0/45/90° in each pixel's own frame;
+* ``incidence_estimate``: each sample carries ``theta_est``, the angle of incidence estimated
+  from its own shots (`separate.reference.estimate_incidence_deg`), the physics-anchored
+  network's input.
+
 Every step has a switch in `SynthesisConfig`; a generator seeded with the same seed yields
 the same patches.
 """
@@ -36,7 +52,7 @@ import numpy as np
 
 from separate import optics
 from separate.optics import parabola_aoi, photo_to_linear
-from separate.reference import estimate_reference_deg, present
+from separate.reference import estimate_incidence_deg, field_at, inspect_stack, present, present_field
 
 SHARED_NATURAL = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "natural"
 #: scikit-image photos that ship with the package (no download): the fallback image pool.
@@ -92,6 +108,12 @@ class SynthesisConfig:
     n: float = optics.N_GLASS
     angles: AngleMode = AngleMode.CLASSIC
     angle_sets_deg: tuple[tuple[float, ...], ...] = ANGLE_SETS_DEG
+    phi_field_prob: float = 0.0
+    phi_field_max_deg: float = 20.0
+    no_glass_prob: float = 0.0
+    no_glass_dolp_max: float = 0.4
+    incidence_estimate: bool = False
+    reference_field: bool = False
 
     def __post_init__(self):
         self.angles = AngleMode(self.angles)
@@ -172,12 +194,31 @@ def smooth_warp_field(rng: np.random.Generator, size: int, grid: int, sigma_px: 
     return xs + dx, ys + dy
 
 
+def phi_perp_map(rng: np.random.Generator, cfg: SynthesisConfig, center: float) -> np.ndarray:
+    """φ⊥ (rad, P×P float32) around ``center``: constant, or (with probability
+    ``cfg.phi_field_prob``) turning linearly by up to ``cfg.phi_field_max_deg`` across the patch
+    in a random direction."""
+    p = cfg.patch
+    if cfg.phi_field_prob <= 0 or rng.random() >= cfg.phi_field_prob:
+        return np.full((p, p), center, np.float32)
+    turn = np.radians(rng.uniform(-cfg.phi_field_max_deg, cfg.phi_field_max_deg))
+    direction = rng.uniform(0, 2 * np.pi)
+    ys, xs = np.mgrid[0:p, 0:p].astype(np.float32) / (p - 1) - 0.5
+    return (center + turn * (xs * np.cos(direction) + ys * np.sin(direction))).astype(np.float32)
+
+
+def smooth_field(rng: np.random.Generator, size: int, grid: int = 4) -> np.ndarray:
+    """A smooth random field in [0, 1] (size² float32): grid² uniform anchors, bicubic."""
+    anchors = rng.uniform(0.0, 1.0, (grid, grid)).astype(np.float32)
+    return np.clip(cv2.resize(anchors, (size, size), interpolation=cv2.INTER_CUBIC), 0.0, 1.0)
+
+
 def surface_maps(rng: np.random.Generator, cfg: SynthesisConfig) -> tuple[np.ndarray, np.ndarray]:
     """Per-pixel angle of incidence θ and s-direction φ⊥ (rad), each P×P float32."""
     p = cfg.patch
     theta_c = np.radians(rng.uniform(*cfg.aoi_deg))
     omega = rng.uniform(0, np.pi)  # image direction along which the plane of incidence runs
-    phi_perp = np.full((p, p), omega + np.pi / 2, np.float32)
+    phi_perp = phi_perp_map(rng, cfg, omega + np.pi / 2)
     if not cfg.curvature:
         return np.full((p, p), theta_c, np.float32), phi_perp
     distance = rng.uniform(1.0, 5.0)
@@ -233,6 +274,8 @@ class Synthesizer:
 
     def _draw(self) -> dict[str, np.ndarray] | None:
         cfg, rng, p = self.cfg, self.rng, self.cfg.patch
+        if cfg.no_glass_prob > 0 and rng.random() < cfg.no_glass_prob:
+            return self._draw_no_glass()
         i, j = rng.choice(len(self.pool), 2, replace=False)
         refl = photo_to_linear(random_crop(rng, self.pool[i], p))
         trans = photo_to_linear(random_crop(rng, self.pool[j], p))
@@ -270,14 +313,52 @@ class Synthesizer:
         if (obs > 1.0).mean() > 0.01 or (r_obs + t_obs).mean() < 0.02 or t_obs.std() < 0.01:
             return None
         obs = np.clip(obs, 0.0, 1.0).astype(np.float32)
+        return self._finish(obs, nominal, angles, r_obs, t_obs, theta, phi_perp)
+
+    def _draw_no_glass(self) -> dict[str, np.ndarray] | None:
+        """A view with no glass: one photo with a smooth polarization of its own (module docstring)."""
+        cfg, rng, p = self.cfg, self.rng, self.cfg.patch
+        photo = photo_to_linear(random_crop(rng, self.pool[int(rng.integers(len(self.pool)))], p))
+        dolp = rng.uniform(0.0, cfg.no_glass_dolp_max) * smooth_field(rng, p)
+        aolp = rng.uniform(0.0, np.pi) + np.radians(60.0) * (smooth_field(rng, p) - 0.5)
+        stokes = optics.stokes_from_polarization(photo, optics.expand_map(dolp, photo), optics.expand_map(aolp, photo))
+        offsets = optics.PAPER_ANGLES_DEG if cfg.angles is AngleMode.CLASSIC else \
+            cfg.angle_sets_deg[int(rng.integers(len(cfg.angle_sets_deg)))]
+        nominal = rng.uniform(0.0, np.pi) + np.radians(offsets)
+        angles = (nominal + np.radians(rng.uniform(-cfg.angle_noise_deg, cfg.angle_noise_deg, len(nominal)))).astype(np.float32)
+        obs = np.stack([optics.intensity_from_stokes(stokes, float(phi)) for phi in angles]).astype(np.float32)
+        exposure = rng.uniform(0.1, 0.35) / max(float(photo.mean()), 1e-6)
+        obs, t_obs = obs * exposure, photo * exposure
+        if cfg.noise:
+            shot_gain, read_var = draw_noise_levels(rng)
+            obs = obs + rng.normal(0.0, 1.0, obs.shape).astype(np.float32) * noise_std(obs, shot_gain, read_var)
+        if (obs > 1.0).mean() > 0.01 or t_obs.mean() < 0.02 or t_obs.std() < 0.01:
+            return None
+        obs = np.clip(obs, 0.0, 1.0).astype(np.float32)
+        zeros = np.zeros((p, p), np.float32)
+        return self._finish(obs, nominal, angles, np.zeros_like(t_obs), t_obs, zeros, zeros)
+
+    def _finish(self, obs: np.ndarray, nominal: np.ndarray, angles: np.ndarray, r_obs: np.ndarray, t_obs: np.ndarray,
+                theta: np.ndarray, phi_perp: np.ndarray) -> dict[str, np.ndarray]:
+        """A sample from its shots: in the ANY modes presented at the estimated reference (or
+        reference field), turned to φ⊥'s side in ANY_TRUE_SIDE where the view has glass (θ > 0),
+        with the estimated angle of incidence where asked."""
+        cfg = self.cfg
+        reference = float(np.degrees(angles[0]))
         if cfg.angles is not AngleMode.CLASSIC:
             nominal_deg = np.degrees(nominal)
-            reference_deg = estimate_reference_deg(obs, nominal_deg)
-            if cfg.angles is AngleMode.ANY_TRUE_SIDE:
-                reference_deg = true_side_deg(reference_deg, float(np.degrees(phi_perp[0, 0])))
-            obs, presented_deg = present(obs, nominal_deg, reference_deg)
+            inspection = inspect_stack(obs, nominal_deg)
+            turn = 0.0
+            if cfg.angles is AngleMode.ANY_TRUE_SIDE and theta.any():
+                turn = true_side_deg(inspection.reference_deg, circular_mean_deg(phi_perp)) - inspection.reference_deg
+            if cfg.reference_field:
+                obs, presented_deg = present_field(obs, nominal_deg, field_at(inspection.field, obs.shape[1:3]) + turn)
+                reference = 0.0
+            else:
+                reference = inspection.reference_deg + turn
+                obs, presented_deg = present(obs, nominal_deg, reference)
             obs, angles = np.maximum(obs, 0.0), np.radians(presented_deg).astype(np.float32)
-        return {
+        sample = {
             "obs": obs.astype(np.float32),
             "r": r_obs.astype(np.float32),
             "t": t_obs.astype(np.float32),
@@ -286,3 +367,11 @@ class Synthesizer:
             "angles": angles,
             "shots": np.float32(len(nominal)),
         }
+        if cfg.incidence_estimate:
+            sample["theta_est"] = np.float32(np.radians(estimate_incidence_deg(obs, np.degrees(angles), reference)))
+        return sample
+
+
+def circular_mean_deg(axis_rad: np.ndarray) -> float:
+    """The mean direction (deg) of an axis map (rad; axes repeat every 180°)."""
+    return float(np.degrees(np.angle(np.exp(2j * axis_rad.astype(np.float64)).mean())) / 2)

@@ -26,6 +26,7 @@ import torch
 import torch.distributed as dist
 
 from separate import metrics
+from separate.model import with_fresnel_base
 from separate.networks import build_model
 from separate.precision import Precision, resolve
 from separate.synthesis import AngleMode, SynthesisConfig, Synthesizer, default_pool
@@ -42,7 +43,11 @@ class TrainConfig:
     of the training and validation data (`separate.synthesis.AngleMode`): "classic" (the
     paper's φ0 + 0/45/90° near φ⊥, the shipped weights' first three stages), "any" (random
     angle sets, shots presented at the estimated reference, as `urd separate` does) or
-    "any-true-side" (as "any", the reference on φ⊥'s side).
+    "any-true-side" (as "any", the reference on φ⊥'s side). ``base`` is the canonical
+    network's residual bases (`separate.model.BASES`; "fresnel" is the physics-anchored network,
+    whose samples then carry their estimated angle of incidence). ``phi_field_prob``,
+    ``no_glass_prob`` and ``reference_field`` are the synthesis switches of the same names
+    (`separate.synthesis.SynthesisConfig`).
     """
 
     variant: str = "canonical"
@@ -64,6 +69,10 @@ class TrainConfig:
     threads: int = 0
     angles: str = "classic"
     upsample: str = "transposed"
+    base: str = "canonical"
+    phi_field_prob: float = 0.0
+    no_glass_prob: float = 0.0
+    reference_field: bool = False
 
     @classmethod
     def from_toml(cls, path: Path) -> "TrainConfig":
@@ -93,10 +102,23 @@ def to_tensors(batch: dict[str, np.ndarray], device: torch.device) -> tuple[torc
     return obs, r, t
 
 
+def network_inputs(batch: dict[str, np.ndarray], device: torch.device) -> dict:
+    """The keyword arguments besides the shots that a batch gives the network: ``theta`` (B,)
+    rad where the samples carry their estimated angle of incidence."""
+    return {"theta": torch.from_numpy(batch["theta_est"]).to(device)} if "theta_est" in batch else {}
+
+
+def synthesis_config(cfg: TrainConfig, pipeline: str | None = None) -> SynthesisConfig:
+    """The synthesis settings of a run: its pipeline (or ``pipeline``), patch, angle mode and switches."""
+    base = SynthesisConfig.ablation(pipeline or cfg.pipeline, cfg.patch, cfg.angles)
+    return dataclasses.replace(base, phi_field_prob=cfg.phi_field_prob, no_glass_prob=cfg.no_glass_prob,
+                               reference_field=cfg.reference_field, incidence_estimate=cfg.base == "fresnel")
+
+
 def validation_set(cfg: TrainConfig) -> dict[str, np.ndarray]:
     """The fixed validation patches: bsds500/val (bundled photos when absent), seed 1234, full
-    pipeline with the run's angle mode."""
-    synth = Synthesizer(default_pool("val"), SynthesisConfig.ablation("DR+NRD+LCG", cfg.patch, cfg.angles), seed=1234)
+    pipeline with the run's angle mode and synthesis switches."""
+    synth = Synthesizer(default_pool("val"), synthesis_config(cfg, "DR+NRD+LCG"), seed=1234)
     return synth.batch(cfg.val_samples)
 
 
@@ -106,8 +128,9 @@ def evaluate(model: torch.nn.Module, data: dict[str, np.ndarray], device: torch.
     model.eval()
     psnr_r, psnr_t = [], []
     for i in range(0, len(data["obs"]), chunk):
-        obs, r, t = to_tensors({k: v[i : i + chunk] for k, v in data.items()}, device)
-        r_hat, t_hat = model(obs)
+        part = {k: v[i : i + chunk] for k, v in data.items()}
+        obs, r, t = to_tensors(part, device)
+        r_hat, t_hat = model(obs, **network_inputs(part, device))
         psnr_r += metrics.psnr(r_hat.cpu().numpy(), r.cpu().numpy(), axis=(1, 2, 3)).tolist()
         psnr_t += metrics.psnr(t_hat.cpu().numpy(), t.cpu().numpy(), axis=(1, 2, 3)).tolist()
     model.train()
@@ -142,7 +165,9 @@ def model_config(cfg: TrainConfig) -> dict:
     if cfg.variant == "ceilnet":
         return {"variant": "ceilnet", "width": cfg.width, "blocks": cfg.blocks}
     config = {"variant": cfg.variant, "width": cfg.width}
-    return config if cfg.upsample == "transposed" else {**config, "upsample": cfg.upsample}
+    if cfg.upsample != "transposed":
+        config["upsample"] = cfg.upsample
+    return config if cfg.base == "canonical" else {**config, "base": cfg.base}
 
 
 def lr_at(cfg: TrainConfig, step: int) -> float:
@@ -211,6 +236,11 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
         source = last if resumed else init
         state = load_checkpoint(source, device)
         stored = {"channels": 3, **state.get("model_config", {})}
+        if not resumed and model.config().get("base") == "fresnel" and "base" not in stored:
+            start = build_model(stored)                     # a canonical-base start: its head grows zero inputs
+            start.load_state_dict({k: v.float() for k, v in state["model"].items()})
+            state = {**state, "model": with_fresnel_base(start).state_dict()}
+            stored = {"channels": 3, **model.config()}
         if stored != {"channels": 3, **model.config()}:
             raise WeightsError(f"{source} holds a network {stored}, not the {model.config()} of this config "
                                "(for resize up-sampling from transposed weights: tools/resize_upsampling.py)")
@@ -226,7 +256,7 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
     if rank == 0:
         (run_dir / "config.toml").write_text(cfg.to_toml())
     ddp = torch.nn.parallel.DistributedDataParallel(model) if distributed else model
-    synth = Synthesizer(default_pool("train"), SynthesisConfig.ablation(cfg.pipeline, cfg.patch, cfg.angles), seed=cfg.seed * 1000 + rank + 7919 * step)
+    synth = Synthesizer(default_pool("train"), synthesis_config(cfg), seed=cfg.seed * 1000 + rank + 7919 * step)
     val = validation_set(cfg) if rank == 0 else None
     per_rank = cfg.batch // world
     micro = max(1, min(cfg.micro_batch, per_rank))
@@ -247,9 +277,10 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
         optim.zero_grad(set_to_none=True)
         loss_sum = 0.0
         for _ in range(0, per_rank, micro):
-            obs, r, t = to_tensors(synth.batch(micro), device)
+            batch = synth.batch(micro)
+            obs, r, t = to_tensors(batch, device)
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16):
-                outputs = ddp(obs)
+                outputs = ddp(obs, **network_inputs(batch, device))
             loss = model.loss(outputs, r, t) * micro / per_rank
             loss.backward()
             loss_sum += loss.item()
@@ -280,6 +311,7 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
         if out_of_time:
             break
     if distributed:
+        dist.barrier()                                  # no rank leaves while another still talks to it
         dist.destroy_process_group()
     return record
 

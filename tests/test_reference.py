@@ -92,7 +92,7 @@ def test_argument_checks_say_what_was_expected():
         presence_map(shots, [0, 180, 90])
     with pytest.raises(ValueError, match="expected a finite reference"):
         present(shots, [0, 45, 90], float("nan"))
-    with pytest.raises(ValueError, match="expected reference 'auto' or"):
+    with pytest.raises(ValueError, match="expected reference 'auto', 'global' or"):
         get_method("schechner", reference="east")
 
 

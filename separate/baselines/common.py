@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from separate import optics
-from separate.optics import Array
+from separate.metrics import mutual_information  # noqa: F401 - the baselines' shared helpers
+from separate.optics import Array, mixture_coefficients, mixture_inverse  # noqa: F401
 
 
 def canonical(images: np.ndarray, angles_deg: list[float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -25,13 +26,6 @@ def fresnel_inverse(i_perp: np.ndarray, i_par: np.ndarray, theta: np.ndarray | f
     return r_obs.astype(np.float32), t_obs.astype(np.float32)
 
 
-def mixture_coefficients(r_s: Array, r_p: Array) -> tuple[Array, Array]:
-    """(a, b) with R_obs = a·I⊥ + b·I∥ (and T_obs = I⊥ + I∥ − R_obs) for reflectances R_s > R_p:
-    a = q(1 − R_p), b = −q(1 − R_s), q = (R_s + R_p)/(R_s − R_p) (numpy or torch, broadcasting)."""
-    ratio = (r_s + r_p) / (r_s - r_p)
-    return ratio * (1 - r_p), -ratio * (1 - r_s)
-
-
 def mixture_coefficient_slopes(r_s: Array, r_p: Array, dr_s: Array, dr_p: Array) -> tuple[Array, Array]:
     """Derivatives (da, db) of `mixture_coefficients` for reflectance derivatives dR_s, dR_p
     (e.g. per radian of θ, `separate.optics.fresnel_reflectance_slope`)."""
@@ -40,27 +34,8 @@ def mixture_coefficient_slopes(r_s: Array, r_p: Array, dr_s: Array, dr_p: Array)
     return dratio * (1 - r_p) - ratio * dr_p, ratio * dr_s - dratio * (1 - r_s)
 
 
-def mixture_inverse(i_perp, i_par, r_s, r_p):
-    """The arithmetic of `fresnel_inverse` for given reflectances R_s > R_p (numpy or torch,
-    broadcasting): the observable layers (R_obs, T_obs), which sum to S0 = I⊥ + I∥."""
-    a, b = mixture_coefficients(r_s, r_p)
-    r_obs = a * i_perp + b * i_par
-    return r_obs, i_perp + i_par - r_obs
-
-
 def luminance(image: np.ndarray) -> np.ndarray:
     return image.mean(axis=-1) if image.ndim == 3 else image
-
-
-def mutual_information(a: np.ndarray, b: np.ndarray, bins: int = 32) -> float:
-    """Mutual information (nats) of two images' values from a joint histogram (1–99% range)."""
-    lo_a, hi_a = np.percentile(a, [1, 99])
-    lo_b, hi_b = np.percentile(b, [1, 99])
-    joint, _, _ = np.histogram2d(a.ravel(), b.ravel(), bins=bins, range=[[lo_a, hi_a + 1e-9], [lo_b, hi_b + 1e-9]])
-    p = joint / max(joint.sum(), 1)
-    pa, pb = p.sum(axis=1, keepdims=True), p.sum(axis=0, keepdims=True)
-    nz = p > 0
-    return float((p[nz] * np.log(p[nz] / (pa @ pb)[nz])).sum())
 
 
 def psf2otf(kernel: np.ndarray, shape: tuple[int, int]) -> np.ndarray:

@@ -1,0 +1,63 @@
+"""Polarization maps of a stack, for export: Stokes S0, S1, S2, DoLP, AoLP, the reference φ⊥ and
+the angle of incidence θ.
+
+Every map is H×W float32 on the luminance (the mean of the colour channels) except S0, S1 and S2,
+which keep the colour channels (H×W×C). Angles are degrees in urd's image-plane convention
+(`separate.optics`: from the +x axis, counter-clockwise as the viewer sees the image): AoLP in
+[0, 180), φ⊥ the reference field (`separate.reference.estimate_reference_field`, continuous, so
+it may leave [0, 180)), θ the estimate of `separate.reference.estimate_incidence_deg` (one value
+for the view, repeated over the map). `MAPS` gives each map's unit and meaning; the exporter
+writes them into the files' metadata.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from separate import optics
+from separate.reference import check_stack, estimate_incidence_deg, field_at
+
+#: name → (unit, meaning) of each map `polarization_maps` returns.
+MAPS = {
+    "S0": ("linear (1.0 = sensor white)", "Stokes S0: total intensity, the image without a polarizer"),
+    "S1": ("linear (1.0 = sensor white)", "Stokes S1: linear polarization along 0 deg minus along 90 deg"),
+    "S2": ("linear (1.0 = sensor white)", "Stokes S2: linear polarization along 45 deg minus along 135 deg"),
+    "DoLP": ("1 (0 = unpolarized, 1 = fully polarized)", "degree of linear polarization of the luminance"),
+    "AoLP": ("deg in [0, 180), from +x, counter-clockwise", "angle of linear polarization of the luminance"),
+    "phi_perp": ("deg, from +x, counter-clockwise", "reference s-direction of the glass used for separation"),
+    "theta": ("deg", "estimated angle of incidence on the glass (one value for the view)"),
+}
+
+
+def polarization_maps(images: np.ndarray, angles_deg: Sequence[float], reference_deg: float | np.ndarray,
+                      rows: int = 256) -> dict[str, np.ndarray]:
+    """The maps of `MAPS` for a stack.
+
+    Args:
+        images: (N, H, W, C) linear shots (float, or uint16 codes), N ≥ 3.
+        angles_deg: the N polarizer angles (deg).
+        reference_deg: φ⊥ (deg), one angle or a field (any h×w, resized to H×W).
+        rows: image rows processed at a time.
+
+    Returns:
+        name → float32 array: S0, S1, S2 H×W×C; the others H×W.
+    """
+    phi = check_stack(images, angles_deg)
+    n, h, w, c = images.shape
+    pinv = np.linalg.pinv(optics.stokes_matrix(phi)).astype(np.float32)
+    stokes = np.empty((3, h, w, c), np.float32)
+    for y in range(0, h, rows):
+        stokes[:, y : y + rows] = np.tensordot(pinv, optics.to_float(images[:, y : y + rows]), axes=1)
+    lum = stokes.mean(axis=-1)
+    reference = np.asarray(reference_deg, np.float32)
+    field = field_at(reference, (h, w)) if reference.ndim == 2 else np.full((h, w), float(reference), np.float32)
+    theta = estimate_incidence_deg(images, angles_deg, reference_deg)
+    return {
+        "S0": stokes[0], "S1": stokes[1], "S2": stokes[2],
+        "DoLP": np.clip(optics.dolp(lum), 0.0, None).astype(np.float32),
+        "AoLP": np.mod(np.degrees(optics.aolp(lum)), 180.0).astype(np.float32),
+        "phi_perp": field,
+        "theta": np.full((h, w), theta, np.float32),
+    }

@@ -1,0 +1,158 @@
+"""The per-pixel reference field, per-pixel presentation, the angle-of-incidence estimate and the
+physics-anchored (Fresnel-base) network."""
+
+import dataclasses
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from separate import metrics, optics
+from separate.infer import FusedNet, load_model, separate_stack
+from separate.methods import get_method
+from separate.model import SeparationNet, fresnel_bases, with_fresnel_base
+from separate.reference import (estimate_incidence_deg, estimate_reference_deg, estimate_reference_field, field_at,
+                                present, present_field)
+from separate.synthesis import AngleMode, SynthesisConfig, Synthesizer, load_image_pool
+from separate.train import TrainConfig, train
+
+POOL = load_image_pool(None)
+
+
+def wide_view(h=240, w=360, turn_deg=26.0, centre_deg=57.0, theta_deg=50.0, seed=0):
+    """A flat pane seen through a wide lens: φ⊥ turning linearly by ±turn_deg across the frame."""
+    rng = np.random.default_rng(seed)
+    refl = optics.photo_to_linear(cv2.resize(POOL[0], (w, h))) * 1.5
+    trans = optics.photo_to_linear(cv2.resize(POOL[2], (w, h))) * 0.7
+    xs = np.linspace(-1.0, 1.0, w)[None, :].repeat(h, 0)
+    phi_perp = np.radians(centre_deg + turn_deg * xs).astype(np.float32)
+    theta = np.radians(theta_deg)
+    angles = [0.0, 45.0, 90.0]
+    obs = np.stack([optics.render(refl, trans, theta, phi_perp, np.radians(a)) for a in angles]).astype(np.float32)
+    obs = obs + rng.normal(0.0, 1e-3, obs.shape).astype(np.float32)
+    r_obs, t_obs = optics.observable_layers(refl, trans, theta)
+    return obs, angles, np.degrees(phi_perp), r_obs, t_obs
+
+
+def test_the_field_follows_a_turning_s_direction_that_one_global_angle_misses():
+    obs, angles, phi_true, _, _ = wide_view()
+    field = field_at(estimate_reference_field(obs, angles), obs.shape[1:3])
+    field_error = np.abs(optics.axis_gap_deg(field, phi_true))
+    global_error = np.abs(optics.axis_gap_deg(estimate_reference_deg(obs, angles), phi_true))
+    assert field_error.mean() < 2.0 and field_error.max() < 5.0
+    assert global_error.mean() > 10.0 and global_error.max() > 20.0
+
+
+def test_a_constant_field_presents_as_the_global_reference_and_a_turning_one_per_pixel():
+    obs, angles, phi_true, _, _ = wide_view(h=64, w=96)
+    one, _ = present(obs, angles, 40.0)
+    same, local = present_field(obs, angles, np.full(obs.shape[1:3], 40.0, np.float32))
+    assert local == [0.0, 45.0, 90.0]
+    np.testing.assert_allclose(same, one, atol=1e-5)
+    # at the true field every pixel's first shot is the one at its own φ⊥: I⊥ of the canonical projection
+    at_truth, _ = present_field(obs, angles, phi_true.astype(np.float32))
+    stokes = optics.stokes_from_images(obs, np.radians(angles))
+    expected = optics.intensity_from_stokes(optics.rotate_stokes(stokes, np.radians(phi_true)[..., None]), 0.0)
+    np.testing.assert_allclose(at_truth[0], expected, atol=1e-5)
+    with pytest.raises(ValueError, match="expected a finite reference field of shape"):
+        present_field(obs, angles, np.zeros((3, 3), np.float32))
+
+
+def test_no_polarization_gives_a_constant_field():
+    flat = np.repeat(optics.photo_to_linear(cv2.resize(POOL[1], (96, 64)))[None] / 2, 3, axis=0).astype(np.float32)
+    field = estimate_reference_field(flat, [0.0, 45.0, 90.0])
+    assert np.ptp(field) == 0.0
+
+
+@pytest.mark.parametrize("theta_deg", [35.0, 50.0, 65.0])
+def test_the_angle_of_incidence_is_recovered_from_a_flat_pane(theta_deg):
+    obs, angles, phi_true, _, _ = wide_view(h=256, w=384, turn_deg=0.0, theta_deg=theta_deg)
+    assert estimate_incidence_deg(obs, angles, 57.0) == pytest.approx(theta_deg, abs=4.0)
+
+
+def test_fresnel_bases_are_the_layers_at_the_true_angle():
+    obs, angles, phi_true, r_obs, t_obs = wide_view(h=64, w=96, turn_deg=0.0, theta_deg=40.0)
+    stokes = optics.stokes_from_images(obs, np.radians(angles))
+    i_perp, i_par = optics.canonical_intensities(stokes, np.radians(57.0))
+    to_t = lambda a: torch.from_numpy(np.ascontiguousarray(a.transpose(2, 0, 1)))[None]  # noqa: E731
+    base_r, base_t = fresnel_bases(to_t(i_perp), to_t(i_par), torch.tensor([np.radians(40.0)]))
+    assert metrics.psnr(base_t[0].numpy().transpose(1, 2, 0), t_obs) > 38
+    assert metrics.psnr(base_r[0].numpy().transpose(1, 2, 0), r_obs) > 38
+    np.testing.assert_allclose((base_r + base_t).numpy(), to_t(i_perp + i_par).numpy().clip(0), atol=1e-6)
+
+
+def test_a_fresnel_network_starts_from_canonical_weights_and_runs_fused_and_as_a_module():
+    torch.manual_seed(0)
+    model = with_fresnel_base(SeparationNet(width=8, upsample="resize")).eval()
+    assert model.config()["base"] == "fresnel" and model.head.weight.shape[1] == 15 + 4
+    assert torch.count_nonzero(model.head.weight[:, 15:]) == 0
+    obs, theta = torch.rand(1, 3, 3, 40, 48), torch.tensor([0.8])
+    with pytest.raises(ValueError, match="expected theta exactly when base is 'fresnel'"):
+        model(obs)
+    with torch.no_grad():
+        r_ref, t_ref = model(obs, scale=torch.tensor([0.3]), theta=theta)
+    if FusedNet.available():
+        r_fused, t_fused = FusedNet(model)(obs.clone(), model_angles(), torch.tensor([0.3]), theta=theta)
+        torch.testing.assert_close(t_fused.contiguous(), t_ref, atol=1e-4, rtol=1e-4)
+        torch.testing.assert_close(r_fused.contiguous(), r_ref, atol=1e-4, rtol=1e-4)
+
+
+def model_angles():
+    from separate.model import NOMINAL_ANGLES
+    return NOMINAL_ANGLES
+
+
+def test_the_shipped_network_takes_a_field_tile_by_tile_like_the_presented_stack():
+    model, _ = load_model(None)
+    obs, angles, phi_true, _, _ = wide_view(h=200, w=272)
+    field = field_at(estimate_reference_field(obs, angles), obs.shape[1:3])
+    _, t_field = separate_stack(model, obs, angles, tile=4096, overlap=0, precision="fp32", reference_deg=field)
+    shots, local = present_field(obs, angles, field)
+    _, t_presented = separate_stack(model, np.maximum(shots, 0.0), local, tile=4096, overlap=0, precision="fp32")
+    np.testing.assert_allclose(t_field, t_presented, atol=1e-4)
+    _, t_tiled = separate_stack(model, obs, angles, tile=136, overlap=64, precision="fp32", reference_deg=field)
+    assert np.abs(t_tiled - t_field).mean() < 1e-3
+
+
+def test_every_polarization_method_takes_the_auto_field_and_the_global_reference():
+    obs, angles, _, _, t_obs = wide_view(h=96, w=144)
+    for name in ("network", "schechner", "farid"):
+        run, info = get_method(name)
+        assert "per pixel" in info["reference_policy"]
+        _, t_auto = run(obs, angles)
+        run_global, info_global = get_method(name, reference="global")
+        assert info_global["reference_policy"].startswith("global")
+        _, t_global = run_global(obs, angles)
+        assert t_auto.shape == t_global.shape == t_obs.shape
+    _, t_schechner = get_method("schechner")[0](obs, angles)
+    assert metrics.psnr(t_schechner, t_obs) > 30
+
+
+def test_synthesis_switches_no_glass_views_and_turning_s_directions():
+    base = SynthesisConfig(patch=64, angles=AngleMode.ANY_TRUE_SIDE, reference_field=True)
+    clean = dataclasses.replace(base, no_glass_prob=1.0, noise=False, angle_noise_deg=0.0)
+    none = Synthesizer(POOL, clean, seed=2).batch(6)
+    assert not none["r"].any() and not none["theta"].any()
+    # the target is everything the camera sees (T = S0 of the shots), which is polarized
+    s0 = np.stack([optics.stokes_from_images(o, a)[0] for o, a in zip(none["obs"], none["angles"])])
+    np.testing.assert_allclose(s0, none["t"], atol=1e-4)
+    stokes = [optics.stokes_from_images(o, a) for o, a in zip(none["obs"], none["angles"])]
+    assert max(float(np.percentile(optics.dolp(s), 99)) for s in stokes) > 0.05
+    turning = Synthesizer(POOL, dataclasses.replace(base, phi_field_prob=1.0, incidence_estimate=True), seed=3).batch(6)
+    spread = np.ptp(np.degrees(turning["phi_perp"]).reshape(6, -1), axis=1)
+    assert spread.max() > 5.0 and (spread > 0).all()
+    assert ((turning["theta_est"] > np.radians(9)) & (turning["theta_est"] < np.radians(81))).all()
+    np.testing.assert_allclose(np.degrees(turning["angles"]), [[0.0, 45.0, 90.0]] * 6, atol=1e-4)
+
+
+def test_training_a_fresnel_network_from_canonical_weights(tmp_path):
+    from separate.train import save_checkpoint
+    start = SeparationNet(width=8, upsample="resize")
+    cfg = TrainConfig(width=8, upsample="resize", patch=64, batch=2, micro_batch=2, steps=2, val_samples=2, val_every=2)
+    save_checkpoint(tmp_path / "start.pt", start, None, 0, cfg, {})
+    fresnel = dataclasses.replace(cfg, base="fresnel", angles="any-true-side", reference_field=True, no_glass_prob=0.2)
+    record = train(fresnel, tmp_path / "run", init=tmp_path / "start.pt")
+    assert record["step"] == 2 and np.isfinite(record["psnr_t"])
+    state = torch.load(tmp_path / "run" / "last.pt", weights_only=True)
+    assert state["model_config"]["base"] == "fresnel"
