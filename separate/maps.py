@@ -54,10 +54,12 @@ def polarization_maps(images: np.ndarray, angles_deg: Sequence[float], reference
     reference = np.asarray(reference_deg, np.float32)
     field = field_at(reference, (h, w)) if reference.ndim == 2 else np.full((h, w), float(reference), np.float32)
     theta = estimate_incidence_deg(images, angles_deg, reference_deg)
+    aolp = np.mod(np.degrees(optics.aolp(lum.astype(np.float64))), 180.0).astype(np.float32)
+    aolp[aolp >= 180.0] = 0.0                                 # float32 rounding of values just below 180
     return {
         "S0": stokes[0], "S1": stokes[1], "S2": stokes[2],
         "DoLP": np.clip(optics.dolp(lum), 0.0, None).astype(np.float32),
-        "AoLP": np.mod(np.degrees(optics.aolp(lum)), 180.0).astype(np.float32),
+        "AoLP": aolp,
         "phi_perp": field,
         "theta": np.full((h, w), theta, np.float32),
     }

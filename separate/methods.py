@@ -29,7 +29,7 @@ from typing import Callable
 import numpy as np
 
 from separate import optics
-from separate.reference import estimate_reference_deg, estimate_reference_field, field_at, present, present_field
+from separate.reference import decide_side, field_at, inspect_stack, present, present_field
 
 Run = Callable[..., tuple[np.ndarray, np.ndarray]]
 Reference = str | float
@@ -58,17 +58,23 @@ def reference_policy(reference: Reference) -> str:
     return f"fixed: {reference:g} deg; shots presented at it + 0/45/90 deg"
 
 
-def chooser(reference: Reference) -> Callable[[np.ndarray, list[float], float | np.ndarray | None], float | np.ndarray]:
-    """A function (images, angles_deg, reference_deg) → the reference to present at (deg, a
-    number or an H×W map): ``reference_deg`` if given, else ``reference`` (module docstring)."""
+def chooser(reference: Reference) -> Callable[..., float | np.ndarray]:
+    """A function (images, angles_deg, reference_deg, trial) → the reference to present at (deg,
+    a number or an H×W map): ``reference_deg`` if given, else ``reference`` (module docstring);
+    an estimated reference whose side was only assumed is settled by ``trial``, the method's own
+    run, separating both sides (`separate.reference.decide_side`)."""
     reference = check_reference(reference)
 
-    def choose(images: np.ndarray, angles_deg: list[float], reference_deg: float | np.ndarray | None) -> float | np.ndarray:
+    def choose(images: np.ndarray, angles_deg: list[float], reference_deg: float | np.ndarray | None,
+               trial: Run) -> float | np.ndarray:
         if reference_deg is not None:
             return reference_deg if np.ndim(reference_deg) == 2 else float(reference_deg)
+        if reference not in ESTIMATED:
+            return float(reference)
+        inspection = decide_side(images, angles_deg, inspect_stack(images, angles_deg), trial)
         if reference == "auto":
-            return field_at(estimate_reference_field(images, angles_deg), images.shape[1:3])
-        return estimate_reference_deg(images, angles_deg) if reference == "global" else float(reference)
+            return field_at(inspection.field, images.shape[1:3])
+        return inspection.reference_deg
 
     return choose
 
@@ -96,7 +102,7 @@ def network(weights: Path | None = None, tile: int | None = None, precision: str
     def run(images: np.ndarray, angles_deg: list[float],
             reference_deg: float | np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         # separate_stack presents the shots tile by tile (no second full-size stack)
-        chosen_deg = choose(images, angles_deg, reference_deg) if uses_reference else None
+        chosen_deg = choose(images, angles_deg, reference_deg, run) if uses_reference else None
         r_hat, t_hat = separate_stack(model, images, list(angles_deg), tile, OVERLAP, chosen, progress,
                                       reference_deg=chosen_deg)
         if colour_match:
@@ -157,7 +163,7 @@ def baseline(module_name: str, s0_only: bool) -> Callable[..., tuple[Run, dict]]
                 reference_deg: float | np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
             if s0_only:
                 return module.separate(optics.to_float(images), list(angles_deg), **params)
-            shots, angles = present_at(images, angles_deg, choose(images, angles_deg, reference_deg))
+            shots, angles = present_at(images, angles_deg, choose(images, angles_deg, reference_deg, run))
             return module.separate(shots, angles, **params)
 
         policy = "not used: S0 only" if s0_only else reference_policy(check_reference(reference))

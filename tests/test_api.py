@@ -76,3 +76,45 @@ def test_maps_of_a_glass_scene_give_the_reference_field():
     truth = np.degrees(glass.phi_perp)
     assert np.abs(optics.axis_gap_deg(maps["phi_perp"], truth)).mean() < 2.0
     assert maps["theta"][0, 0] == pytest.approx(50.0, abs=4.0)
+
+
+def test_separate_scene_exports_the_maps_hashed_with_units(ingested):
+    import json
+
+    import tifffile
+
+    from separate.methods import get_method
+    from urd.separation import separate_scene
+
+    root, name = ingested
+    scene = Dataset.open(root).scene(name)
+    run, info = get_method("schechner")
+    result = separate_scene(scene, "schechner", run, info, maps=True)
+    names = {p.name for p in result.files}
+    assert {"S0.tiff", "DoLP.tiff", "AoLP.tiff", "phi_perp.tiff", "theta.tiff", "reference_deg.tiff"} <= names
+    with tifffile.TiffFile(scene.results_dir("schechner") / "maps" / "AoLP.tiff") as tif:
+        meta = json.loads(tif.pages[0].description)
+        aolp = tif.asarray()
+    assert meta["unit"].startswith("deg") and "counter-clockwise" in meta["angle_convention"]
+    assert aolp.dtype == np.float32 and 0.0 <= aolp.min() and aolp.max() < 180.0
+    assert Dataset.open(root).scene(name).verify() == []
+    (scene.results_dir("schechner") / "maps" / "DoLP.tiff").write_bytes(b"broken")
+    assert any("DoLP.tiff" in problem for problem in Dataset.open(root).scene(name).verify())
+    separate_scene(Dataset.open(root).scene(name), "schechner", run, info, force=True, maps=True)
+    assert Dataset.open(root).scene(name).verify() == []
+
+
+def test_reports_show_the_ground_truth_figures_the_reference_field_and_the_map_links(ingested, tmp_path):
+    from separate.methods import get_method
+    from urd.report import report_html, report_text
+    from urd.separation import separate_scene
+
+    root, name = ingested
+    scene = Dataset.open(root).scene(name)
+    if "none" not in scene.methods():
+        separate_scene(scene, "none", *get_method("none"))
+    text = report_text(root)
+    assert "none vs ground truth: R̂" in text and "T̂ " in text and "no separation (S0 as T)" in text
+    page = report_html(root, tmp_path / "report").read_text()
+    assert "vs ground truth: R̂" in page and "reference φ⊥ used" in page
+    assert 'href="' in page and "maps/AoLP.tiff" in page      # the exported maps of the schechner result

@@ -156,3 +156,32 @@ def test_training_a_fresnel_network_from_canonical_weights(tmp_path):
     assert record["step"] == 2 and np.isfinite(record["psnr_t"])
     state = torch.load(tmp_path / "run" / "last.pt", weights_only=True)
     assert state["model_config"]["base"] == "fresnel"
+
+
+def pane(theta_deg, reflection_gain, transmission_gain, phi_perp_deg=30.0, h=192, w=288):
+    refl = optics.photo_to_linear(cv2.resize(POOL[0], (w, h))) * reflection_gain
+    trans = optics.photo_to_linear(cv2.resize(POOL[3], (w, h))) * transmission_gain
+    angles = [0.0, 45.0, 90.0]
+    obs = np.stack([optics.render(refl, trans, np.radians(theta_deg), np.radians(phi_perp_deg), np.radians(a))
+                    for a in angles]).astype(np.float32)
+    return obs / obs.mean() * 0.2, angles
+
+
+@pytest.mark.parametrize("method", ["network", "schechner"])
+def test_an_assumed_side_is_settled_by_separating_both(method):
+    from separate.reference import Basis, decide_side, inspect_stack
+
+    run, _ = get_method(method)
+    # a bright reflection in glass seen nearly head-on: weak polarization of one orientation, assumed transmission
+    obs, angles = pane(22.0, 2.0, 0.15)
+    inspection = inspect_stack(obs, angles)
+    assert inspection.estimate.basis is Basis.TRANSMISSION and abs(optics.axis_gap_deg(inspection.reference_deg, 30.0)) > 80
+    decided = decide_side(obs, angles, inspection, run)
+    assert abs(optics.axis_gap_deg(decided.reference_deg, 30.0)) < 1.0
+    assert any("decided by separating both" in w for w in decided.warnings)
+    assert not any("urd assumes the transmission dominates" in w for w in decided.warnings)
+    # a bright transmission at a steep angle: the assumption was right and stays
+    obs, angles = pane(60.0, 0.03, 1.5)
+    inspection = inspect_stack(obs, angles)
+    assert inspection.estimate.basis is Basis.TRANSMISSION
+    assert decide_side(obs, angles, inspection, run) is inspection

@@ -4,8 +4,10 @@
 
 One PNG per capture: a row per method with S0 | T̂ | R̂ | DoLP | AoLP (hue = AoLP over 0-180°,
 brightness = DoLP) and the presence map, all sRGB-encoded with one white point per capture
-(the 99.5th percentile of S0); the reference angle each method was given and the share of light
-put into R̂ are written on the row. Prints one line per capture and method.
+(the 99.5th percentile of S0); the reference each method used (as `urd separate` chooses it:
+the estimated field, its side settled by a trial separation where it was only assumed,
+`urd.separation.separate_inspected`) and the share of light put into R̂ are written on the row.
+Prints one line per capture and method.
 """
 
 import argparse
@@ -17,8 +19,8 @@ import numpy as np
 
 from separate import optics
 from separate.methods import get_method
-from separate.reference import inspect_stack
 from urd import samples
+from urd.separation import separate_inspected
 from urd.images import srgb_to_linear, to_display
 
 parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -52,21 +54,22 @@ for capture in samples.captures():
     s0 = stokes[0]
     white = float(np.percentile(s0, 99.5)) or 1.0
     dolp = np.clip(optics.dolp(stokes.mean(axis=-1)), 0, 1)
-    inspection = inspect_stack(stack, angles)
-    reference, presence = inspection.reference_deg, inspection.presence_at(stack.shape[1:3])
     rows = []
     for name in args.methods.split(","):
         run, _ = get_method(name)
         started = time.time()
-        r_hat, t_hat = run(stack, angles, reference)
+        r_hat, t_hat, inspection, used = separate_inspected(stack, angles, run, "auto")
         seconds = time.time() - started
+        presence = inspection.presence_at(stack.shape[1:3])
+        low, high = float(np.min(used)), float(np.max(used))
+        reference = f"{low:.0f}-{high:.0f}" if high - low >= 0.5 else f"{low:.0f}"
         share = float(r_hat.sum() / max(s0.sum(), 1e-9))
         rows.append(np.hstack([tile(s0, f"{name}: S0", white), tile(t_hat, f"T ({1 - share:.0%} of S0)", white),
-                               tile(r_hat, f"R ({share:.0%}), ref {reference:.0f} deg", white),
+                               tile(r_hat, f"R ({share:.0%}), ref {reference} deg", white),
                                tile(dolp, "DoLP (0..1)", 1.0), tile(aolp_tile(stokes), "AoLP (hue)", 1.0),
                                tile(presence, "presence", 1.0)]))
-        print(f"{capture.name:22s} {name:10s} R share {share:6.1%}  T min {t_hat.min():+.3f}  R min {r_hat.min():+.3f}  "
-              f"{seconds:5.1f} s")
+        print(f"{capture.name:22s} {name:10s} R share {share:6.1%}  ref {reference:>7s} deg  T min {t_hat.min():+.3f}  "
+              f"R min {r_hat.min():+.3f}  {seconds:5.1f} s")
     for warning in inspection.warnings:
         print(f"{capture.name:22s} warning: {warning}")
     sheet = np.vstack(rows)

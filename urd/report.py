@@ -16,8 +16,20 @@ def report_text(root: Path) -> str:
               else "not calibrated")
     scenes = ds.scenes()
     lines = [f"dataset {ds.root.resolve()}: {len(scenes)} scenes; polarizer offset {offset}"]
-    lines += [f"  {scene.status().describe()}" for scene in scenes]
+    for scene in scenes:
+        lines.append(f"  {scene.status().describe()}")
+        lines += [f"    {line}" for line in _truth_lines(scene)]
     return "\n".join(lines)
+
+
+def _truth_lines(scene) -> list[str]:
+    """One line per result with ground-truth figures: PSNR and SSIM of T̂ and R̂."""
+    from urd.report_html import truth_summary
+
+    if scene.status().state == "broken":
+        return []
+    truths = {method: scene.result(method, verify=False).truth_metrics for method in scene.methods()}
+    return [f"{method} vs ground truth: {truth_summary(truth)}" for method, truth in truths.items() if truth]
 
 
 def verify(root: Path) -> dict[str, list[str]]:
@@ -59,12 +71,13 @@ def scene_view(scene, max_side: int = 2048):
             continue
         r, t = (_shrink(u16_to_linear(tifffile.imread(result.files[f"{name}.tiff"]), result.full_scale), max_side)
                 for name in ("R", "T"))
-        confidence = result.files.get("confidence.tiff")
+        confidence, field = (result.files.get(name) for name in ("confidence.tiff", "reference_deg.tiff"))
         confidence = None if confidence is None else _shrink(tifffile.imread(confidence), max_side)
+        field = None if field is None else tifffile.imread(field)
         reference = result.reference_deg if result.reference_deg is not None else reference
         notes += [f"{method}: {w}" for w in result.warnings]
-        provenance = {**result.description, **({"truth_metrics": result.truth_metrics} if result.truth_metrics else {})}
-        results.append(ResultView(method, r, t, provenance, confidence))
+        exports = [path.resolve() for path in result.files.values() if path.parent.name == "maps"]
+        results.append(ResultView(method, r, t, result.description, confidence, field, result.truth_metrics, exports))
     return SceneView(scene.name, status.describe().split(": ", 1)[1], shots, reference,
                      scene.shot_errors_deg(), results, notes)
 

@@ -72,6 +72,9 @@ class ResultView:
         provenance: parameters, weights hash, urd version, time …; JSON-able values (others are
             shown with ``str``).
         confidence: optional H×W reflection-presence map in [0, 1].
+        reference_field: optional h×w reference s-direction φ⊥ the method used (deg).
+        truth: optional PSNR/SSIM against ground truth ({"T": {"psnr_db", "ssim"}, "R": …}).
+        exports: files to link (the polarization maps), absolute paths.
     """
 
     method: str
@@ -79,6 +82,9 @@ class ResultView:
     t: np.ndarray
     provenance: dict
     confidence: np.ndarray | None = None
+    reference_field: np.ndarray | None = None
+    truth: dict | None = None
+    exports: list[Path] = dataclasses.field(default_factory=list)
 
 
 @dataclasses.dataclass
@@ -433,8 +439,41 @@ def _status_badge(status: str) -> str:
 # One scene
 
 
-def _scene_html(scene: SceneView, index: int, root: Path, folder: str, thumb_px: int) -> str:
-    """Write one scene's images under ``root / folder`` and return its section."""
+def _field_image(field_deg: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """A reference field (deg) as a viridis image over its own range, and that range (deg)."""
+    lo, hi = float(np.min(field_deg)), float(np.max(field_deg))
+    span = hi - lo if hi - lo > 1e-6 else 1.0
+    return colormap_image((np.asarray(field_deg, np.float32) - lo) / span), lo, hi
+
+
+#: How the ground-truth figures of a result (`urd.separation.truth_metrics`) are labelled.
+TRUTH_LABELS = {"T": "T̂", "R": "R̂", "T_no_separation": "no separation (S0 as T)"}
+
+
+def truth_summary(truth: dict) -> str:
+    """PSNR and SSIM against ground truth as one line of plain text."""
+    return ", ".join(f"{TRUTH_LABELS.get(key, key)} {float(v['psnr_db']):.2f} dB (SSIM {float(v['ssim']):.3f})"
+                     for key, v in truth.items() if isinstance(v, dict) and "psnr_db" in v and "ssim" in v)
+
+
+def _truth_line(truth: dict) -> str:
+    """PSNR and SSIM against ground truth, one paragraph."""
+    summary = truth_summary(truth)
+    return f'<p class="truth">vs ground truth: {_e(summary)}</p>' if summary else ""
+
+
+def _exports_html(exports: list[Path], links_from: Path) -> str:
+    """Links to exported files, relative to the report folder ``links_from``."""
+    if not exports:
+        return ""
+    links = [f'<a href="{_e(Path(os.path.relpath(p, links_from)).as_posix())}">{_e(p.name)}</a>' for p in exports]
+    return ('<p class="small">polarization maps (float32 TIFF, units in each file\'s description): '
+            + " · ".join(links) + "</p>")
+
+
+def _scene_html(scene: SceneView, index: int, root: Path, folder: str, thumb_px: int, links_from: Path) -> str:
+    """Write one scene's images under ``root / folder`` and return its section (links to data
+    files relative to the final report folder ``links_from``)."""
     (root / folder).mkdir(parents=True)
     anchor = f"scene-{index:03d}"
     notes = list(scene.notes)
@@ -515,8 +554,15 @@ def _scene_html(scene: SceneView, index: int, root: Path, folder: str, thumb_px:
                 c_img = _write_image(root, f"{stem}_conf", colormap_image(result.confidence), thumb_px)
                 cells.append(_figure(c_img, "reflection presence", _colorbar("0", "1", "presence"),
                                      label=f"{scene.name} {result.method} reflection presence"))
-            rows.append(f'<div class="method"><div class="method-name">{_e(result.method)}</div>'
-                        f'<div class="row">{"".join(cells)}</div>{_provenance_html(result.provenance)}</div>')
+            if result.reference_field is not None:
+                field_rgb, lo, hi = _field_image(result.reference_field)
+                f_img = _write_image(root, f"{stem}_phi", field_rgb, thumb_px)
+                cells.append(_figure(f_img, "reference φ⊥ used", _colorbar(f"{_fmt(lo, 1)}°", f"{_fmt(hi, 1)}°", "φ⊥"),
+                                     label=f"{scene.name} {result.method} reference φ⊥"))
+            truth = _truth_line(result.truth) if result.truth else ""
+            rows.append(f'<div class="method"><div class="method-name">{_e(result.method)}</div>{truth}'
+                        f'<div class="row">{"".join(cells)}</div>{_exports_html(result.exports, links_from)}'
+                        f'{_provenance_html(result.provenance)}</div>')
         parts.append(f'<h3>Separation ({len(scene.results)} method{"s" if len(scene.results) > 1 else ""})</h3>'
                      + "".join(rows))
         t_first = 1 if s0_image is not None else 0                        # options: [S0], T̂, R̂ per method
@@ -775,7 +821,7 @@ def write_html_report(scenes: list[SceneView], out_dir: Path, title: str, calibr
         for i, scene in enumerate(scenes):
             if progress:
                 progress(i, len(scenes))
-            sections.append(_scene_html(scene, i, staging, f"img/s{i:03d}-{_slug(scene.name)}", thumb_px))
+            sections.append(_scene_html(scene, i, staging, f"img/s{i:03d}-{_slug(scene.name)}", thumb_px, out_dir.resolve()))
         count = f"{len(scenes)} scene{'s' if len(scenes) != 1 else ''}"
         page = ('<!doctype html>\n<html lang="en"><head><meta charset="utf-8">'
                 '<meta name="viewport" content="width=device-width, initial-scale=1">'

@@ -4,8 +4,13 @@ Outputs go to ``results/METHOD/`` of a scene (or a chosen folder): ``R.tiff`` an
 linear 16-bit RGB with full scale 2.0 (value = DN / 65535 × 2, since R + T = S0 reaches twice
 a single shot's white level), and ``R_preview.png`` / ``T_preview.png``, 8-bit sRGB at most 2048 px
 long, scaled by one common white point; ``confidence.tiff``, the reflection-presence map
-(`separate.reference.presence_map`), and ``clipped.png``, the pixels clipped in some shot
-(`separate.reference.clipped_mask`). The scene manifest's ``results`` record names the method, its
+(`separate.reference.presence_map`), ``clipped.png``, the pixels clipped in some shot
+(`separate.reference.clipped_mask`; all black when none is), and ``reference_deg.tiff``, the
+reference s-direction φ⊥ the polarization methods used (deg, float32, on the reduced grid of at
+most 512 px; constant for a global or given reference). With ``maps`` the polarization maps of
+`separate.maps.MAPS` are written too (``maps/S0.tiff`` … ``maps/theta.tiff``, float32 at full
+resolution, each file's ImageDescription a JSON record of its quantity, unit and the angle
+convention). The scene manifest's ``results`` record names the method, its
 parameters, the weights' SHA-256 for the network, the files with their hashes, and PSNR/SSIM
 against the virtual camera's ground truth when the scene has one.
 """
@@ -15,6 +20,7 @@ from __future__ import annotations
 import concurrent.futures
 import dataclasses
 import functools
+import json
 from pathlib import Path
 
 import cv2
@@ -22,7 +28,7 @@ import numpy as np
 import tifffile
 
 from separate import metrics
-from separate.reference import Inspection, inspect_stack
+from separate.reference import Inspection, decide_side, field_at, inspect_stack
 from urd.dataset import Scene, atomic_path
 from urd.errors import DatasetError
 from urd.images import Transfer, linear_to_u16, read_image, to_display
@@ -111,6 +117,34 @@ def write_confidence(path: Path, confidence: np.ndarray, overwrite: bool = False
         tifffile.imwrite(tmp, np.asarray(confidence, np.float32), photometric="minisblack")
 
 
+#: The angle convention written into every angle map's metadata.
+ANGLE_CONVENTION = "degrees in the image plane from the +x axis (towards increasing column), counter-clockwise as seen (towards row 0)"
+
+
+def write_float_map(path: Path, values: np.ndarray, quantity: str, unit: str, overwrite: bool = False) -> None:
+    """A float32 map (H×W or H×W×C) as a TIFF whose ImageDescription is JSON: ``quantity``,
+    ``unit`` and urd's angle convention; atomically."""
+    description = json.dumps({"quantity": quantity, "unit": unit, "angle_convention": ANGLE_CONVENTION,
+                              "software": "urd"})
+    with atomic_path(path, overwrite) as tmp:
+        tifffile.imwrite(tmp, np.asarray(values, np.float32), photometric="minisblack", description=description,
+                         metadata=None)
+
+
+def write_maps(folder: Path, maps: dict[str, np.ndarray], overwrite: bool = False) -> list[Path]:
+    """The polarization maps (`separate.maps.polarization_maps`) as ``folder/NAME.tiff``
+    (`write_float_map`, units from `separate.maps.MAPS`); returns their paths."""
+    from separate.maps import MAPS
+
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for name, values in maps.items():
+        unit, meaning = MAPS[name]
+        write_float_map(folder / f"{name}.tiff", values, meaning, unit, overwrite)
+        paths.append(folder / f"{name}.tiff")
+    return paths
+
+
 def write_mask(path: Path, mask: np.ndarray, overwrite: bool = False) -> None:
     """A boolean mask as an 8-bit PNG (255 = true), atomically."""
     with atomic_path(path, overwrite) as tmp:
@@ -119,10 +153,12 @@ def write_mask(path: Path, mask: np.ndarray, overwrite: bool = False) -> None:
 
 
 def write_results(folder: Path, r_hat: np.ndarray, t_hat: np.ndarray, overwrite: bool,
-                  confidence: np.ndarray | None = None, clipped: np.ndarray | None = None) -> list[Path]:
+                  confidence: np.ndarray | None = None, clipped: np.ndarray | None = None,
+                  reference_field: np.ndarray | None = None) -> list[Path]:
     """Write the result files into ``folder`` (R, T as linear TIFF, sRGB previews, and when
-    given the reflection-presence map and the clipped pixels as a PNG, 255 = clipped), two at a
-    time (encoding and writing release the GIL: 1.9 → 1.1 s for 24 MP); return their paths."""
+    given the reflection-presence map, the clipped pixels as a PNG, 255 = clipped, and the
+    reference field, deg), two at a time (encoding and writing release the GIL: 1.9 → 1.1 s
+    for 24 MP); return their paths."""
     folder.mkdir(parents=True, exist_ok=True)
     step = max(1, int(np.sqrt(r_hat.size / 3 / 1e6)))                 # percentile of ~1 M samples
     white = float(np.percentile(r_hat[::step, ::step] + t_hat[::step, ::step], 99.5)) or 1.0
@@ -133,6 +169,10 @@ def write_results(folder: Path, r_hat: np.ndarray, t_hat: np.ndarray, overwrite:
         jobs[folder / "confidence.tiff"] = (write_confidence, confidence)
     if clipped is not None:
         jobs[folder / "clipped.png"] = (write_mask, clipped)
+    if reference_field is not None:
+        jobs[folder / "reference_deg.tiff"] = (functools.partial(
+            write_float_map, quantity="reference s-direction phi_perp used for separation (reduced grid)",
+            unit="deg"), reference_field)
     with concurrent.futures.ThreadPoolExecutor(max_workers=2) as pool:
         for done in [pool.submit(write, path, image, overwrite=overwrite) for path, (write, image) in jobs.items()]:
             done.result()
@@ -150,43 +190,76 @@ class Separation:
     truth_metrics: dict | None = None
 
 
-def _separate(images: np.ndarray, angles: list[float], run, reference: str | float) -> tuple[np.ndarray, np.ndarray, Inspection]:
-    """Inspect the stack (reference angle, warnings, presence map), then run the method."""
-    inspection = inspect_stack(images, angles, None if reference == "auto" else float(reference))
+def separate_inspected(images: np.ndarray, angles: list[float], run, reference: str | float
+              ) -> tuple[np.ndarray, np.ndarray, Inspection, float | np.ndarray]:
+    """Inspect the stack (reference angle and field, warnings, presence map; an assumed side
+    settled by separating both, `separate.reference.decide_side`), then run the method at the
+    reference: the estimated field ("auto"), the estimated angle ("global") or the given angle. Returns R̂, T̂, the inspection and the reference used (deg, the field at
+    the reduced size for "auto")."""
+    estimated = reference in ("auto", "global")
+    inspection = inspect_stack(images, angles, None if estimated else float(reference))
+    if estimated:
+        inspection = decide_side(images, angles, inspection, run)
+    if reference == "auto":
+        r_hat, t_hat = run(images, angles, field_at(inspection.field, images.shape[1:3]))
+        return r_hat, t_hat, inspection, inspection.field
     r_hat, t_hat = run(images, angles, inspection.reference_deg)
-    return r_hat, t_hat, inspection
+    return r_hat, t_hat, inspection, inspection.reference_deg
 
 
 def separate_scene(scene: Scene, method: str, run, info: dict, force: bool = False,
-                   reference: str | float = "auto") -> Separation:
+                   reference: str | float = "auto", maps: bool = False) -> Separation:
     """Separate an ingested scene with ``run`` (from `separate.methods.get_method`) and record
     the results in its manifest; earlier results of the method are replaced only with
-    ``force``, and only once the new ones are complete."""
+    ``force``, and only once the new ones are complete; with ``maps`` the polarization maps too
+    (module docstring)."""
     with scene.lock():
         scene.reload()
         if not force:
             scene.check_no_results(method)
         scene.truth_files()                                    # damaged ground truth stops it before the work
         images, angles = scene.load_stack(codes=True)          # uint16: half the memory of float32
-        r_hat, t_hat, inspection = _separate(images, angles, run, reference)
+        r_hat, t_hat, inspection, used = separate_inspected(images, angles, run, reference)
+        polarization = _maps(images, angles, used) if maps else None
         del images                                            # the largest array: free it before writing
         metrics_truth = truth_metrics(scene, r_hat, t_hat)
         reference_deg, warnings = inspection.reference_deg, inspection.warnings
         with scene.staging() as staging:
-            paths = write_results(staging, r_hat, t_hat, overwrite=False,
-                                  confidence=inspection.presence_at(r_hat.shape[:2]), clipped=inspection.clipped)
+            paths = write_results(staging, r_hat, t_hat, overwrite=False, confidence=inspection.presence_at(r_hat.shape[:2]),
+                                  clipped=inspection.clipped, reference_field=_field_image(used, inspection))
             staged = {f"results/{method}/{p.name}": p for p in paths}
+            if polarization is not None:
+                staged |= {f"results/{method}/maps/{p.name}": p for p in write_maps(staging / "maps", polarization)}
             entry = scene.add_result(method, staged, {"angles_deg": angles, **info, "full_scale": FULL_SCALE,
                                                       "reference_deg": round(reference_deg, 3),
-                                                      "reference": "estimated" if reference == "auto" else "given",
+                                                      "reference": _reference_kind(reference),
                                                       "warnings": warnings, "truth_metrics": metrics_truth},
                                      replace=force)
     return Separation(list(entry.files.values()), reference_deg, warnings, metrics_truth)
 
 
+def _maps(images: np.ndarray, angles: list[float], used: float | np.ndarray) -> dict[str, np.ndarray]:
+    from separate.maps import polarization_maps
+
+    return polarization_maps(images, angles, used)
+
+
+def _field_image(used: float | np.ndarray, inspection: Inspection) -> np.ndarray:
+    """The reference used, as a map on the reduced grid (deg)."""
+    return used if np.ndim(used) == 2 else np.full(inspection.field.shape, float(used), np.float32)
+
+
+def _reference_kind(reference: str | float) -> str:
+    """How the reference was chosen, for the manifest."""
+    if reference == "auto":
+        return "estimated per pixel (field)"
+    return "estimated (one angle)" if reference == "global" else "given"
+
+
 def separate_images(paths: list[Path], angles_deg: list[float], out: Path, run, transfer: Transfer = Transfer.LINEAR,
-                    force: bool = False, reference: str | float = "auto") -> Separation:
-    """Separate image files (one per angle) into ``out``; existing results only with ``force``."""
+                    force: bool = False, reference: str | float = "auto", maps: bool = False) -> Separation:
+    """Separate image files (one per angle) into ``out``; existing results only with ``force``;
+    with ``maps`` the polarization maps too (``out/maps/``)."""
     if len(paths) != len(angles_deg):
         raise ValueError(f"expected one angle per image ({len(paths)} images), got {len(angles_deg)} angles")
     loaded = [read_image(p, transfer) for p in paths]
@@ -194,8 +267,11 @@ def separate_images(paths: list[Path], angles_deg: list[float], out: Path, run, 
         raise ValueError(f"expected images of one size, got {[im.shape[:2] for im in loaded]}")
     stack = np.stack(loaded)
     del loaded
-    r_hat, t_hat, inspection = _separate(stack, angles_deg, run, reference)
+    r_hat, t_hat, inspection, used = separate_inspected(stack, angles_deg, run, reference)
+    polarization = _maps(stack, angles_deg, used) if maps else None
     del stack
     paths = write_results(Path(out), r_hat, t_hat, overwrite=force, confidence=inspection.presence_at(r_hat.shape[:2]),
-                          clipped=inspection.clipped)
+                          clipped=inspection.clipped, reference_field=_field_image(used, inspection))
+    if polarization is not None:
+        paths += write_maps(Path(out) / "maps", polarization, overwrite=force)
     return Separation(paths, inspection.reference_deg, inspection.warnings)
