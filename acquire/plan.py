@@ -14,6 +14,7 @@ commanded ``polarizer angle − mounting offset`` when a calibration is known.
 from __future__ import annotations
 
 import dataclasses
+import shlex
 import shutil
 from pathlib import Path
 from typing import Callable
@@ -132,65 +133,155 @@ def run_capture(
             scene.add_shot(step.index, pending, step.angle_deg, angle_measured_deg=round((measured + offset_deg) % 360.0, 4),
                            stage_position_deg=round(measured, 4), camera=meta)
         elif step.kind == "finish":
-            scene.mark_complete({"angles_deg": list(angles_deg), "offset_deg": offset_deg, "tolerance_deg": tolerance_deg})
+            finish_capture(scene)
         if progress is not None:
             progress(step)
     return scene
 
 
-def resume_command(root: Path, stage: str, camera: str, angles_deg: list[float], scene: Scene) -> str:
-    """The command line that resumes ``scene``."""
-    angles = ",".join(f"{a:g}" for a in angles_deg)
-    return f"urd capture {root} --stage {stage} --camera {camera} --angles {angles} --scene {scene.name}"
+DEFAULT_ANGLES_DEG = (0.0, 45.0, 90.0)
 
 
-def capture_scene(root: Path, stage: str, camera: str, angles_deg: list[float], scene_name: str | None = None,
-                  new: bool = False, tolerance_deg: float = 0.5, address: str = "0", sim=None,
-                  announce: Callable[[str], None] = print, progress: Progress | None = None) -> Scene:
+def resume_command(root: Path, scene: Scene) -> str:
+    """The command line that resumes ``scene`` with the plan and devices its manifest records:
+    its stage port and address, camera, angles and tolerance, and for the simulated stage and
+    virtual camera their settings (those that differ from `acquire.rig.SimSettings`' defaults)."""
+    from acquire.rig import SimSettings
+
+    capture = scene.load(verify=False)["capture"]
+    stage, camera = capture.get("stage", {}), capture.get("camera", {})
+    angles = ",".join(f"{a:g}" for a in capture["angles_deg"])
+    words = ["urd", "capture", str(Path(root).resolve()), "--stage", stage.get("port", "PORT"),
+             "--camera", camera.get("kind", "gphoto2"), "--angles", angles, "--scene", scene.name]
+    if stage.get("address", "0") != "0":
+        words += ["--address", stage["address"]]
+    if capture.get("tolerance_deg", 0.5) != 0.5:
+        words += ["--tolerance", f"{capture['tolerance_deg']:g}"]
+    default = SimSettings()
+    simulated = stage.get("simulated")
+    options = {}
+    if simulated is not None:
+        faults = ",".join(f"{kind}={prob:g}" for kind, prob in simulated["faults"].items())
+        options.update({"--sim-offset": (simulated["offset_deg"], default.offset_deg),
+                        "--sim-jitter": (simulated["jitter_deg"], default.jitter_deg),
+                        "--sim-faults": (faults, ""), "--seed": (simulated.get("seed", default.seed), default.seed)})
+    if camera.get("kind") == "virtual":
+        options.update({"--sim-size": (f"{camera['width']}x{camera['height']}", f"{default.width}x{default.height}"),
+                        "--sim-shake": (camera["shake_px"], default.shake_px), "--seed": (camera["seed"], default.seed),
+                        "--reflection": (camera.get("reflection"), None), "--transmission": (camera.get("transmission"), None)})
+    for option, (value, usual) in options.items():
+        if value != usual:
+            words += [option, f"{value:g}" if isinstance(value, float) else str(value)]
+    return " ".join(shlex.quote(word) for word in words)
+
+
+def recorded_mismatches(scene: Scene, info: dict) -> list[str]:
+    """How the devices in ``info`` (`acquire.rig.open_rig`'s) differ from those ``scene`` was
+    captured with: the camera's description field by field (fields the scene does not record
+    are not compared) and the stage's identity (`acquire.rig.stage_identity`)."""
+    from acquire.rig import describe_stage, stage_identity
+
+    capture = scene.load(verify=False)["capture"]
+    problems = []
+    recorded = capture.get("camera", {})
+    for key, value in recorded.items():
+        if info["camera"].get(key) != value:
+            problems.append(f"camera {key} {value} (this one: {info['camera'].get(key)})")
+    if "stage" in capture:
+        was, now = stage_identity(capture["stage"]), stage_identity(info["stage"])
+        if was != now:
+            problems.append(f"stage {describe_stage(was)} (this one: {describe_stage(now)})")
+    return problems
+
+
+def check_resumable(scene: Scene, info: dict, angles_deg: list[float] | None, tolerance_deg: float | None,
+                    resume: str) -> None:
+    """ManifestError unless ``scene`` can go on with these devices, angles and tolerance
+    (None: the scene's own); the message ends with the command ``resume`` that can."""
+    planned = scene.capture_angles_deg()
+    problems = recorded_mismatches(scene, info)
+    if angles_deg is not None and planned != [float(a) for a in angles_deg]:
+        problems.append(f"angles {planned} deg (asked for: {[float(a) for a in angles_deg]})")
+    recorded_tolerance = scene.capture_settings()[1]
+    if tolerance_deg is not None and float(tolerance_deg) != recorded_tolerance:
+        problems.append(f"tolerance {recorded_tolerance:g} deg (asked for: {tolerance_deg:g})")
+    if problems:
+        raise ManifestError(f"{scene.name} was captured with " + "; ".join(problems) + ". Its shots must all come "
+                            f"from one plan and one rig: resume it with: {resume}\nor start another scene with --new-scene")
+
+
+def finish_capture(scene: Scene) -> None:
+    """Mark ``scene`` complete with the plan it recorded (every planned shot is taken)."""
+    offset_deg, tolerance_deg = scene.capture_settings()
+    scene.mark_complete({"angles_deg": scene.capture_angles_deg(), "offset_deg": offset_deg, "tolerance_deg": tolerance_deg})
+
+
+def _stopped(scene: Scene, root: Path) -> str:
+    """What a stopped capture left, for its message: nothing, a complete scene (every shot was
+    taken: marked complete here if it was not yet), or completed shots and the resume command."""
+    if scene.discard_if_empty():
+        return "no shot was taken, no scene was kept"
+    if len(scene.shots()) == len(scene.capture_angles_deg()):
+        if not scene.is_complete():
+            finish_capture(scene)
+        return f"every shot was taken: {scene.path.resolve()} is complete"
+    return f"completed shots are kept. Resume with: {resume_command(root, scene)}"
+
+
+def capture_scene(root: Path, stage: str, camera: str, angles_deg: list[float] | None = None,
+                  scene_name: str | None = None, new: bool = False, tolerance_deg: float | None = None,
+                  address: str = "0", sim=None, announce: Callable[[str], None] = print,
+                  progress: Progress | None = None) -> Scene:
     """Capture one scene into the dataset at ``root`` (created when new): the workflow of
     ``urd capture``.
 
     Without ``scene_name`` the newest incomplete scene is resumed (unless ``new``), else a new
-    scene is made; with it, that scene is resumed or created. The rig is opened before any
-    scene is made, and a scene that got no shot is removed, so a failing start leaves nothing.
-    Errors and Ctrl-C are re-raised with the command that resumes the capture.
+    scene is made; with it, that scene is resumed or created. A resumed scene keeps its own
+    plan (angles, offset, tolerance; ``angles_deg`` and ``tolerance_deg`` None take them, other
+    values must match) and must be captured with the camera and stage it recorded. A new scene
+    takes ``angles_deg`` (default `DEFAULT_ANGLES_DEG`), ``tolerance_deg`` (default 0.5) and the
+    dataset's mounting offset calibration of this stage (`calib.store.offset_for_stage`). The
+    rig is opened before the dataset or any scene is made, and a scene that got no shot is
+    removed, so a failing start leaves nothing. Errors and Ctrl-C are re-raised with the
+    command that resumes the capture; once every shot is taken the scene is complete instead.
     """
     from acquire.rig import open_rig
+    from calib.store import offset_for_stage
 
-    ds = Dataset.open_or_create(root)
-    with ds.lock(), open_rig(stage, camera, address, sim) as rig:
-        ds.remove_stale()
-        scene = None
-        if scene_name and (ds.root / scene_name).is_dir():
-            scene = ds.scene(scene_name)
-        elif scene_name is None and not new:
-            scene = ds.latest_incomplete()
-            if scene is not None:
-                announce(f"resuming the incomplete capture {scene.path.resolve()} ({len(scene.shots())} of "
-                         f"{len(scene.capture_angles_deg() or [])} shots; --new-scene starts another)")
-        if scene is None:
-            scene = new_capture_scene(ds, angles_deg, ds.offset_deg(), tolerance_deg, rig.info, scene_name)
-        elif scene.capture_angles_deg() != [float(a) for a in angles_deg]:
-            raise ManifestError(f"{scene.name} was captured with angles {scene.capture_angles_deg()} deg, not "
-                                f"{list(angles_deg)}; pass those angles to resume it, or --new-scene")
-        done = {shot.index for shot in scene.shots()}
-        steps = len(plan_capture(angles_deg, done))
-        announce(f"capturing {scene.path.resolve()} at {list(angles_deg)} deg ({len(angles_deg) - len(done)} shots to take)")
-        counter = iter(range(1, steps + 1))
-        resume = resume_command(ds.root, stage, camera, angles_deg, scene)
-        try:
-            run_capture(scene, rig.stage, rig.camera, angles_deg,
-                        progress=lambda step: progress and progress(next(counter), steps, f"capture {scene.name}"))
-            if not scene.truth_dir().exists():
-                rig.camera.write_truth(scene.truth_dir())
-        except KeyboardInterrupt:
-            kept = scene.discard_if_empty()
-            raise CaptureInterrupted("capture interrupted; " + ("no shot was taken, nothing kept" if kept else
-                                     f"completed shots are kept. Resume with: {resume}")) from None
-        except (UrdError, OSError) as exc:
-            if scene.discard_if_empty():
-                raise UrdError(f"{exc}\ncapture stopped before its first shot; no scene was kept") from exc
-            raise UrdError(f"{exc}\ncapture of {scene.name} stopped; completed shots are kept. Resume with: {resume}") from exc
+    with open_rig(stage, camera, address, sim) as rig:
+        ds = Dataset.open_or_create(root)
+        with ds.lock():
+            ds.remove_stale()
+            scene = None
+            if scene_name and (ds.root / scene_name).is_dir():
+                scene = ds.scene(scene_name)
+            elif scene_name is None and not new:
+                scene = ds.latest_incomplete()
+                if scene is not None:
+                    announce(f"resuming the incomplete capture {scene.path.resolve()} ({len(scene.shots())} of "
+                             f"{len(scene.capture_angles_deg() or [])} shots; --new-scene starts another)")
+            if scene is None:
+                offset_deg, line = offset_for_stage(ds, rig.info["stage"])
+                announce(line)
+                scene = new_capture_scene(ds, list(angles_deg or DEFAULT_ANGLES_DEG), offset_deg,
+                                          0.5 if tolerance_deg is None else tolerance_deg, rig.info, scene_name)
+            else:
+                check_resumable(scene, rig.info, angles_deg, tolerance_deg, resume_command(ds.root, scene))
+                announce(f"mounting offset: {scene.capture_settings()[0]:.3f} deg, as {scene.name} recorded when it was started")
+            planned = scene.capture_angles_deg()
+            done = {shot.index for shot in scene.shots()}
+            steps = len(plan_capture(planned, done))
+            announce(f"capturing {scene.path.resolve()} at {planned} deg ({len(planned) - len(done)} shots to take)")
+            counter = iter(range(1, steps + 1))
+            try:
+                run_capture(scene, rig.stage, rig.camera, planned,
+                            progress=lambda step: progress and progress(next(counter), steps, f"capture {scene.name}"))
+                if not scene.truth_dir().exists():
+                    rig.camera.write_truth(scene.truth_dir())
+            except KeyboardInterrupt:
+                raise CaptureInterrupted(f"capture interrupted; {_stopped(scene, ds.root)}") from None
+            except (UrdError, OSError) as exc:
+                raise UrdError(f"{exc}\ncapture of {scene.name} stopped; {_stopped(scene, ds.root)}") from exc
     return scene
 
 

@@ -41,6 +41,24 @@ class SimSettings:
     target_angle_deg: float | None = None
 
 
+def stage_identity(stage_info: dict) -> dict:
+    """Which stage a ``stage`` record of the rig (`open_rig`'s ``info["stage"]``) describes, for
+    telling stages apart: a real ELL14 by serial number and address; the simulated twin by its
+    mounting offset, the one setting that moves the polarizer's axis (jitter, faults and seed
+    change how it moves, not where its zero is)."""
+    simulated = stage_info.get("simulated")
+    if simulated is not None:
+        return {"kind": "ELL14 simulator", "sim_offset_deg": float(simulated["offset_deg"])}
+    return {"kind": "ELL14", "serial": stage_info.get("serial"), "address": stage_info.get("address")}
+
+
+def describe_stage(identity: dict) -> str:
+    """A `stage_identity` in words, e.g. 'the ELL14 with serial 11400123 at address 0'."""
+    if identity.get("kind") == "ELL14 simulator":
+        return f"the simulated ELL14 with --sim-offset {identity['sim_offset_deg']:g}"
+    return f"the ELL14 with serial {identity.get('serial')} at address {identity.get('address')}"
+
+
 @dataclasses.dataclass
 class Rig:
     stage: Ell14
@@ -87,7 +105,19 @@ def open_rig(stage: str, camera: str, address: str = "0", sim: SimSettings | Non
                 scene = make_polarized_target(sim.width, sim.height, sim.target_angle_deg)
             cam = VirtualCamera(scene, twin.true_angle_deg, sim.shake_px, sim.shake_deg, seed=sim.seed)
         else:
-            cam = Gphoto2Camera()
+            try:
+                cam = Gphoto2Camera()
+            except DeviceError as exc:
+                raise DeviceError(f"{exc}; without a camera, --camera virtual (with --stage sim) simulates one") from exc
+        camera_info = cam.describe()
+        if kind is CameraKind.VIRTUAL:
+            camera_info.update(reflection=_image_name(sim.reflection), transmission=_image_name(sim.transmission))
         if twin is not None:
-            stage_info["simulated"] = {"offset_deg": sim.offset_deg, "jitter_deg": sim.jitter_deg, "faults": sim.faults}
-        yield Rig(driver, cam, {"stage": stage_info, "camera": cam.describe()}, twin)
+            stage_info["simulated"] = {"offset_deg": sim.offset_deg, "jitter_deg": sim.jitter_deg, "faults": sim.faults,
+                                       "seed": sim.seed}
+        yield Rig(driver, cam, {"stage": stage_info, "camera": camera_info}, twin)
+
+
+def _image_name(path: Path | None) -> str | None:
+    """An image file of the virtual camera's scene as an absolute path (None: the bundled photo)."""
+    return None if path is None else str(Path(path).resolve())

@@ -136,7 +136,7 @@ def test_bad_inputs_fail_clearly(tmp_path, scripted_peer):
     out = urd("capture", tmp_path / "ds", "--stage", silent.port_name)
     assert out.returncode == 1 and "did not answer" in out.stderr
     out = urd("capture", tmp_path / "ds", "--stage", "sim", "--camera", "polaroid")
-    assert out.returncode == 1 and "unknown camera 'polaroid'" in out.stderr
+    assert out.returncode == 2 and "expected one of gphoto2, virtual, got 'polaroid'" in out.stderr
     out = urd("capture", tmp_path / "ds", "--stage", "sim", "--camera", "virtual", "--angles", "0,180,90")
     assert out.returncode == 2 and "each polarizer direction once" in out.stderr
     with SimulatedEll14(sim_device_type=0x06) as sim, serial.Serial(sim.port_name, 9600, timeout=0.05) as port:

@@ -9,6 +9,7 @@ Angles are degrees here and in manifests. Errors print one line and exit with st
 from __future__ import annotations
 
 import dataclasses
+import enum
 import json
 import math
 import sys
@@ -23,6 +24,7 @@ from urd.errors import CaptureInterrupted, UrdError
 from urd.progress import TerminalProgress
 
 DATASET_HELP = "Dataset folder (default: the current folder if it holds dataset.json, else ./dataset)."
+HELP_OPTIONS = {"help_option_names": ["-h", "--help"]}
 
 app = typer.Typer(
     help="urd: photograph scenes through glass with a rotating polarizer and separate reflection from transmission.",
@@ -30,6 +32,7 @@ app = typer.Typer(
     add_completion=False,
     pretty_exceptions_enable=False,
     rich_markup_mode=None,
+    context_settings=HELP_OPTIONS,
 )
 
 
@@ -50,6 +53,36 @@ def fail(message: str, code: int = 1) -> None:
     """Print an error line and exit with ``code``."""
     typer.secho(f"error: {message}", fg=typer.colors.RED, err=True)
     raise typer.Exit(code)
+
+
+def plural(count: int, noun: str) -> str:
+    """'1 scene', '3 scenes'."""
+    return f"{count} {noun}{'' if count == 1 else 's'}"
+
+
+def given(ctx: typer.Context, name: str) -> bool:
+    """True when the option ``name`` was given (on the command line or by the environment), not
+    left at its default."""
+    return ctx.get_parameter_source(name).name != "DEFAULT"
+
+
+def choice(kind: type[enum.Enum], value: str, option: str) -> enum.Enum:
+    """The member of ``kind`` whose value is ``value``; a bad parameter listing the choices otherwise."""
+    try:
+        return kind(value)
+    except ValueError:
+        names = [member.value for member in kind]
+        raise typer.BadParameter(f"expected one of {', '.join(names)}, got {value!r}", param_hint=option) from None
+
+
+def existing_dataset(dataset: Optional[Path]) -> Path:
+    """The dataset a command reads: ``dataset``, else `urd.dataset.default_root`; an error saying
+    how to make one when its folder does not exist."""
+    root = dataset or default_root()
+    if not root.exists():
+        fail(f"no dataset: {root.resolve()} does not exist. Make one with 'urd capture --stage PORT' or "
+             "'urd ingest RAW_FOLDER' (both create ./dataset by default), or name an existing dataset folder")
+    return root
 
 
 def warn(message: str) -> None:
@@ -162,6 +195,7 @@ def sim_settings(offset: float, jitter: float, faults: str, size: str, shake: fl
 
 @app.command()
 def capture(
+    ctx: typer.Context,
     dataset: Optional[Path] = typer.Argument(None, help=DATASET_HELP + " Created when new.", show_default=False),
     stage: str = typer.Option(..., help="Serial port of the ELL14 stage (e.g. /dev/ttyUSB0), or 'sim' for the simulated stage."),
     camera: str = typer.Option("gphoto2", help="Camera driver: 'gphoto2' (real camera over USB) or 'virtual' (needs --stage sim)."),
@@ -181,13 +215,22 @@ def capture(
 ) -> None:
     """Capture one scene: home the polarizer stage, then move, verify, trigger and download at each angle.
 
-    An interrupted capture is resumed by the next 'urd capture' (or with --scene NAME)."""
+    An interrupted capture is resumed by the next 'urd capture' (or with --scene NAME).
+
+    \b
+    Example:
+      urd capture --stage sim --camera virtual
+      urd capture dataset --stage /dev/ttyUSB0 --angles 0,45,90,135
+    """
+    from acquire.camera import CameraKind
     from acquire.plan import capture_scene
 
-    angle_list = parse_angles(angles)
+    choice(CameraKind, camera, "--camera")
+    angle_list = parse_angles(angles) if given(ctx, "angles") else None
     sim = sim_settings(sim_offset, sim_jitter, sim_faults, sim_size, sim_shake, reflection, transmission, seed)
     result = run_guarded(capture_scene, dataset or default_root(), stage, camera, angle_list, scene, new_scene,
-                         tolerance, address, sim, announce=typer.echo, progress=TerminalProgress())
+                         tolerance if given(ctx, "tolerance") else None, address, sim, announce=typer.echo,
+                         progress=TerminalProgress())
     typer.echo(f"scene complete: {result.path.resolve()}")
 
 
@@ -199,7 +242,12 @@ def sim_stage(
     faults: str = typer.Option("", help="Fault probabilities per command, e.g. drop=0.05,garble=0.05,mech_timeout=0.02,miss=0.02,vanish=0.01."),
     seed: int = typer.Option(0, help="Random seed of jitter and faults."),
 ) -> None:
-    """Serve a simulated ELL14 rotation mount on a pseudo-terminal until Ctrl-C (to test any Elliptec client)."""
+    """Serve a simulated ELL14 rotation mount on a pseudo-terminal until Ctrl-C (to test any Elliptec client).
+
+    \b
+    Example:
+      urd sim-stage --offset 2 --faults drop=0.05
+    """
     from acquire.sim_ell14 import SimulatedEll14, parse_faults, serve
 
     try:
@@ -225,21 +273,28 @@ def ingest(
 ) -> None:
     """Decode RAW shots to linear images, group them into scenes and align each scene (ECC).
 
-    Already-ingested files (same SHA-256) are skipped; incomplete captures are reported."""
+    Already-ingested files (same SHA-256) are skipped; incomplete captures are reported.
+
+    \b
+    Example:
+      urd ingest raw/
+      urd ingest raw/ dataset --angles 0,45,90,135
+      urd ingest dataset
+    """
     from urd.align import Motion
     from urd.images import Transfer
     from urd.ingest import IngestOptions, ingest as ingest_workflow
 
-    try:
-        opts = IngestOptions(tuple(parse_angles(angles)), Motion(motion), half_size, gap, redo)
-        layout = method = None
-        if mosaic:
-            from urd.mosaic import Demosaic, MosaicLayout
+    if source.is_file() and not mosaic:
+        raise typer.BadParameter(f"{source} is a file; ingest takes a folder (of RAW shots, a captured scene, or a "
+                                 "dataset): put the shots in a folder and pass that", param_hint="SOURCE")
+    opts = IngestOptions(tuple(parse_angles(angles)), choice(Motion, motion, "--motion"), half_size, gap, redo)
+    layout = method = None
+    if mosaic:
+        from urd.mosaic import Demosaic, MosaicLayout
 
-            layout, method = MosaicLayout(mosaic), Demosaic(demosaic)
-        transfer_rule = Transfer(transfer)
-    except ValueError as exc:
-        raise typer.BadParameter(str(exc)) from None
+        layout, method = choice(MosaicLayout, mosaic, "--mosaic"), choice(Demosaic, demosaic, "--demosaic")
+    transfer_rule = choice(Transfer, transfer, "--transfer")
     report = run_guarded(ingest_workflow, source, dataset or default_root(), opts, layout, method, transfer_rule,
                          progress=TerminalProgress())
     for path in report.ignored:
@@ -255,11 +310,12 @@ def ingest(
     if not report.outcomes:
         typer.echo("nothing to ingest")
     if report.failed:
-        fail(f"{len(report.failed)} of {len(report.outcomes)} scenes failed or were flagged")
+        fail(f"{len(report.failed)} of {plural(len(report.outcomes), 'scene')} failed or were flagged")
 
 
-calibrate_app = typer.Typer(help="Measure the polarizer: mounting offset from a sweep, per-shot angle errors of a scene.",
-                            no_args_is_help=True, rich_markup_mode=None)
+calibrate_app = typer.Typer(help="Measure the polarizer: mounting offset from a sweep, per-shot angle errors of a scene."
+                                 "\n\n\b\nExample:\n  urd calibrate offset --stage /dev/ttyUSB0\n  urd calibrate shots scene_01",
+                            no_args_is_help=True, rich_markup_mode=None, context_settings=HELP_OPTIONS)
 app.add_typer(calibrate_app, name="calibrate")
 
 
@@ -270,7 +326,7 @@ def resolve_scene(scene: str, dataset: Optional[Path]):
     path = Path(scene)
     if (path / "scene.json").is_file():
         return Scene(path)
-    return Dataset.open(dataset or default_root()).scene(scene)
+    return Dataset.open(existing_dataset(dataset)).scene(scene)
 
 
 @calibrate_app.command("offset")
@@ -284,10 +340,18 @@ def calibrate_offset_cmd(
     sim_offset: float = typer.Option(0.0, help="[sim] true mounting offset of the simulated polarizer (deg)."),
     seed: int = typer.Option(0, help="[sim/virtual] random seed."),
 ) -> None:
-    """Sweep the polarizer in front of a polarized target and fit Malus's law for the mounting offset."""
+    """Sweep the polarizer in front of a polarized target and fit Malus's law for the mounting offset.
+
+    \b
+    Example:
+      urd calibrate offset --stage /dev/ttyUSB0 --target-angle 90
+      urd calibrate offset --stage sim --camera virtual --sim-offset 3
+    """
+    from acquire.camera import CameraKind
     from acquire.rig import SimSettings
     from calib.store import sweep_and_calibrate
 
+    choice(CameraKind, camera, "--camera")
     root = dataset or default_root()
     sim = SimSettings(offset_deg=sim_offset, width=256, height=192, shake_px=0, shake_deg=0, seed=seed,
                       target_angle_deg=target_angle)
@@ -302,7 +366,13 @@ def calibrate_shots_cmd(
     dataset: Optional[Path] = typer.Option(None, help=DATASET_HELP, show_default=False),
     apply: bool = typer.Option(True, help="Store the calibrated angles in the manifest (used by separation)."),
 ) -> None:
-    """Estimate each shot's polarizer angle error from the images (needs 4+ angles; 5+ for all errors)."""
+    """Estimate each shot's polarizer angle error from the images (needs 4+ angles; 5+ for all errors).
+
+    \b
+    Example:
+      urd calibrate shots scene_01
+      urd calibrate shots dataset/scene_01 --no-apply
+    """
     from calib.store import calibrate_shots
 
     result = run_guarded(lambda: calibrate_shots(resolve_scene(scene, dataset), apply))
@@ -326,42 +396,75 @@ def separate(
     out: Path = typer.Option(Path("separated"), help="Output folder for --images."),
     reference: str = typer.Option("auto", help="Reference angle (deg): the glass's s-direction, where the reflection is brightest; 'auto' estimates it from the shots."),
     weights: Optional[Path] = typer.Option(None, help="Weights file of the network or ceilnet, or a shipped one by name: urd-canonical (the default: resize decoder, no grid texture), urd-canonical-transposed (the paper's decoder), urd-direct, ceilnet."),
-    tile: Optional[int] = typer.Option(None, help="Network tile size (px, at least 128; default 2048 for the network, 1024 for ceilnet: separate.infer.default_tile); memory grows with it, not with the image.", show_default=False),
+    tile: Optional[int] = typer.Option(None, help="Network tile size (px, at least 320: twice the 160 px overlap; default 2048 for the network, 1024 for ceilnet: separate.infer.default_tile); memory grows with it, not with the image.", show_default=False),
     precision: str = typer.Option("auto", help="Network arithmetic: auto (bf16 where the CPU or GPU runs it natively, else fp32), fp32 or bf16."),
     colour_match: bool = typer.Option(False, help="Match each colour channel's histogram of T to the darkest observation's (paper §3.4)."),
     param: Optional[list[str]] = typer.Option(None, "--param", help="A baseline's parameter as NAME=VALUE (repeat), e.g. --method kong --param smoothness=0.5; names and paper defaults in each baseline's docstring (separate/baselines/)."),
     force: bool = typer.Option(False, help="Replace existing results of this method (only once the new ones are complete)."),
 ) -> None:
     """Separate a scene into reflection R and transmission T (linear 16-bit TIFF, sRGB previews,
-    and a reflection-presence map)."""
+    and a reflection-presence map).
+
+    \b
+    Example:
+      urd separate scene_01
+      urd separate scene_01 --method kong --param smoothness=0.5
+      urd separate --images a.tif --images b.tif --images c.tif --angles 0,45,90 --transfer srgb
+    """
+    from separate.infer import OVERLAP, check_tiling
     from separate.methods import METHODS, get_method
     from separate.precision import describe, resolve
     from urd.images import Transfer
+    from urd.raw import RAW_SUFFIXES
     from urd.separation import separate_images, separate_scene
 
     if method not in METHODS:
         raise typer.BadParameter(f"unknown method {method!r}; expected one of {sorted(METHODS)}")
+    raws = [Path(name).name for name in [*(images or []), *([scene] if scene else [])]
+            if Path(name).suffix.lower() in RAW_SUFFIXES]
+    if raws:
+        raise typer.BadParameter(f"{', '.join(raws)}: RAW files; separate takes an ingested scene, or with --images "
+                                 "decoded images (TIFF, PNG, JPEG). Ingest RAW shots with 'urd ingest FOLDER', "
+                                 "then run 'urd separate SCENE'")
     if images is None and scene is None:
         raise typer.BadParameter("expected a scene name or --images")
+    if images and scene is not None:
+        raise typer.BadParameter(f"expected a scene name or --images, not both (got {scene!r} and --images)")
     networks = ("network", "ceilnet")
-    bar = TerminalProgress()
     try:
-        options = {"weights": weights, "tile": tile, "precision": resolve(precision).value, "colour_match": colour_match,
-                   "progress": lambda done, total: bar(done, total, f"separate ({method})")} if method in networks else {}
-        transfer_rule = Transfer(transfer)
+        chosen = resolve(precision)
+        if tile is not None and method in networks:
+            check_tiling(tile, OVERLAP)
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from None
+    transfer_rule = choice(Transfer, transfer, "--transfer")
     if param and method in networks + ("none",):
         raise typer.BadParameter(f"--param is for the baselines; {method} takes its own options")
-    options.update(parse_params(param or []))
+    params = parse_params(param or [])
     forced = parse_reference(reference)
+    angle_list = parse_angles(angles) if images else None
+    if images and len(images) != len(angle_list):
+        raise typer.BadParameter(f"expected one --images file per angle of --angles {angles}, got {len(images)} files")
+    target = None if images else run_guarded(resolve_scene, scene, dataset)
+    if target is not None and not force:
+        run_guarded(target.check_no_results, method)
+    bar = TerminalProgress()
+
+    def show(done: int, total: int) -> None:
+        bar(done, total, f"separate ({method})")
+
     if method in networks:
-        typer.echo(f"precision: {describe(resolve(precision))}", err=True)
-    run, info = run_guarded(get_method, method, **options)
-    if images:
-        result = run_guarded(separate_images, images, parse_angles(angles), out, run, transfer_rule, force, forced)
+        options = {"weights": weights, "tile": tile, "precision": chosen.value, "colour_match": colour_match, "progress": show}
+        typer.echo(f"precision: {describe(chosen)}", err=True)
     else:
-        result = run_guarded(lambda: separate_scene(resolve_scene(scene, dataset), method, run, info, force, forced))
+        options = {**params, "progress": show} if method in PROGRESS_BASELINES else params
+    run, info = run_guarded(get_method, method, **options)
+    # separate.methods records a baseline's keywords as its parameters: the callback is not one
+    info = {**info, "parameters": {k: v for k, v in info["parameters"].items() if k != "progress"}}
+    if images:
+        result = run_guarded(separate_images, images, angle_list, out, run, transfer_rule, force, forced)
+    else:
+        result = run_guarded(separate_scene, target, method, run, info, force, forced)
     bar.close()
     for line in result.warnings:
         warn(line)
@@ -369,6 +472,10 @@ def separate(
     for path in result.files:
         typer.echo(f"wrote {Path(path).resolve()}")
     report_truth(result.truth_metrics)
+
+
+#: Baselines that report progress (their ``separate`` takes a ``progress`` callback).
+PROGRESS_BASELINES = ("kong", "arvanitopoulos", "li-brown")
 
 
 def report_truth(figures: Optional[dict]) -> None:
@@ -385,7 +492,13 @@ def train(
     init: Optional[Path] = typer.Option(None, help="Start from these weights (e.g. the shipped ones) instead of scratch."),
     seed: Optional[int] = typer.Option(None, min=0, help="Override the config's seed (weight initialisation and training data), e.g. for a multi-seed ablation."),
 ) -> None:
-    """Train the separation network (or the CEILNet baseline: configs/ceilnet.toml) on synthesized data (config file, checkpoints, resume; torchrun for DDP)."""
+    """Train the separation network (or the CEILNet baseline: configs/ceilnet.toml) on synthesized data (config file, checkpoints, resume; torchrun for DDP).
+
+    \b
+    Example:
+      urd train configs/cpu.toml runs/cpu
+      urd train configs/paper.toml runs/paper --init separate/weights/urd-canonical.pt
+    """
     from separate.precision import describe, resolve
     from separate.train import TrainConfig, train as train_run
 
@@ -427,7 +540,13 @@ def bench(
     """Benchmark the methods on synthetic data with ground truth: by default one table of RMSE /
     PSNR / SSIM of R and T per method (with network and direct: their paired T PSNR difference);
     with --quick or --full the paper's tables, robustness study and speed figures; with
-    --ablation the multi-seed pipeline ablation."""
+    --ablation the multi-seed pipeline ablation.
+
+    \b
+    Example:
+      urd bench --methods none,schechner,network --count 16
+      urd bench --quick
+    """
     if large and not full:
         raise typer.BadParameter("--24mp goes with --full")
     if not ablation and (seeds != "0,1" or jobs != 2 or runs is not None or steps is not None):
@@ -469,10 +588,16 @@ def report(
     html: Optional[Path] = typer.Option(None, "--html", help="Also write a self-contained HTML report into this folder (opens from disk: shots, S0/DoLP/AoLP, results side by side with a comparison slider)."),
     force: bool = typer.Option(False, help="Replace an existing HTML report folder."),
 ) -> None:
-    """Summarize a dataset: scenes (incomplete, broken, ingested), angles, calibration, results."""
+    """Summarize a dataset: scenes (incomplete, broken, ingested), angles, calibration, results.
+
+    \b
+    Example:
+      urd report
+      urd report dataset --html report/
+    """
     from urd.report import report_html, report_text
 
-    root = dataset or default_root()
+    root = existing_dataset(dataset)
     typer.echo(run_guarded(report_text, root))
     if html is not None:
         index = run_guarded(report_html, root, html, force, progress=TerminalProgress())
@@ -481,10 +606,16 @@ def report(
 
 @app.command()
 def verify(dataset: Optional[Path] = typer.Argument(None, help=DATASET_HELP, show_default=False)) -> None:
-    """Check every file a dataset's manifests list against its size and SHA-256; exit 1 on any problem."""
+    """Check every file a dataset's manifests list against its size and SHA-256; exit 1 on any problem.
+
+    \b
+    Example:
+      urd verify
+      urd verify dataset
+    """
     from urd.report import verify as verify_dataset
 
-    problems = run_guarded(verify_dataset, dataset or default_root())
+    problems = run_guarded(verify_dataset, existing_dataset(dataset))
     bad = 0
     for name, issues in problems.items():
         for issue in issues:
@@ -493,8 +624,8 @@ def verify(dataset: Optional[Path] = typer.Argument(None, help=DATASET_HELP, sho
         if not issues:
             typer.echo(f"{name}: ok")
     if bad:
-        fail(f"{bad} of {len(problems)} scenes have problems")
-    typer.echo(f"all {len(problems)} scenes intact")
+        fail(f"{bad} of {plural(len(problems), 'scene')} {'has' if bad == 1 else 'have'} problems")
+    typer.echo(f"{'all ' if len(problems) > 1 else ''}{plural(len(problems), 'scene')} intact")
 
 
 @app.command()
@@ -504,10 +635,21 @@ def demo(
     seed: int = typer.Option(0, help="Random seed of the simulated rig."),
     precision: str = typer.Option("auto", help="Network arithmetic: auto, fp32 or bf16."),
 ) -> None:
-    """Run the whole pipeline on the simulated rig with bundled images (no hardware, no download)."""
+    """Run the whole pipeline on the simulated rig with bundled images (no hardware, no download).
+
+    \b
+    Example:
+      urd demo
+      urd demo urd-demo --size 768x512 --seed 1
+    """
+    from separate.precision import resolve
     from urd.demo import run_demo
 
     width, height = parse_size(size)
+    try:
+        resolve(precision)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from None
     result = run_guarded(run_demo, folder, width, height, seed, precision, typer.echo, progress=TerminalProgress())
     report_truth(result.truth_metrics)
 

@@ -32,6 +32,8 @@ mixture, R_p = 0), and the bounds keep every pixel's θ inside the range.
 
 from __future__ import annotations
 
+from typing import Callable
+
 import cv2
 import numpy as np
 import torch
@@ -131,9 +133,11 @@ BOUNDS_DEG = (10.0, 80.0)
 
 
 def theta_map(i_perp: np.ndarray, i_par: np.ndarray, smoothness: float = 1.0, steps: int = 150,
-              min_side: int = 32, bounds_deg: tuple[float, float] = BOUNDS_DEG) -> np.ndarray:
+              min_side: int = 32, bounds_deg: tuple[float, float] = BOUNDS_DEG,
+              progress: Callable[[int, int], None] | None = None) -> np.ndarray:
     """Per-pixel angle of incidence (rad, H×W) in ``bounds_deg`` from the coarse-to-fine
-    constrained optimization (module docstring)."""
+    constrained optimization (module docstring); ``progress`` is called with (Adam steps done,
+    steps of all levels) after every step."""
     if not 0.0 < bounds_deg[0] < bounds_deg[1] < 90.0:
         raise ValueError(f"expected bounds (lo, hi) with 0 < lo < hi < 90 deg, got {bounds_deg}")
     lo, hi = np.radians(bounds_deg)
@@ -145,23 +149,27 @@ def theta_map(i_perp: np.ndarray, i_par: np.ndarray, smoothness: float = 1.0, st
     best = int(np.argmin(scores))
     start = optics.brewster_angle() if best in (0, grid.size - 1) else grid[best]
     theta = np.full(perp_levels[-1].shape, start, np.float32)
-    for perp, par in zip(reversed(perp_levels), reversed(par_levels)):
+    total = steps * len(perp_levels)
+    for level, (perp, par) in enumerate(zip(reversed(perp_levels), reversed(par_levels))):
         theta = cv2.resize(theta, (perp.shape[1], perp.shape[0]), interpolation=cv2.INTER_LINEAR)
         u = np.clip((theta - lo) / (hi - lo), 1e-4, 1 - 1e-4)
         logit = torch.tensor(np.log(u / (1 - u)))
         optim = torch.optim.Adam([logit], lr=0.05)
-        for _ in range(steps):
+        for step in range(steps):
             theta, slope = _bounded(logit, lo, hi)
             grad = _energy(theta, perp, par, smoothness)[1]
             grad *= slope
             logit.grad = torch.from_numpy(grad)
             optim.step()
+            if progress is not None:
+                progress(level * steps + step + 1, total)
         theta = _bounded(logit, lo, hi)[0]
     return theta
 
 
 def separate(images: np.ndarray, angles_deg: list[float], smoothness: float = 1.0, steps: int = 150,
-             min_side: int = 32) -> tuple[np.ndarray, np.ndarray]:
-    """(R̂, T̂) of a stack (N, H, W, C) with angles (deg), θ varying over the image."""
+             min_side: int = 32, progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(R̂, T̂) of a stack (N, H, W, C) with angles (deg), θ varying over the image; ``progress``
+    as in `theta_map`."""
     i_perp, i_par, _ = canonical(images, angles_deg)
-    return fresnel_inverse(i_perp, i_par, theta_map(i_perp, i_par, smoothness, steps, min_side))
+    return fresnel_inverse(i_perp, i_par, theta_map(i_perp, i_par, smoothness, steps, min_side, progress=progress))

@@ -1,0 +1,191 @@
+"""What the CLI says: help with examples and -h, progress of the slow baselines, and error
+messages that name the problem, the choices and the way out."""
+
+import os
+import re
+import shlex
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import typer
+from typer.testing import CliRunner
+
+from separate.baselines import arvanitopoulos, kong, li_brown
+from separate.infer import MIN_TILE, OVERLAP
+from urd.cli import app
+from urd.dataset import Dataset
+
+SIM = ("--stage", "sim", "--camera", "virtual")
+
+
+def invoke(*args):
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+def urd(*args, cwd=None):
+    env = {**os.environ, "COLUMNS": "200"}
+    return subprocess.run([sys.executable, "-m", "urd.cli", *map(str, args)], capture_output=True, text=True,
+                          timeout=300, env=env, cwd=cwd)
+
+
+@pytest.fixture(autouse=True)
+def wide_terminal(monkeypatch):
+    monkeypatch.setenv("COLUMNS", "200")
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    """A dataset with one captured and ingested 256×192 scene (scene_01)."""
+    root = tmp_path_factory.mktemp("messages") / "ds"
+    assert invoke("capture", root, *SIM, "--sim-size", "256x192").exit_code == 0
+    assert invoke("ingest", root).exit_code == 0
+    return root
+
+
+def leaf_commands(command=None, path=()):
+    """Every command path of the CLI (groups included), e.g. ('calibrate', 'offset')."""
+    command = command or typer.main.get_command(app)
+    paths = []
+    for name, sub in getattr(command, "commands", {}).items():
+        paths.append(path + (name,))
+        paths += leaf_commands(sub, path + (name,))
+    return paths
+
+
+COMMANDS = leaf_commands()
+
+
+def test_the_command_list_covers_every_command():
+    assert {"capture", "ingest", "separate", "verify", "demo"} <= {p[0] for p in COMMANDS}
+    assert ("calibrate", "offset") in COMMANDS and ("calibrate", "shots") in COMMANDS
+
+
+@pytest.mark.parametrize("command", COMMANDS, ids=" ".join)
+def test_every_command_accepts_h_and_shows_examples_that_parse(command):
+    out = invoke(*command, "-h")
+    assert out.exit_code == 0, out.output
+    _, _, after = out.stdout.partition("Example:\n")
+    examples = [line.strip() for line in after.split("\n\n")[0].splitlines()]
+    assert examples, out.stdout
+    for example in examples:
+        words = shlex.split(example)
+        assert words[: len(command) + 1] == ["urd", *command], example
+        parsed = invoke(*words[1:], "--help")                 # unknown options or choices fail to parse
+        assert parsed.exit_code == 0, (example, parsed.output)
+
+
+@pytest.mark.parametrize("module,options", [(kong, {"steps": 4}), (li_brown, {}), (arvanitopoulos, {})],
+                         ids=["kong", "li_brown", "arvanitopoulos"])
+def test_the_slow_baselines_report_progress_through_a_callback(module, options):
+    stack = np.random.default_rng(0).uniform(0.1, 0.5, (3, 64, 64, 3)).astype(np.float32)
+    calls = []
+    module.separate(stack, [0.0, 45.0, 90.0], progress=lambda done, total: calls.append((done, total)), **options)
+    assert len(calls) > 2
+    assert len({total for _, total in calls}) == 1 and calls[-1] == (calls[-1][1], calls[-1][1])
+    assert [done for done, _ in calls] == sorted(done for done, _ in calls)
+
+
+def test_a_baseline_shows_progress_on_the_terminal_and_records_no_callback(dataset):
+    out = urd("separate", "scene_01", "--dataset", dataset, "--method", "li-brown")
+    assert out.returncode == 0, out.stderr
+    assert "separate (li-brown)" in out.stderr and "100%" in out.stderr
+    result = Dataset.open(dataset).scene("scene_01").load(verify=False)["results"]["li-brown"]
+    assert "progress" not in result["parameters"]
+
+
+def test_a_missing_dataset_is_said_to_be_missing_with_how_to_make_one(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    for args in (("report",), ("verify",), ("separate", "scene_01"), ("calibrate", "shots", "scene_01")):
+        out = invoke(*args)
+        assert out.exit_code == 1, (args, out.output)
+        assert "no dataset: " in out.stderr and "does not exist" in out.stderr and "urd capture" in out.stderr and "urd ingest" in out.stderr
+    assert not (tmp_path / "dataset").exists()
+
+
+def test_a_raw_file_given_to_ingest_is_said_to_be_a_file(tmp_path, monkeypatch, dataset):
+    monkeypatch.chdir(tmp_path)
+    shot = next((dataset / "scene_01" / "raw").glob("*.dng"))
+    out = invoke("ingest", shot)
+    assert out.exit_code == 2 and "is a file; ingest takes a folder" in out.stderr
+    assert not (tmp_path / "dataset").exists()
+
+
+@pytest.mark.parametrize("args,choices", [
+    (("ingest", "raw", "--motion", "spin"), "translation, euclidean, homography"),
+    (("ingest", "raw", "--transfer", "gamma"), "linear, srgb"),
+    (("ingest", "raw", "--mosaic", "bayer"), "imx250mzr, imx250myr, wen2019"),
+    (("ingest", "raw", "--mosaic", "wen2019", "--demosaic", "magic"), "none, bilinear, newton"),
+    (("separate", "scene_01", "--transfer", "gamma"), "linear, srgb"),
+    (("capture", "--stage", "sim", "--camera", "polaroid"), "gphoto2, virtual"),
+    (("calibrate", "offset", "--stage", "sim", "--camera", "polaroid"), "gphoto2, virtual"),
+    (("demo", "demo", "--precision", "fp16"), "auto, fp32 or bf16"),
+])
+def test_a_bad_choice_exits_2_and_lists_the_choices(tmp_path, monkeypatch, args, choices):
+    monkeypatch.chdir(tmp_path)
+    out = invoke(*args)
+    assert out.exit_code == 2 and choices in out.stderr, out.output
+    assert list(tmp_path.iterdir()) == []                          # nothing created
+
+
+def test_the_tile_help_states_the_minimum_the_code_enforces():
+    stated = re.search(r"--tile\b.*?at\s+least\s+(\d+)", invoke("separate", "-h").stdout, re.S)
+    assert stated and int(stated.group(1)) == max(MIN_TILE, 2 * OVERLAP)
+
+
+def test_argument_checks_come_before_the_existing_results_check(dataset):
+    assert invoke("separate", "scene_01", "--dataset", dataset, "--method", "network").exit_code == 0
+    minimum = max(MIN_TILE, 2 * OVERLAP)
+    out = invoke("separate", "scene_01", "--dataset", dataset, "--method", "network", "--tile", minimum - 8)
+    assert out.exit_code == 2 and f"at least {minimum} px" in out.stderr and "already has" not in out.stderr
+    out = invoke("separate", "scene_01", "--dataset", dataset, "--method", "network", "--tile", minimum)
+    assert out.exit_code == 1 and "already has network results" in out.stderr and "precision" not in out.stderr
+
+
+def test_no_precision_line_before_no_such_scene(dataset):
+    out = invoke("separate", "scene_09", "--dataset", dataset, "--method", "network")
+    assert out.exit_code == 1 and "no scene 'scene_09'" in out.stderr and "precision" not in out.stderr
+
+
+def test_raw_files_given_to_separate_point_to_ingest_without_opencv_warnings(dataset):
+    shots = sorted((dataset / "scene_01" / "raw").glob("*.dng"))
+    for args in ([arg for shot in shots for arg in ("--images", shot)], ["--images", *shots[:2]], [shots[0]]):
+        out = urd("separate", *args, "--method", "none")                 # --images a.dng b.dng: b.dng is the scene
+        assert out.returncode == 2 and "RAW files" in out.stderr and "urd ingest" in out.stderr, out.stderr
+        assert "WARN" not in out.stderr
+
+
+def test_verify_counts_one_scene_in_the_singular(dataset):
+    out = invoke("verify", dataset)
+    assert out.exit_code == 0 and "1 scene intact" in out.stdout and "scenes" not in out.stdout
+
+
+@pytest.mark.xfail(strict=True, reason="needs urd/report.py: report_text says '1 scenes'")
+def test_report_counts_one_scene_in_the_singular(dataset):
+    out = invoke("report", dataset)
+    assert out.exit_code == 0 and ": 1 scene;" in out.stdout
+
+
+@pytest.mark.xfail(strict=True, reason="needs urd/dataset.py: Scene.verify reports with check_files' "
+                                       "\"run 'urd verify'\" hint")
+def test_verify_does_not_tell_you_to_run_verify(tmp_path):
+    root = tmp_path / "ds"
+    assert invoke("capture", root, *SIM, "--sim-size", "96x64").exit_code == 0
+    shot = next((root / "scene_01" / "raw").glob("*.dng"))
+    shot.write_bytes(shot.read_bytes()[::-1])
+    out = invoke("verify", root)
+    assert out.exit_code == 1 and "1 of 1 scene has problems" in out.stderr
+    assert "does not match the manifest" in out.stderr and "urd verify" not in out.stderr
+
+
+@pytest.mark.xfail(strict=True, reason="needs urd/dataset.py: Dataset.staged_scene makes the scene folder with "
+                                       "tempfile.mkdtemp (mode 0700)")
+def test_scene_folders_made_from_a_raw_folder_follow_the_umask(tmp_path, dataset):
+    raw = tmp_path / "raw"
+    shutil.copytree(dataset / "scene_01" / "raw", raw)
+    assert invoke("ingest", raw, tmp_path / "new").exit_code == 0
+    umask = os.umask(0)
+    os.umask(umask)
+    assert (tmp_path / "new" / "scene_01").stat().st_mode & 0o777 == 0o777 & ~umask
