@@ -145,25 +145,33 @@ def no_separation(reference: Reference = "auto") -> tuple[Run, dict]:
 
 def baseline(module_name: str, s0_only: bool) -> Callable[..., tuple[Run, dict]]:
     """A factory for the baseline in ``separate.baselines.<module_name>``; options are its
-    keyword parameters (paper defaults when omitted) and ``reference``. Polarization baselines
+    keyword parameters (paper defaults when omitted), ``reference`` and ``progress`` (called with
+    (done, total) where the baseline reports progress; not a recorded parameter). Polarization baselines
     get the shots presented at the reference; S0-only ones get them as they are."""
 
-    def make(reference: Reference = "auto", **params) -> tuple[Run, dict]:
+    def make(reference: Reference = "auto", progress: Callable[[int, int], None] | None = None,
+             **params) -> tuple[Run, dict]:
         import importlib
         import inspect
 
         module = importlib.import_module(f"separate.baselines.{module_name}")
-        accepted = list(inspect.signature(module.separate).parameters)[2:]
+        accepted = [name for name in list(inspect.signature(module.separate).parameters)[2:] if name != "progress"]
         unknown = sorted(set(params) - set(accepted))
         if unknown:
             raise ValueError(f"unknown parameters {unknown} for {module_name}; expected some of {accepted}")
         choose = chooser(reference)
+        reports = {"progress": progress} if progress is not None and "progress" in inspect.signature(module.separate).parameters else {}
 
         def run(images: np.ndarray, angles_deg: list[float],
                 reference_deg: float | np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
             if s0_only:
-                return module.separate(optics.to_float(images), list(angles_deg), **params)
-            shots, angles = present_at(images, angles_deg, choose(images, angles_deg, reference_deg, run))
+                return module.separate(optics.to_float(images), list(angles_deg), **params, **reports)
+            shots, angles = present_at(images, angles_deg, choose(images, angles_deg, reference_deg, trial))
+            return module.separate(shots, angles, **params, **reports)
+
+        def trial(images: np.ndarray, angles_deg: list[float], reference_deg: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            """A silent run (the side decision's trial separations report no progress)."""
+            shots, angles = present_at(images, angles_deg, reference_deg)
             return module.separate(shots, angles, **params)
 
         policy = "not used: S0 only" if s0_only else reference_policy(check_reference(reference))

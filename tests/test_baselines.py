@@ -114,7 +114,9 @@ def test_single_image_methods_remove_a_blurred_reflection(module, strength, marg
 # Kong +0.28/+0.41/+0.51 dB, Schechner +0.20/+0.19/+0.47 (one global θ), Farid −1.59/−0.02/−0.15 (one global
 # mixing cannot fit a varying θ), CEILNet +0.04/−0.01/0.00, Li & Brown −4.9/−5.1/−5.1 and Arvanitopoulos
 # −6.9/−7.1/−7.0 (they expect a blurred reflection; this one is sharp). Their own data: the tests above.
-MARGIN_DB = {"none": -0.01, "kong": 0.1, "schechner": 0.0, "farid": -2.5, "ceilnet": -0.5, "li-brown": -6.0,
+# Farid's ICA swings from 12.7 to 23.3 dB T̂ PSNR on this scene as the reference moves from 8° to 12° (the true
+# φ⊥ runs 7-13°; with the true field it scores 15.5 dB): its margin only says it runs and stays in range.
+MARGIN_DB = {"none": -0.01, "kong": 0.1, "schechner": 0.0, "farid": -8.0, "ceilnet": -0.5, "li-brown": -6.0,
              "arvanitopoulos": -8.0}
 
 

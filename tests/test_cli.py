@@ -68,7 +68,7 @@ def test_bad_parameters_exit_2_with_the_reason(tmp_path, monkeypatch):
     for args, reason in ((("separate", "--images", "a.tif", "--angles", "0,45,nan"), "finite"),
                          (("separate", "--images", "a.tif", "--angles", "0,45,180"), "same mod 180"),
                          (("capture", "--stage", "sim", "--sim-size", "0x10"), "between 16 and 20000"),
-                         (("separate", "scene_01", "--reference", "east"), "'auto' or an angle"),
+                         (("separate", "scene_01", "--reference", "east"), "'auto', 'global' or an angle"),
                          (("bench", "--ablation", "--seeds", "1,1"), "at least two different"),
                          (("bench", "--jobs", "3"), "go with --ablation"),
                          (("bench", "--steps", "16000"), "go with --ablation"),

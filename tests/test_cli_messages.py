@@ -162,14 +162,11 @@ def test_verify_counts_one_scene_in_the_singular(dataset):
     assert out.exit_code == 0 and "1 scene intact" in out.stdout and "scenes" not in out.stdout
 
 
-@pytest.mark.xfail(strict=True, reason="needs urd/report.py: report_text says '1 scenes'")
 def test_report_counts_one_scene_in_the_singular(dataset):
     out = invoke("report", dataset)
     assert out.exit_code == 0 and ": 1 scene;" in out.stdout
 
 
-@pytest.mark.xfail(strict=True, reason="needs urd/dataset.py: Scene.verify reports with check_files' "
-                                       "\"run 'urd verify'\" hint")
 def test_verify_does_not_tell_you_to_run_verify(tmp_path):
     root = tmp_path / "ds"
     assert invoke("capture", root, *SIM, "--sim-size", "96x64").exit_code == 0
@@ -180,8 +177,6 @@ def test_verify_does_not_tell_you_to_run_verify(tmp_path):
     assert "does not match the manifest" in out.stderr and "urd verify" not in out.stderr
 
 
-@pytest.mark.xfail(strict=True, reason="needs urd/dataset.py: Dataset.staged_scene makes the scene folder with "
-                                       "tempfile.mkdtemp (mode 0700)")
 def test_scene_folders_made_from_a_raw_folder_follow_the_umask(tmp_path, dataset):
     raw = tmp_path / "raw"
     shutil.copytree(dataset / "scene_01" / "raw", raw)

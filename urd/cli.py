@@ -168,13 +168,13 @@ def parse_seeds(text: str) -> list[int]:
 
 
 def parse_reference(text: str) -> str | float:
-    """'auto' or degrees."""
-    if text == "auto":
+    """'auto', 'global' or degrees."""
+    if text in ("auto", "global"):
         return text
     try:
         value = float(text)
     except ValueError:
-        raise typer.BadParameter(f"expected 'auto' or an angle in degrees, got {text!r}") from None
+        raise typer.BadParameter(f"expected 'auto', 'global' or an angle in degrees, got {text!r}") from None
     if not math.isfinite(value):
         raise typer.BadParameter(f"expected a finite angle, got {text!r}")
     return value % 180.0
@@ -394,21 +394,26 @@ def separate(
     angles: str = typer.Option("0,45,90", help="Polarizer angles of --images (deg)."),
     transfer: str = typer.Option("linear", help="8-bit --images: linear (sensor codes) or srgb (ordinary photos). 16-bit files are always linear."),
     out: Path = typer.Option(Path("separated"), help="Output folder for --images."),
-    reference: str = typer.Option("auto", help="Reference angle (deg): the glass's s-direction, where the reflection is brightest; 'auto' estimates it from the shots."),
+    reference: str = typer.Option("auto", help="Reference angle (deg): the glass's s-direction, where the reflection is brightest; 'auto' estimates it per pixel from the shots (a smooth field, for wide views and curved panes), 'global' one angle for the whole view."),
     weights: Optional[Path] = typer.Option(None, help="Weights file of the network or ceilnet, or a shipped one by name: urd-canonical (the default: resize decoder, no grid texture), urd-canonical-transposed (the paper's decoder), urd-direct, ceilnet."),
     tile: Optional[int] = typer.Option(None, help="Network tile size (px, at least 320: twice the 160 px overlap; default 2048 for the network, 1024 for ceilnet: separate.infer.default_tile); memory grows with it, not with the image.", show_default=False),
     precision: str = typer.Option("auto", help="Network arithmetic: auto (bf16 where the CPU or GPU runs it natively, else fp32), fp32 or bf16."),
     colour_match: bool = typer.Option(False, help="Match each colour channel's histogram of T to the darkest observation's (paper §3.4)."),
     param: Optional[list[str]] = typer.Option(None, "--param", help="A baseline's parameter as NAME=VALUE (repeat), e.g. --method kong --param smoothness=0.5; names and paper defaults in each baseline's docstring (separate/baselines/)."),
     force: bool = typer.Option(False, help="Replace existing results of this method (only once the new ones are complete)."),
+    maps: bool = typer.Option(False, "--maps", help="Also write the polarization maps: S0, S1, S2, DoLP, AoLP, phi_perp, theta as float32 TIFF with units (results/METHOD/maps/)."),
+    all_scenes: bool = typer.Option(False, "--all", help="Every ingested scene of the dataset without results of this method (with --force: every ingested scene)."),
+    jobs: int = typer.Option(1, min=1, help="With --all: worker processes, each on cores/jobs threads."),
 ) -> None:
     """Separate a scene into reflection R and transmission T (linear 16-bit TIFF, sRGB previews,
-    and a reflection-presence map).
+    a reflection-presence map and the reference angle used), or every scene with --all.
 
     \b
     Example:
       urd separate scene_01
       urd separate scene_01 --method kong --param smoothness=0.5
+      urd separate --all --jobs 2 --dataset dataset
+      urd separate scene_01 --maps --reference global
       urd separate --images a.tif --images b.tif --images c.tif --angles 0,45,90 --transfer srgb
     """
     from separate.infer import OVERLAP, check_tiling
@@ -426,8 +431,12 @@ def separate(
         raise typer.BadParameter(f"{', '.join(raws)}: RAW files; separate takes an ingested scene, or with --images "
                                  "decoded images (TIFF, PNG, JPEG). Ingest RAW shots with 'urd ingest FOLDER', "
                                  "then run 'urd separate SCENE'")
-    if images is None and scene is None:
-        raise typer.BadParameter("expected a scene name or --images")
+    if all_scenes and (scene is not None or images):
+        raise typer.BadParameter("expected --all alone, without a scene name or --images")
+    if jobs > 1 and not all_scenes:
+        raise typer.BadParameter("--jobs is for --all (one scene runs in one process)")
+    if images is None and scene is None and not all_scenes:
+        raise typer.BadParameter("expected a scene name, --all or --images")
     if images and scene is not None:
         raise typer.BadParameter(f"expected a scene name or --images, not both (got {scene!r} and --images)")
     networks = ("network", "ceilnet")
@@ -445,6 +454,9 @@ def separate(
     angle_list = parse_angles(angles) if images else None
     if images and len(images) != len(angle_list):
         raise typer.BadParameter(f"expected one --images file per angle of --angles {angles}, got {len(images)} files")
+    if all_scenes:
+        separate_dataset(dataset, method, weights, tile, chosen, colour_match, params, force, forced, maps, jobs)
+        return
     target = None if images else run_guarded(resolve_scene, scene, dataset)
     if target is not None and not force:
         run_guarded(target.check_no_results, method)
@@ -460,18 +472,39 @@ def separate(
         options = {**params, "progress": show} if method in PROGRESS_BASELINES else params
     run, info = run_guarded(get_method, method, **options)
     # separate.methods records a baseline's keywords as its parameters: the callback is not one
-    info = {**info, "parameters": {k: v for k, v in info["parameters"].items() if k != "progress"}}
     if images:
-        result = run_guarded(separate_images, images, angle_list, out, run, transfer_rule, force, forced)
+        result = run_guarded(separate_images, images, angle_list, out, run, transfer_rule, force, forced, maps)
     else:
-        result = run_guarded(separate_scene, target, method, run, info, force, forced)
+        result = run_guarded(separate_scene, target, method, run, info, force, forced, maps)
     bar.close()
     for line in result.warnings:
         warn(line)
-    typer.echo(f"reference angle {result.reference_deg:.1f} deg ({'estimated' if forced == 'auto' else 'given'})")
+    kinds = {"auto": "estimated; per pixel, a field around it: reference_deg.tiff", "global": "estimated"}
+    kind = kinds[forced] if isinstance(forced, str) else "given"
+    typer.echo(f"reference angle {result.reference_deg:.1f} deg ({kind})")
     for path in result.files:
         typer.echo(f"wrote {Path(path).resolve()}")
     report_truth(result.truth_metrics)
+
+
+def separate_dataset(dataset: Optional[Path], method: str, weights: Optional[Path], tile: Optional[int], chosen,
+                     colour_match: bool, params: dict, force: bool, reference, maps: bool, jobs: int) -> None:
+    """``urd separate --all``: every scene that needs it (`urd.batch.separate_all`), one line per
+    scene; exit 1 when any failed."""
+    from urd.batch import separate_all
+
+    root = dataset or default_root()
+    options = ({"weights": weights, "tile": tile, "precision": chosen.value, "colour_match": colour_match}
+               if method in ("network", "ceilnet") else params)
+    outcomes = run_guarded(separate_all, root, method, options, force, reference, maps, jobs, progress=TerminalProgress())
+    for outcome in outcomes:
+        typer.echo(f"{outcome.scene}: {outcome.state}{': ' + outcome.detail if outcome.detail else ''}")
+    failed = sum(o.state == "failed" for o in outcomes)
+    done = sum(o.state == "separated" for o in outcomes)
+    typer.echo(f"{done} scene{'s' if done != 1 else ''} separated with {method}, {failed} failed; results in each "
+               f"scene's results/{method}/ (look at them: urd report {root} --html report)")
+    if failed:
+        raise typer.Exit(1)
 
 
 #: Baselines that report progress (their ``separate`` takes a ``progress`` callback).

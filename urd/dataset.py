@@ -670,14 +670,15 @@ class Scene:
         with contextlib.suppress(DatasetError, OSError):          # a read-only dataset still verifies
             write_json_atomic(self.path / HASH_CACHE, cache)
 
-    def _check_intact(self, rec: dict, cache: dict, full: bool) -> None:
-        """ManifestError unless the file of ``rec`` exists inside the scene with its size and SHA-256."""
+    def _check_intact(self, rec: dict, cache: dict, full: bool, hint: bool = True) -> None:
+        """ManifestError unless the file of ``rec`` exists inside the scene with its size and SHA-256
+        (``hint``: the message suggests 'urd verify', which `verify` itself does not)."""
         path = confined_path(self.path, rec["file"], str(self.manifest_path))
         if not path.is_file():
             raise ManifestError(f"{path}: listed in the manifest but missing")
         if path.stat().st_size != rec["size"] or _hash(self.path, path, cache, full) != rec["sha256"]:
-            raise ManifestError(f"{path}: SHA-256 or size does not match the manifest (corrupted or changed); "
-                                f"run 'urd verify' to check the whole dataset")
+            raise ManifestError(f"{path}: SHA-256 or size does not match the manifest (corrupted or changed)"
+                                + ("; run 'urd verify' to check the whole dataset" if hint else ""))
 
     def check_files(self, records: list[dict], full: bool = False) -> None:
         """Every listed file exists inside the scene with its recorded size and SHA-256;
@@ -709,7 +710,7 @@ class Scene:
         cache = {}
         for rec in records:
             try:
-                self._check_intact(rec, cache, full=True)
+                self._check_intact(rec, cache, full=True, hint=False)
             except (ManifestError, OSError) as exc:
                 problems.append(str(exc))
         self._save_cache(cache)
@@ -1196,6 +1197,9 @@ class Dataset:
     def staged_scene(self, source: str, capture: dict) -> Iterator[Scene]:
         """A new scene assembled in a hidden folder of the dataset; removed unless adopted."""
         folder = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=self.root))
+        umask = os.umask(0)
+        os.umask(umask)
+        folder.chmod(0o777 & ~umask)                              # mkdtemp's 0700 would stay with the adopted scene
         try:
             yield _create_scene(folder, source, capture, exist_ok=True)
         finally:

@@ -15,7 +15,7 @@ def report_text(root: Path) -> str:
     offset = (f"{calibration.offset_deg:.3f} ± {calibration.uncertainty_deg:.3f} deg" if calibration
               else "not calibrated")
     scenes = ds.scenes()
-    lines = [f"dataset {ds.root.resolve()}: {len(scenes)} scenes; polarizer offset {offset}"]
+    lines = [f"dataset {ds.root.resolve()}: {len(scenes)} scene{'' if len(scenes) == 1 else 's'}; polarizer offset {offset}"]
     for scene in scenes:
         lines.append(f"  {scene.status().describe()}")
         lines += [f"    {line}" for line in _truth_lines(scene)]

@@ -21,6 +21,8 @@ import concurrent.futures
 import dataclasses
 import functools
 import json
+import shutil
+import tempfile
 from pathlib import Path
 
 import cv2
@@ -29,7 +31,7 @@ import tifffile
 
 from separate import metrics
 from separate.reference import Inspection, decide_side, field_at, inspect_stack
-from urd.dataset import Scene, atomic_path
+from urd.dataset import STAGING_PREFIX, Scene, atomic_path
 from urd.errors import DatasetError
 from urd.images import Transfer, linear_to_u16, read_image, to_display
 
@@ -207,6 +209,61 @@ def separate_inspected(images: np.ndarray, angles: list[float], run, reference: 
     return r_hat, t_hat, inspection, inspection.reference_deg
 
 
+@dataclasses.dataclass
+class Prepared:
+    """A scene's separation computed and written into a staging folder inside the scene, not yet
+    recorded (`prepare_scene`; `commit_scene` records it). ``staged`` maps final names (relative
+    to the scene) to staged paths; ``entry`` is the manifest record."""
+
+    scene: Path
+    method: str
+    staging: Path
+    staged: dict[str, Path]
+    entry: dict
+    separation: Separation
+
+
+def prepare_scene(scene: Scene, method: str, run, info: dict, reference: str | float = "auto",
+                  maps: bool = False) -> Prepared:
+    """The work of `separate_scene` without touching the manifest: separate the ingested stack
+    and write the outputs into a new staging folder of the scene (which the dataset's recovery
+    removes should the process die before `commit_scene`). Runs without the dataset's lock,
+    so that several processes can prepare scenes of one dataset while one commits them."""
+    scene.reload()
+    scene.truth_files()                                    # damaged ground truth stops it before the work
+    images, angles = scene.load_stack(codes=True)          # uint16: half the memory of float32
+    r_hat, t_hat, inspection, used = separate_inspected(images, angles, run, reference)
+    polarization = _maps(images, angles, used) if maps else None
+    del images                                            # the largest array: free it before writing
+    metrics_truth = truth_metrics(scene, r_hat, t_hat)
+    reference_deg, warnings = inspection.reference_deg, inspection.warnings
+    staging = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=scene.path))
+    try:
+        paths = write_results(staging, r_hat, t_hat, overwrite=False, confidence=inspection.presence_at(r_hat.shape[:2]),
+                              clipped=inspection.clipped, reference_field=_field_image(used, inspection))
+        staged = {f"results/{method}/{p.name}": p for p in paths}
+        if polarization is not None:
+            staged |= {f"results/{method}/maps/{p.name}": p for p in write_maps(staging / "maps", polarization)}
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    entry = {"angles_deg": angles, **info, "full_scale": FULL_SCALE, "reference_deg": round(reference_deg, 3),
+             "reference": _reference_kind(reference), "warnings": warnings, "truth_metrics": metrics_truth}
+    return Prepared(scene.path, method, staging, staged, entry, Separation([], reference_deg, warnings, metrics_truth))
+
+
+def commit_scene(prepared: Prepared, force: bool = False) -> Separation:
+    """Record a prepared separation in its scene's manifest (the caller holds the dataset's
+    lock); earlier results of the method are replaced only with ``force``. The staging folder
+    is removed either way."""
+    scene = Scene(prepared.scene)
+    try:
+        result = scene.add_result(prepared.method, prepared.staged, prepared.entry, replace=force)
+    finally:
+        shutil.rmtree(prepared.staging, ignore_errors=True)
+    return dataclasses.replace(prepared.separation, files=list(result.files.values()))
+
+
 def separate_scene(scene: Scene, method: str, run, info: dict, force: bool = False,
                    reference: str | float = "auto", maps: bool = False) -> Separation:
     """Separate an ingested scene with ``run`` (from `separate.methods.get_method`) and record
@@ -217,25 +274,7 @@ def separate_scene(scene: Scene, method: str, run, info: dict, force: bool = Fal
         scene.reload()
         if not force:
             scene.check_no_results(method)
-        scene.truth_files()                                    # damaged ground truth stops it before the work
-        images, angles = scene.load_stack(codes=True)          # uint16: half the memory of float32
-        r_hat, t_hat, inspection, used = separate_inspected(images, angles, run, reference)
-        polarization = _maps(images, angles, used) if maps else None
-        del images                                            # the largest array: free it before writing
-        metrics_truth = truth_metrics(scene, r_hat, t_hat)
-        reference_deg, warnings = inspection.reference_deg, inspection.warnings
-        with scene.staging() as staging:
-            paths = write_results(staging, r_hat, t_hat, overwrite=False, confidence=inspection.presence_at(r_hat.shape[:2]),
-                                  clipped=inspection.clipped, reference_field=_field_image(used, inspection))
-            staged = {f"results/{method}/{p.name}": p for p in paths}
-            if polarization is not None:
-                staged |= {f"results/{method}/maps/{p.name}": p for p in write_maps(staging / "maps", polarization)}
-            entry = scene.add_result(method, staged, {"angles_deg": angles, **info, "full_scale": FULL_SCALE,
-                                                      "reference_deg": round(reference_deg, 3),
-                                                      "reference": _reference_kind(reference),
-                                                      "warnings": warnings, "truth_metrics": metrics_truth},
-                                     replace=force)
-    return Separation(list(entry.files.values()), reference_deg, warnings, metrics_truth)
+        return commit_scene(prepare_scene(scene, method, run, info, reference, maps), force)
 
 
 def _maps(images: np.ndarray, angles: list[float], used: float | np.ndarray) -> dict[str, np.ndarray]:

@@ -1,0 +1,73 @@
+"""Whole datasets at once: ``urd separate --all [--jobs N]``, and a kill in the middle of it."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from rig import capture_virtual
+from urd.dataset import Dataset
+from urd.ingest import IngestOptions, ingest_scene
+
+
+def urd(*args, **kwargs):
+    return subprocess.run([sys.executable, "-m", "urd.cli", *map(str, args)], capture_output=True, text=True,
+                          timeout=900, **kwargs)
+
+
+@pytest.fixture
+def three_scenes(tmp_path):
+    ds = Dataset.open_or_create(tmp_path / "ds")
+    for seed in range(3):
+        scene, _ = capture_virtual(ds, size=(192, 128), shake_px=1.0, shake_deg=0.1, seed=seed)
+        ingest_scene(scene, IngestOptions())
+    return ds.root
+
+
+def methods_of(root):
+    return {name: sorted(json.loads((root / name / "scene.json").read_text()).get("results", {}))
+            for name in sorted(p.name for p in root.iterdir() if (p / "scene.json").is_file())}
+
+
+def test_separate_all_with_two_jobs_separates_every_scene_and_skips_done_ones(three_scenes):
+    out = urd("separate", "--all", "--jobs", "2", "--method", "schechner", "--dataset", three_scenes)
+    assert out.returncode == 0, out.stderr
+    assert methods_of(three_scenes) == {f"scene_0{i}": ["schechner"] for i in (1, 2, 3)}
+    assert "3 scenes separated with schechner, 0 failed" in out.stdout
+    again = urd("separate", "--all", "--method", "schechner", "--dataset", three_scenes)
+    assert again.returncode == 0 and again.stdout.count("skipped: has schechner results") == 3
+    assert urd("verify", three_scenes).returncode == 0
+    refused = urd("separate", "scene_01", "--all", "--dataset", three_scenes)
+    assert refused.returncode == 2 and "--all alone" in refused.stderr
+
+
+def test_one_failing_scene_is_reported_and_the_others_go_on(three_scenes):
+    aligned = sorted((three_scenes / "scene_02" / "aligned").iterdir())[0]
+    aligned.write_bytes(aligned.read_bytes()[:-10] + b"0123456789")         # same size, other bytes
+    out = urd("separate", "--all", "--method", "none", "--dataset", three_scenes)
+    assert out.returncode == 1
+    assert "scene_02: failed" in out.stdout and "SHA-256" in out.stdout
+    assert methods_of(three_scenes)["scene_01"] == ["none"] and methods_of(three_scenes)["scene_03"] == ["none"]
+
+
+def test_a_kill_during_separate_all_leaves_finished_scenes_intact(three_scenes):
+    proc = subprocess.Popen([sys.executable, "-m", "urd.cli", "separate", "--all", "--method", "network", "--dataset",
+                             str(three_scenes)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 600
+    while time.time() < deadline and not any(methods_of(three_scenes).values()):
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    finished = [name for name, methods in methods_of(three_scenes).items() if methods]
+    assert 1 <= len(finished) <= 3
+    verify = urd("verify", three_scenes)
+    assert verify.returncode == 0, verify.stdout + verify.stderr
+    out = urd("separate", "--all", "--method", "network", "--dataset", three_scenes)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.count("skipped: has network results") == len(finished)
+    assert all(methods == ["network"] for methods in methods_of(three_scenes).values())
+    assert not list(three_scenes.glob("*/.staging-*"))

@@ -1,0 +1,121 @@
+"""Whole datasets at once: ``urd separate --all [--jobs N]``.
+
+The scenes to separate are every ingested scene without results of the method (every ingested
+scene with ``force``). Each is prepared (`urd.separation.prepare_scene`: separated, outputs
+written into a staging folder of the scene) by one of ``jobs`` worker processes, and committed
+to its manifest by this process, which holds the dataset's lock throughout: one writer, so a
+kill leaves every scene committed so far intact and the next run's recovery removes what was
+staged for the others. A scene that fails is reported and the others go on. Workers share the
+CPU: each runs torch on cores ÷ jobs threads.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import multiprocessing
+import os
+from pathlib import Path
+from typing import Iterator
+
+from urd.dataset import Dataset, Scene
+from urd.progress import Progress
+
+
+@dataclasses.dataclass
+class BatchOutcome:
+    """One scene of a batch: its name, ``state`` ("separated", "skipped" or "failed") and a
+    detail (the error, or why it was skipped)."""
+
+    scene: str
+    state: str
+    detail: str = ""
+
+
+def targets(ds: Dataset, method: str, force: bool) -> tuple[list[Scene], list[BatchOutcome]]:
+    """The scenes to separate and the outcomes of those left out (not ingested, failed ingest,
+    already separated without ``force``, broken)."""
+    chosen, skipped = [], []
+    for scene in ds.scenes():
+        status = scene.status()
+        if status.state == "broken":
+            skipped.append(BatchOutcome(scene.name, "failed", status.problem or "broken"))
+        elif not scene.is_ingested() or not scene.ingest_outcome()[0]:
+            skipped.append(BatchOutcome(scene.name, "skipped", "not ingested (run urd ingest first)"))
+        elif method in scene.methods() and not force:
+            skipped.append(BatchOutcome(scene.name, "skipped", f"has {method} results (--force replaces them)"))
+        else:
+            chosen.append(scene)
+    return chosen, skipped
+
+
+def _prepare(path: str, method: str, options: dict, reference: str | float, maps: bool, threads: int):
+    """Worker: prepare one scene (`urd.separation.prepare_scene`) on ``threads`` torch threads."""
+    import torch
+
+    from separate.methods import get_method
+    from urd.separation import prepare_scene
+
+    torch.set_num_threads(threads)
+    run, info = get_method(method, reference=reference, **options)
+    return prepare_scene(Scene(Path(path)), method, run, info, reference, maps)
+
+
+def separate_all(root: Path, method: str, options: dict, force: bool = False, reference: str | float = "auto",
+                 maps: bool = False, jobs: int = 1, progress: Progress | None = None) -> list[BatchOutcome]:
+    """Separate every scene of the dataset at ``root`` that needs it (module docstring).
+
+    Args:
+        root: the dataset folder.
+        method, options: the method and its options (`separate.methods.get_method`; picklable,
+            no callbacks).
+        force: also scenes that have results of the method (replaced once the new ones are complete).
+        reference, maps: as `urd.separation.separate_scene`.
+        jobs: worker processes (1: in this process).
+        progress: called with (scenes done, scenes total, label).
+
+    Returns:
+        One `BatchOutcome` per scene of the dataset.
+    """
+    from urd.separation import commit_scene
+
+    if jobs < 1:
+        raise ValueError(f"expected at least 1 job, got {jobs}")
+    ds = Dataset.open(root)
+    with ds.lock():
+        chosen, outcomes = targets(ds, method, force)
+        threads = max(1, (os.cpu_count() or 1) // jobs)
+        label = f"separate --all ({method}, {jobs} job{'s' if jobs > 1 else ''})"
+        if progress:
+            progress(0, len(chosen), label)
+        for done, (scene, prepared) in enumerate(_prepared(chosen, method, options, reference, maps, jobs, threads), 1):
+            try:
+                if isinstance(prepared, BaseException):
+                    raise prepared
+                commit_scene(prepared, force)
+                outcomes.append(BatchOutcome(scene.name, "separated"))
+            except Exception as exc:  # noqa: BLE001 - one scene's failure, whatever it is, must not stop the others
+                outcomes.append(BatchOutcome(scene.name, "failed", f"{type(exc).__name__}: {exc}"))
+            if progress:
+                progress(done, len(chosen), label)
+    return sorted(outcomes, key=lambda o: o.scene)
+
+
+def _prepared(scenes: list[Scene], method: str, options: dict, reference: str | float, maps: bool, jobs: int,
+              threads: int) -> Iterator[tuple[Scene, object]]:
+    """(scene, its `urd.separation.Prepared` or the exception that stopped it), one at a time in
+    this process (``jobs`` = 1) or as ``jobs`` worker processes finish them."""
+    if jobs == 1:
+        for scene in scenes:
+            try:
+                yield scene, _prepare(str(scene.path), method, options, reference, maps, threads)
+            except Exception as exc:  # noqa: BLE001 - reported as the scene's failure by separate_all
+                yield scene, exc
+        return
+    context = multiprocessing.get_context("spawn")                  # fresh interpreters: no forked torch state
+    with concurrent.futures.ProcessPoolExecutor(jobs, mp_context=context) as pool:
+        futures = {pool.submit(_prepare, str(scene.path), method, options, reference, maps, threads): scene
+                   for scene in scenes}
+        for future in concurrent.futures.as_completed(futures):
+            error = future.exception()
+            yield futures[future], error if error is not None else future.result()
