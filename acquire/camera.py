@@ -15,8 +15,8 @@ import tempfile
 from pathlib import Path
 from typing import Protocol
 
-from urd import raw as rawio
-from urd.errors import DeviceError, DeviceTimeoutError
+from urd.core import raw as rawio
+from urd.core.errors import DeviceError, DeviceTimeoutError
 
 
 class CameraKind(enum.Enum):

@@ -30,7 +30,7 @@ import time
 
 import serial
 
-from urd.errors import DeviceError, DeviceTimeoutError, ProtocolError
+from urd.core.errors import DeviceError, DeviceTimeoutError, ProtocolError
 
 #: ELL14 status codes of ``GS`` replies → meaning. 0 is OK and 9 is busy; the rest are faults.
 STATUS: dict[int, str] = {

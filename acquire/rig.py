@@ -17,7 +17,7 @@ from acquire.camera import CameraKind, Gphoto2Camera
 from acquire.ell14 import Ell14
 from acquire.sim_ell14 import SimulatedEll14
 from acquire.virtual_camera import VirtualCamera, make_glass_scene, make_polarized_target
-from urd.errors import DeviceError
+from urd.core.errors import DeviceError
 
 SIM = "sim"
 

@@ -94,7 +94,7 @@ from typing import Callable
 import numpy as np
 
 from acquire.ell14 import decode_counts, encode_counts
-from urd.errors import DeviceError, UrdError
+from urd.core.errors import DeviceError, UrdError
 
 FAULTS = ("drop", "garble", "mech_timeout", "miss", "vanish")
 ADDRESSES = "0123456789ABCDEF"

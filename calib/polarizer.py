@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 
 from separate import optics
-from urd.errors import CalibrationError
+from urd.core.errors import CalibrationError
 
 
 @dataclasses.dataclass

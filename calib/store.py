@@ -17,10 +17,10 @@ from pathlib import Path
 import numpy as np
 
 from calib.polarizer import ShotErrors, estimate_shot_errors, fit_offset
-from urd import raw as rawio
-from urd.dataset import Dataset, Scene, read_json
-from urd.errors import CalibrationError
-from urd.progress import Progress
+from urd.core import raw as rawio
+from urd.core.dataset import Dataset, Scene, read_json
+from urd.core.errors import CalibrationError
+from urd.core.progress import Progress
 
 
 def sweep_intensities(scene: Scene) -> tuple[list[float], list[float]]:

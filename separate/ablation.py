@@ -30,7 +30,7 @@ from separate.bench_report import write_csv, write_text
 from separate.plots import plot_bars, plot_lines
 from separate.provenance import cpu_model, environment
 from separate.train import TrainConfig, export_weights, load_checkpoint, train
-from urd.errors import TrainingError
+from urd.core.errors import TrainingError
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 PIPELINES = {"DR": "ablation-dr", "DR+NRD": "ablation-dr-nrd", "DR+NRD+LCG": "ablation-dr-nrd-lcg"}

@@ -13,7 +13,7 @@ from typing import Sequence
 
 from separate.bench_plan import Settings
 from separate.scoring import SCORES, gap
-from urd.errors import UrdError
+from urd.core.errors import UrdError
 
 #: The command that rewrites the expected values of the quick run (after new weights).
 UPDATE_COMMAND = "python tools/bench_paper.py --quick --update-expected"

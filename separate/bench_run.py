@@ -37,7 +37,7 @@ from separate.provenance import REPO, environment
 from separate.robustness import AXES, ROBUST_SEED, robustness
 from separate.scoring import gap, make_method
 from separate.speed import run_isolated, synthesis_throughput, time_method, time_training
-from urd.progress import Progress
+from urd.core.progress import Progress
 
 DEFAULT_OUT = REPO / "docs" / "bench"
 EXPECTED_QUICK = DEFAULT_OUT / "expected-quick.json"

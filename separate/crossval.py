@@ -23,7 +23,7 @@ from separate import optics
 from separate.bench import SEED
 from separate.scoring import SCORES, attempt, finite_mean
 from separate.synthesis import SHARED_NATURAL, AngleMode, SynthesisConfig, Synthesizer, load_image_pool
-from urd.progress import Progress
+from urd.core.progress import Progress
 
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
 #: Photos are reduced to this many pixels on the long side, as `load_image_pool` does.

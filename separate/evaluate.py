@@ -79,4 +79,4 @@ from separate.speed import (
     time_method as time_method,
     time_training as time_training,
 )
-from urd.progress import Progress as Progress
+from urd.core.progress import Progress as Progress

@@ -54,7 +54,7 @@ from separate import optics
 from separate.model import TARGET_MEAN, ResBlock, ResizeUp, SeparationNet, canonical_inputs, fresnel_bases, theta_channel
 from separate.networks import build_model
 from separate.precision import Precision, resolve
-from urd.errors import WeightsError
+from urd.core.errors import WeightsError
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 TILE = 2048     # px: a 6000 × 4000 image takes 4 × 3 tiles (1.19× its pixels); see the module docstring

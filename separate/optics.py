@@ -212,7 +212,7 @@ def radiances_from_layers(r_obs: Array, t_obs: Array, theta: Array, n: float = N
 def photo_to_linear(img_u8: np.ndarray) -> np.ndarray:
     """An 8-bit photo (any shape, uint8), taken as display-encoded with the paper's gamma 2.2,
     → linear float32 in [0, 1]: how synthesis and the virtual camera read their photos (files
-    a user hands to urd follow `urd.images` instead)."""
+    a user hands to urd follow `urd.core.images` instead)."""
     return (img_u8.astype(np.float32) / 255.0) ** GAMMA
 
 

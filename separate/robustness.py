@@ -24,7 +24,7 @@ from separate import optics
 from separate.bench import SEED
 from separate.scoring import attempt, finite_mean
 from separate.synthesis import noise_std
-from urd.progress import Progress
+from urd.core.progress import Progress
 
 ROBUST_SEED = SEED + 1
 MAX_SHOTS = 6

@@ -12,8 +12,8 @@ from acquire.virtual_camera import make_glass_scene
 from rig import capture_virtual
 from separate import optics
 from separate.maps import MAPS, polarization_maps
-from urd.dataset import Dataset
-from urd.errors import DatasetError
+from urd.core.dataset import Dataset
+from urd.core.errors import DatasetError
 from urd.ingest import IngestOptions, ingest_scene
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "docs" / "examples" / "separate_scene.py"

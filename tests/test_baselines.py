@@ -14,7 +14,7 @@ from separate import metrics, optics
 from separate.baselines import arvanitopoulos, farid, kong, li_brown, schechner
 from separate.baselines.common import canonical
 from separate.methods import METHODS
-from urd.dataset import Dataset
+from urd.core.dataset import Dataset
 from urd.ingest import IngestOptions, ingest_scene
 
 ANGLES = [0.0, 45.0, 90.0]

@@ -10,7 +10,7 @@ import time
 import pytest
 
 from rig import capture_virtual
-from urd.dataset import Dataset
+from urd.core.dataset import Dataset
 from urd.ingest import IngestOptions, ingest_scene
 
 

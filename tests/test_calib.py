@@ -14,8 +14,8 @@ from calib.store import calibrate_shots
 from conftest import shared_data
 from rig import capture_virtual
 from separate import optics
-from urd.dataset import Dataset
-from urd.errors import CalibrationError
+from urd.core.dataset import Dataset
+from urd.core.errors import CalibrationError
 from urd.ingest import IngestOptions, ingest_scene
 
 

@@ -14,8 +14,8 @@ from acquire.ell14 import Ell14
 from acquire.plan import Step, new_capture_scene, plan_capture, run_capture
 from acquire.sim_ell14 import FAULTS, SimulatedEll14
 from acquire.virtual_camera import VirtualCamera, make_glass_scene, shot_truth
-from urd.dataset import Dataset
-from urd.errors import UrdError
+from urd.core.dataset import Dataset
+from urd.core.errors import UrdError
 
 ROOT = Path(__file__).resolve().parent.parent
 

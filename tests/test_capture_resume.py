@@ -15,8 +15,8 @@ from typer.testing import CliRunner
 from acquire.plan import new_capture_scene, resume_command
 from acquire.virtual_camera import VirtualCamera, shot_truth
 from urd.cli import app
-from urd.dataset import Dataset
-from urd.progress import TerminalProgress
+from urd.core.dataset import Dataset
+from urd.core.progress import TerminalProgress
 
 SIM = ("--stage", "sim", "--camera", "virtual")
 

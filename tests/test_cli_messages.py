@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 from separate.baselines import arvanitopoulos, kong, li_brown
 from separate.infer import MIN_TILE, OVERLAP
 from urd.cli import app
-from urd.dataset import Dataset
+from urd.core.dataset import Dataset
 
 SIM = ("--stage", "sim", "--camera", "virtual")
 

@@ -8,8 +8,8 @@ import sys
 
 import pytest
 
-from urd import dataset
-from urd.errors import DatasetError, ManifestError
+from urd.core import dataset
+from urd.core.errors import DatasetError, ManifestError
 
 
 def make_scene(tmp_path):
@@ -91,7 +91,7 @@ def test_interrupted_write_leaves_old_manifest_intact(tmp_path):
     dataset.write_json_atomic(path, {"version": "old"})
     # A child process starts writing a large manifest and is killed mid-write.
     code = (
-        "import sys, urd.dataset as d, pathlib, time\n"
+        "import sys, urd.core.dataset as d, pathlib, time\n"
         "p = pathlib.Path(sys.argv[1])\n"
         "with d.atomic_path(p, overwrite=True) as tmp:\n"
         "    with open(tmp, 'w') as fh:\n"

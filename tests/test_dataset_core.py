@@ -18,8 +18,8 @@ from acquire.rig import SimSettings
 from rig import capture_virtual
 from separate.methods import get_method
 from urd import ingest as ingest_mod
-from urd.dataset import Dataset, write_json_atomic
-from urd.errors import CaptureInterrupted, DatasetBusyError, DatasetError, ManifestError
+from urd.core.dataset import Dataset, write_json_atomic
+from urd.core.errors import CaptureInterrupted, DatasetBusyError, DatasetError, ManifestError
 from urd.ingest import IngestOptions, ingest_folder, ingest_scene
 from urd.report import report_text, verify
 from urd.separation import separate_scene
@@ -82,7 +82,8 @@ def test_failed_start_leaves_no_scene_and_a_broken_scene_stops_no_command(tmp_pa
     assert out.returncode == 1 and "cannot open serial port" in out.stderr
     out = urd("capture", tmp_path / "ds", "--stage", "sim", "--camera", "gphoto2", env={"PATH": "/nonexistent"})
     assert out.returncode == 1 and "gphoto2" in out.stderr
-    assert Dataset.open(tmp_path / "ds").scene_names() == []
+    assert not (tmp_path / "ds").exists()                   # the stage and the camera are checked before anything is made
+    Dataset.open_or_create(tmp_path / "ds")
     (tmp_path / "ds" / "scene_01").mkdir()                  # an empty folder left by an older urd
     assert urd("capture", tmp_path / "ds", "--stage", "sim", "--camera", "virtual", "--sim-size", "96x64").returncode == 0
     out = urd("report", tmp_path / "ds")
@@ -191,7 +192,7 @@ def test_nested_fields_and_schema_versions_are_validated(tmp_path):
 
 def test_a_second_writer_is_told_the_dataset_is_busy(tmp_path):
     ds, scene = ingested_scene(tmp_path)
-    code = ("import sys, time; from urd.dataset import Dataset\n"
+    code = ("import sys, time; from urd.core.dataset import Dataset\n"
             "with Dataset(sys.argv[1]).lock():\n    print('locked', flush=True)\n    time.sleep(30)\n")
     holder = subprocess.Popen([sys.executable, "-c", code, str(ds.root)], stdout=subprocess.PIPE, text=True)
     try:

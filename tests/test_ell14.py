@@ -5,7 +5,7 @@ import serial
 
 from acquire.ell14 import Ell14, DeviceStatusError, decode_counts, encode_counts, parse_info
 from acquire.sim_ell14 import SimulatedEll14
-from urd.errors import DeviceTimeoutError, ProtocolError
+from urd.core.errors import DeviceTimeoutError, ProtocolError
 
 INFO = b"0IN0E1140051720231701016800023000\r\n"  # ELL14, 360° travel, 143360 counts per turn
 

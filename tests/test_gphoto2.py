@@ -12,8 +12,8 @@ import rawpy
 
 from acquire.camera import Gphoto2Camera
 from acquire.dng import write_dng
-from urd.dataset import Dataset
-from urd.errors import DeviceError
+from urd.core.dataset import Dataset
+from urd.core.errors import DeviceError
 
 
 @pytest.fixture

@@ -1,4 +1,4 @@
-"""One transfer rule for image files (`urd.images`): 8-bit codes follow --transfer, 16-bit and
+"""One transfer rule for image files (`urd.core.images`): 8-bit codes follow --transfer, 16-bit and
 float files are linear, for `ingest --mosaic` and `separate --images` alike."""
 
 import json
@@ -10,9 +10,9 @@ import cv2
 import numpy as np
 import pytest
 
-from urd.dataset import Dataset
-from urd.errors import RawFormatError
-from urd.images import (
+from urd.core.dataset import Dataset
+from urd.core.errors import RawFormatError
+from urd.core.images import (
     Transfer,
     codes_to_linear,
     linear_to_u16,
@@ -23,7 +23,7 @@ from urd.images import (
     to_linear,
     u16_to_linear,
 )
-from urd.mosaic import ANGLES_DEG, MosaicLayout, build_mosaic
+from urd.core.mosaic import ANGLES_DEG, MosaicLayout, build_mosaic
 
 SITE_CODES = (40, 128, 200, 90)          # 8-bit codes at 0/45/90/135°
 

@@ -10,7 +10,7 @@ import torch
 from separate.infer import (OVERLAP, STRIP_ROWS, TILE, FusedNet, load_model, runner, separate_stack, shipped_weights,
                             tile_spans)
 from separate.model import ResizeUp, SeparationNet
-from urd.errors import WeightsError
+from urd.core.errors import WeightsError
 
 SMALL = np.random.default_rng(0).random((3, 40, 48, 3)).astype(np.float32)
 

@@ -12,9 +12,9 @@ import pytest
 from acquire.virtual_camera import make_glass_scene
 from conftest import shared_data
 from rig import capture_virtual
-from urd import raw as rawio
-from urd.dataset import Dataset
-from urd.errors import RawFormatError
+from urd.core import raw as rawio
+from urd.core.dataset import Dataset
+from urd.core.errors import RawFormatError
 from urd.ingest import IngestOptions, ingest_folder, ingest_scene
 
 
@@ -63,7 +63,7 @@ def test_unalignable_scene_is_flagged_and_no_stack_is_written(tmp_path):
     src = other.path / other.load()["shots"][2]["file"]
     dst = scene.path / record["shots"][2]["file"]
     shutil.copyfile(src, dst)
-    from urd.dataset import write_json_atomic
+    from urd.core.dataset import write_json_atomic
     record["shots"][2].update(scene.file_record(dst))
     write_json_atomic(scene.manifest_path, record)
     out = urd("ingest", scene.path)

@@ -8,7 +8,7 @@ import pytest
 
 from conftest import shared_data
 from separate import optics
-from urd.mosaic import ANGLES_DEG, Demosaic, MosaicLayout, build_mosaic, demosaic, split_mosaic
+from urd.core.mosaic import ANGLES_DEG, Demosaic, MosaicLayout, build_mosaic, demosaic, split_mosaic
 
 PHI = np.radians(ANGLES_DEG)
 
@@ -69,7 +69,7 @@ def test_urd_ingest_mosaic_frames_then_separate(tmp_path):
     out = subprocess.run([sys.executable, "-m", "urd.cli", "ingest", str(frame), str(tmp_path / "ds"), "--mosaic", "imx250mzr"],
                          capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
-    from urd.dataset import Dataset
+    from urd.core.dataset import Dataset
 
     stack, angles = Dataset.open(tmp_path / "ds").scene("scene_01").load_stack()
     assert stack.shape == (4, 1024, 1224, 3) and angles == [0.0, 45.0, 90.0, 135.0]

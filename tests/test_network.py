@@ -19,8 +19,8 @@ from separate.infer import DEFAULT_WEIGHTS, WEIGHTS_DIR, load_model, match_histo
 from separate.model import NOMINAL_ANGLES, SeparationNet, canonical_inputs
 from separate.synthesis import AngleMode, SynthesisConfig, Synthesizer, load_image_pool, true_side_deg
 from separate.train import TrainConfig, run_lock, train
-from urd.dataset import Dataset
-from urd.errors import TrainingError, WeightsError
+from urd.core.dataset import Dataset
+from urd.core.errors import TrainingError, WeightsError
 from urd.ingest import IngestOptions, ingest_scene
 
 POOL = load_image_pool(None)

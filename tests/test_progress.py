@@ -2,7 +2,7 @@
 
 import io
 
-from urd import progress
+from urd.core import progress
 
 
 def test_eta_counts_the_units_done_here_not_before_a_resume(monkeypatch):

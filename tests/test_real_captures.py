@@ -12,11 +12,11 @@ from conftest import SHARED_DATA
 from separate import optics
 from separate.methods import get_method
 from separate.reference import Basis, estimate_reference
-from urd import samples
-from urd.dataset import Dataset
-from urd.images import Transfer
+from urd.core import samples
+from urd.core.dataset import Dataset
+from urd.core.images import Transfer
 from urd.ingest import IngestOptions, ingest
-from urd.mosaic import Demosaic, MosaicLayout
+from urd.core.mosaic import Demosaic, MosaicLayout
 from urd.separation import separate_scene
 
 CAPTURES = samples.captures(SHARED_DATA / "polarization")

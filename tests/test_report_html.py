@@ -32,7 +32,7 @@ from urd.report_html import (
     polarization_maps,
     write_html_report,
 )
-from urd.images import srgb_encode
+from urd.core.images import srgb_encode
 
 H, W = 96, 128
 EVIL_NAME = "scene <script>window.__xss = 1</script> & \"quoted\""

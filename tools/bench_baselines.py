@@ -9,7 +9,7 @@ import sys
 import time
 
 from separate.methods import METHODS, get_method
-from urd.dataset import Dataset
+from urd.core.dataset import Dataset
 from urd.ingest import load_stack
 
 folder = "/tmp/urd-bench-1mp"

@@ -1,6 +1,6 @@
-"""Benchmark of polarization demosaicing (`urd.mosaic.demosaic`): false polarization at edges.
+"""Benchmark of polarization demosaicing (`urd.core.mosaic.demosaic`): false polarization at edges.
 
-For each method of `urd.mosaic.Demosaic` it prints the DoLP on edges and on flat regions, and
+For each method of `urd.core.mosaic.Demosaic` it prints the DoLP on edges and on flat regions, and
 the runtime per megapixel of mosaic, on
 
 (a) synthetic mosaics with known truth, rendered with `separate.optics` (4× supersampled, then
@@ -43,7 +43,7 @@ import cv2
 import numpy as np
 
 from separate import optics
-from urd.mosaic import ANGLES_DEG, Demosaic, MosaicLayout, build_mosaic, demosaic
+from urd.core.mosaic import ANGLES_DEG, Demosaic, MosaicLayout, build_mosaic, demosaic
 
 SHARED = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
 DATA = SHARED / "polarization"

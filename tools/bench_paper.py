@@ -21,7 +21,7 @@ from pathlib import Path
 def main() -> int:
     from separate.bench_check import BenchmarkMismatch
     from separate.bench_run import DEFAULT_OUT, run_evaluation
-    from urd.progress import TerminalProgress
+    from urd.core.progress import TerminalProgress
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="the reduced run, checked against the expected values")

@@ -32,7 +32,7 @@ from separate import metrics, optics
 from separate.bench import SEED, benchmark_set, reshoot
 from separate.methods import get_method
 from separate.synthesis import noise_std
-from urd import samples
+from urd.core import samples
 
 PERIOD = 8
 RING_PX = 8

@@ -19,9 +19,9 @@ import numpy as np
 
 from separate import optics
 from separate.methods import get_method
-from urd import samples
+from urd.core import samples
 from urd.separation import separate_inspected
-from urd.images import srgb_to_linear, to_display
+from urd.core.images import srgb_to_linear, to_display
 
 parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
 parser.add_argument("--out", type=Path, default=Path("contact-sheets"))

@@ -15,7 +15,7 @@ import json
 from pathlib import Path
 
 from separate.train import export_weights
-from urd.errors import UrdError
+from urd.core.errors import UrdError
 
 parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
 parser.add_argument("checkpoint", type=Path)

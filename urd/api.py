@@ -18,7 +18,7 @@ from typing import NamedTuple, Sequence
 
 import numpy as np
 
-from urd.dataset import Dataset
+from urd.core.dataset import Dataset
 
 
 class Layers(NamedTuple):
@@ -29,7 +29,7 @@ class Layers(NamedTuple):
 
 
 def open_dataset(root: str | Path) -> Dataset:
-    """An existing urd dataset (`urd.dataset.Dataset`); DatasetError when ``root`` holds none."""
+    """An existing urd dataset (`urd.core.dataset.Dataset`); DatasetError when ``root`` holds none."""
     return Dataset.open(Path(root))
 
 

@@ -18,8 +18,8 @@ import os
 from pathlib import Path
 from typing import Iterator
 
-from urd.dataset import Dataset, Scene
-from urd.progress import Progress
+from urd.core.dataset import Dataset, Scene
+from urd.core.progress import Progress
 
 
 @dataclasses.dataclass

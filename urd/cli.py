@@ -19,9 +19,9 @@ from typing import Optional
 import typer
 
 from urd import __version__
-from urd.dataset import default_root
-from urd.errors import CaptureInterrupted, UrdError
-from urd.progress import TerminalProgress
+from urd.core.dataset import default_root
+from urd.core.errors import CaptureInterrupted, UrdError
+from urd.core.progress import TerminalProgress
 
 DATASET_HELP = "Dataset folder (default: the current folder if it holds dataset.json, else ./dataset)."
 HELP_OPTIONS = {"help_option_names": ["-h", "--help"]}
@@ -76,7 +76,7 @@ def choice(kind: type[enum.Enum], value: str, option: str) -> enum.Enum:
 
 
 def existing_dataset(dataset: Optional[Path]) -> Path:
-    """The dataset a command reads: ``dataset``, else `urd.dataset.default_root`; an error saying
+    """The dataset a command reads: ``dataset``, else `urd.core.dataset.default_root`; an error saying
     how to make one when its folder does not exist."""
     root = dataset or default_root()
     if not root.exists():
@@ -281,8 +281,8 @@ def ingest(
       urd ingest raw/ dataset --angles 0,45,90,135
       urd ingest dataset
     """
-    from urd.align import Motion
-    from urd.images import Transfer
+    from urd.core.align import Motion
+    from urd.core.images import Transfer
     from urd.ingest import IngestOptions, ingest as ingest_workflow
 
     if source.is_file() and not mosaic:
@@ -291,7 +291,7 @@ def ingest(
     opts = IngestOptions(tuple(parse_angles(angles)), choice(Motion, motion, "--motion"), half_size, gap, redo)
     layout = method = None
     if mosaic:
-        from urd.mosaic import Demosaic, MosaicLayout
+        from urd.core.mosaic import Demosaic, MosaicLayout
 
         layout, method = choice(MosaicLayout, mosaic, "--mosaic"), choice(Demosaic, demosaic, "--demosaic")
     transfer_rule = choice(Transfer, transfer, "--transfer")
@@ -321,7 +321,7 @@ app.add_typer(calibrate_app, name="calibrate")
 
 def resolve_scene(scene: str, dataset: Optional[Path]):
     """A scene given by folder path, or by name in ``dataset`` (default: ``default_root()``)."""
-    from urd.dataset import Dataset, Scene
+    from urd.core.dataset import Dataset, Scene
 
     path = Path(scene)
     if (path / "scene.json").is_file():
@@ -419,8 +419,8 @@ def separate(
     from separate.infer import OVERLAP, check_tiling
     from separate.methods import METHODS, get_method
     from separate.precision import describe, resolve
-    from urd.images import Transfer
-    from urd.raw import RAW_SUFFIXES
+    from urd.core.images import Transfer
+    from urd.core.raw import RAW_SUFFIXES
     from urd.separation import separate_images, separate_scene
 
     if method not in METHODS:

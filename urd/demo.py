@@ -5,8 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Callable
 
-from urd.errors import UrdError
-from urd.progress import Progress
+from urd.core.errors import UrdError
+from urd.core.progress import Progress
 
 
 def run_demo(folder: Path, width: int, height: int, seed: int, precision: str = "auto",
@@ -16,7 +16,7 @@ def run_demo(folder: Path, width: int, height: int, seed: int, precision: str = 
     from acquire.plan import capture_scene
     from acquire.rig import SimSettings
     from separate.methods import get_method
-    from urd.align import Motion
+    from urd.core.align import Motion
     from urd.ingest import IngestOptions, ingest_scene
     from urd.separation import separate_scene
 

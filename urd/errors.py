@@ -1,53 +1,8 @@
-"""The one error tree of urd. Every error urd raises on purpose derives from `UrdError`."""
+"""Deprecated: moved to `urd.core.errors`; this module re-exports its public names for one release
+(urd 0.2 removes it). Import from `urd.core.errors` instead."""
 
+import warnings
 
-class UrdError(Exception):
-    """Root of all urd errors."""
+from urd.core.errors import *  # noqa: F401,F403 - the re-export is this module's whole job
 
-
-class DeviceError(UrdError):
-    """A device (stage, camera) failed or reported a fault."""
-
-
-class DeviceTimeoutError(DeviceError, TimeoutError):
-    """A device did not answer within its timeout."""
-
-
-class ProtocolError(DeviceError):
-    """A device answered, but not in its protocol (garbled, wrong address, not the expected device)."""
-
-
-class RawFormatError(UrdError, ValueError):
-    """A file is not a RAW image urd can decode, or is corrupt."""
-
-
-class ManifestError(UrdError, ValueError):
-    """A manifest is missing, invalid, or does not match the files it describes."""
-
-
-class DatasetError(UrdError, OSError):
-    """A dataset or scene folder is missing, already exists, or cannot be written."""
-
-
-class AlignmentError(UrdError):
-    """The shots of a scene could not be aligned reliably."""
-
-
-class CalibrationError(UrdError):
-    """A calibration fit failed or its input is insufficient."""
-
-
-class WeightsError(UrdError):
-    """A weights file is missing, corrupt, or does not fit the model."""
-
-
-class DatasetBusyError(DatasetError):
-    """Another process holds the dataset's write lock."""
-
-
-class CaptureInterrupted(UrdError):
-    """A capture was stopped by the user (Ctrl-C); its completed shots are kept."""
-
-
-class TrainingError(UrdError):
-    """A training run cannot go on: its folder is busy, or it was started with another config."""
+warnings.warn("urd.errors moved to urd.core.errors; urd 0.2 removes the old name", DeprecationWarning, stacklevel=2)

@@ -10,8 +10,8 @@
   incomplete captures are reported with the command that resumes them;
 * polarization-camera frames (``mosaic``): one scene per frame.
 
-Processing decodes every shot to linear RGB (`urd.raw.decode`), aligns shots 1.. to shot 0 with
-ECC (`urd.align`), and writes ``aligned/shot_NN.tiff``: 16-bit linear RGB, value/65535 being the
+Processing decodes every shot to linear RGB (`urd.core.raw.decode`), aligns shots 1.. to shot 0 with
+ECC (`urd.core.align`), and writes ``aligned/shot_NN.tiff``: 16-bit linear RGB, value/65535 being the
 decoded linear value. Outputs are staged and swapped in only on success (`Scene.set_ingest`).
 New scenes are assembled in a hidden folder and moved into place only when complete. A scene
 whose alignment fails is flagged in its manifest and gets no aligned stack. Ingesting a scene
@@ -29,12 +29,12 @@ from pathlib import Path
 import numpy as np
 import tifffile
 
-from urd import raw as rawio
-from urd.align import Motion, align, apply_warp
-from urd.dataset import Dataset, Scene, atomic_path, sha256_file
-from urd.errors import AlignmentError, DatasetError, RawFormatError, UrdError
-from urd.images import IMAGE_SUFFIXES, Transfer, codes_to_linear, linear_to_u16, read_raw_codes
-from urd.progress import Progress
+from urd.core import raw as rawio
+from urd.core.align import Motion, align, apply_warp
+from urd.core.dataset import Dataset, Scene, atomic_path, sha256_file
+from urd.core.errors import AlignmentError, DatasetError, RawFormatError, UrdError
+from urd.core.images import IMAGE_SUFFIXES, Transfer, codes_to_linear, linear_to_u16, read_raw_codes
+from urd.core.progress import Progress
 
 
 @dataclasses.dataclass
@@ -135,7 +135,7 @@ def group_shots(files: list[Path], count: int, gap_s: float) -> tuple[list[list[
 
 
 def write_aligned(path: Path, image: np.ndarray) -> None:
-    """Write a linear image as 16-bit TIFF (`urd.images.linear_to_u16`, 1.0 = 65535), atomically."""
+    """Write a linear image as 16-bit TIFF (`urd.core.images.linear_to_u16`, 1.0 = 65535), atomically."""
     with atomic_path(path) as tmp:
         tifffile.imwrite(tmp, linear_to_u16(image), photometric="rgb")
 
@@ -264,11 +264,11 @@ def ingest_folder(raw_dir: Path, ds: Dataset, opts: IngestOptions, progress: Pro
 def ingest_mosaic(ds: Dataset, path: Path, layout, demosaic, transfer: Transfer = Transfer.LINEAR) -> SceneOutcome:
     """Make a new scene from one division-of-focal-plane frame (8/16-bit PNG or TIFF).
 
-    The frame is demosaiced into its 0/45/90/135 channels (`urd.mosaic.demosaic`, the four
+    The frame is demosaiced into its 0/45/90/135 channels (`urd.core.mosaic.demosaic`, the four
     sites registered to common points), which are simultaneous and need no alignment; mono
-    sensors give grey RGB. 8-bit codes follow ``transfer`` (`urd.images`).
+    sensors give grey RGB. 8-bit codes follow ``transfer`` (`urd.core.images`).
     """
-    from urd.mosaic import demosaic as run_demosaic
+    from urd.core.mosaic import demosaic as run_demosaic
 
     digest = sha256_file(path)
     owner = ds.shot_index().get(digest)

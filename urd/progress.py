@@ -1,60 +1,8 @@
-"""Progress reporting: one callback shape for every long step, one terminal renderer.
+"""Deprecated: moved to `urd.core.progress`; this module re-exports its public names for one release
+(urd 0.2 removes it). Import from `urd.core.progress` instead."""
 
-A workflow takes ``progress: Progress | None`` and calls ``progress(done, total, label)``
-with counts of its own units (tiles, shots, steps, patches). The CLI renders it with
-`TerminalProgress`: a bar with percentage, counts, elapsed time and ETA on stderr.
-"""
+import warnings
 
-from __future__ import annotations
+from urd.core.progress import *  # noqa: F401,F403 - the re-export is this module's whole job
 
-import sys
-import time
-from typing import Callable, TextIO
-
-Progress = Callable[[int, int, str], None]
-
-
-def _clock(seconds: float) -> str:
-    seconds = int(round(seconds))
-    return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}" if seconds >= 3600 else f"{seconds // 60}:{seconds % 60:02d}"
-
-
-class TerminalProgress:
-    """Render progress callbacks as one updating line (a new line when the label changes).
-
-    The ETA extrapolates the rate of the current label's units since its first call, counted
-    from the ``done`` of that call (a resumed run starts part-way: its earlier units took no time
-    here).
-    """
-
-    def __init__(self, stream: TextIO = sys.stderr, width: int = 24):
-        self.stream, self.width = stream, width
-        self.label: str | None = None
-        self.started = time.monotonic()
-        self.first_done = 0
-        self.last_draw = 0.0
-
-    def __call__(self, done: int, total: int, label: str) -> None:
-        now = time.monotonic()
-        if label != self.label:
-            if self.label is not None:
-                self.stream.write("\n")
-            self.label, self.started, self.first_done = label, now, done
-        elif done < total and now - self.last_draw < 0.2:
-            return
-        self.last_draw = now
-        total = max(total, 1)
-        frac = min(1.0, done / total)
-        elapsed = now - self.started
-        rate = (done - self.first_done) / elapsed if elapsed > 0 else 0.0
-        eta = "done" if frac >= 1 else (f"ETA {_clock((total - done) / rate)}" if rate > 0 else "ETA --:--")
-        bar = "#" * round(self.width * frac) + "-" * (self.width - round(self.width * frac))
-        self.stream.write(f"\r{label[:40]:<40} [{bar}] {100 * frac:3.0f}% {done}/{total} {_clock(elapsed)} {eta}  ")
-        self.stream.flush()
-
-    def close(self) -> None:
-        """End the current line."""
-        if self.label is not None:
-            self.stream.write("\n")
-            self.stream.flush()
-            self.label = None
+warnings.warn("urd.progress moved to urd.core.progress; urd 0.2 removes the old name", DeprecationWarning, stacklevel=2)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from urd.dataset import Dataset
+from urd.core.dataset import Dataset
 
 
 def report_text(root: Path) -> str:
@@ -51,7 +51,7 @@ def scene_view(scene, max_side: int = 2048):
     ``max_side`` px long."""
     import tifffile
 
-    from urd.images import u16_to_linear
+    from urd.core.images import u16_to_linear
     from urd.report_html import ResultView, SceneView
 
     status = scene.status()
@@ -89,7 +89,7 @@ def calibration_view(ds):
     from calib.polarizer import malus_fit
     from calib.store import sweep_intensities
     from separate.optics import stokes_matrix
-    from urd.dataset import Scene
+    from urd.core.dataset import Scene
     from urd.report_html import CalibrationView
 
     calibration = ds.calibration()

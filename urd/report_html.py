@@ -45,8 +45,8 @@ import cv2
 import numpy as np
 
 from separate.optics import aolp, dolp, stokes_from_images
-from urd.errors import DatasetError
-from urd.images import srgb_encode, to_display
+from urd.core.errors import DatasetError
+from urd.core.images import srgb_encode, to_display
 
 #: Percentile of S0 mapped to white (per scene).
 EXPOSURE_PERCENTILE = 99.5

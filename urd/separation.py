@@ -31,9 +31,9 @@ import tifffile
 
 from separate import metrics
 from separate.reference import Inspection, decide_side, field_at, inspect_stack
-from urd.dataset import STAGING_PREFIX, Scene, atomic_path
-from urd.errors import DatasetError
-from urd.images import Transfer, linear_to_u16, read_image, to_display
+from urd.core.dataset import STAGING_PREFIX, Scene, atomic_path
+from urd.core.errors import DatasetError
+from urd.core.images import Transfer, linear_to_u16, read_image, to_display
 
 FULL_SCALE = 2.0
 PREVIEW_SIDE = 2048
@@ -274,7 +274,9 @@ def separate_scene(scene: Scene, method: str, run, info: dict, force: bool = Fal
         scene.reload()
         if not force:
             scene.check_no_results(method)
-        return commit_scene(prepare_scene(scene, method, run, info, reference, maps), force)
+        separation = commit_scene(prepare_scene(scene, method, run, info, reference, maps), force)
+        scene.reload()                                          # commit_scene wrote through its own Scene
+    return separation
 
 
 def _maps(images: np.ndarray, angles: list[float], used: float | np.ndarray) -> dict[str, np.ndarray]:

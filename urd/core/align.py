@@ -1,0 +1,150 @@
+"""ECC alignment of the sequential shots of a scene to its first shot.
+
+Representation: the shots differ not only by camera shake but by the polarizer, which scales
+the reflection (and a little the transmission) differently in each shot. ECC maximizes a
+zero-mean normalized correlation, which is invariant to one global gain and offset but not to
+such local, multiplicative changes. urd therefore aligns band-passed log-luminance: the log
+turns a layer's gain change into an additive offset, and subtracting a wide Gaussian blur
+removes that offset locally, leaving the edges of both layers, which move together with the
+camera. Saturated pixels are masked.
+
+Coarse-to-fine: phase correlation gives a starting translation on the coarsest level (about
+256 px on the short side); ECC then refines on each pyramid level up to ``finest_level`` (0 is
+full resolution), each level starting from the previous warp.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+
+import cv2
+import numpy as np
+
+from urd.core.errors import AlignmentError
+
+
+class Motion(enum.Enum):
+    """Alignment models (OpenCV's motion types)."""
+
+    TRANSLATION = "translation"
+    EUCLIDEAN = "euclidean"
+    HOMOGRAPHY = "homography"
+
+    @property
+    def cv_type(self) -> int:
+        return {"translation": cv2.MOTION_TRANSLATION, "euclidean": cv2.MOTION_EUCLIDEAN,
+                "homography": cv2.MOTION_HOMOGRAPHY}[self.value]
+
+
+@dataclasses.dataclass
+class Alignment:
+    """Warp of one shot onto the reference: shot(W·x) ≈ reference(x), x in pixels."""
+
+    warp: np.ndarray
+    correlation: float
+    ok: bool
+    reason: str = ""
+
+    def record(self) -> dict:
+        return {"warp": np.round(self.warp, 6).tolist(), "ecc_correlation": round(self.correlation, 4),
+                "ok": self.ok, "reason": self.reason}
+
+
+def representation(image: np.ndarray, saturation: float = 0.98) -> tuple[np.ndarray, np.ndarray]:
+    """Band-passed log-luminance (float32 H×W) and a mask (uint8) of the unsaturated pixels away
+    from the border (2% of the long side), where a shaken shot has no valid content."""
+    lum = image.mean(axis=2) if image.ndim == 3 else image
+    log = np.log(np.maximum(lum, 1e-4)).astype(np.float32)
+    band = log - cv2.GaussianBlur(log, (0, 0), max(4.0, min(lum.shape) / 64))
+    mask = (image.max(axis=2) if image.ndim == 3 else image) < saturation
+    mask = cv2.erode(mask.astype(np.uint8), np.ones((3, 3), np.uint8))
+    margin = max(2, int(0.02 * max(lum.shape)))
+    mask[:margin], mask[-margin:], mask[:, :margin], mask[:, -margin:] = 0, 0, 0, 0
+    return band, mask
+
+
+def _scale_warp(warp: np.ndarray, factor: float) -> np.ndarray:
+    """Express a warp estimated at one pyramid level at a level ``factor`` times larger."""
+    out = warp.copy()
+    if out.shape[0] == 2:
+        out[:, 2] *= factor
+    else:
+        out[:2, 2] *= factor
+        out[2, :2] /= factor
+    return out
+
+
+def finest_level_for(shape: tuple[int, ...], max_pixels: float = 8e6) -> int:
+    """The finest pyramid level with at most ``max_pixels`` (0 up to 8 MP, 1 for 24 MP)."""
+    level = 0
+    while shape[0] * shape[1] / 4**level > max_pixels:
+        level += 1
+    return level
+
+
+def _reduce(image: np.ndarray, level: int) -> np.ndarray:
+    """Luminance (float32) reduced by 2**level with a Gaussian pyramid."""
+    lum = (image.mean(axis=2) if image.ndim == 3 else image).astype(np.float32)
+    for _ in range(level):
+        lum = cv2.pyrDown(lum)
+    return lum
+
+
+def align(reference: np.ndarray, shot: np.ndarray, motion: Motion = Motion.EUCLIDEAN,
+          finest_level: int | None = None, min_correlation: float = 0.6, max_shift_frac: float = 0.05,
+          max_rotation_deg: float = 5.0) -> Alignment:
+    """Estimate the warp of ``shot`` onto ``reference`` (both H×W×C linear float32).
+
+    ``finest_level`` is the last pyramid level refined (0 = full resolution); by default the
+    finest with at most 8 megapixels.
+
+    A result is not ``ok`` when ECC fails to converge, its correlation on the finest level
+    is below ``min_correlation``, or the warp is implausible for camera shake (shift above
+    ``max_shift_frac`` of the width, rotation above ``max_rotation_deg``).
+    """
+    if reference.shape != shot.shape:
+        raise AlignmentError(f"expected shots of equal size, got {reference.shape} and {shot.shape}")
+    if finest_level is None:
+        finest_level = finest_level_for(reference.shape)
+    ref_rep, ref_mask = representation(_reduce(reference, finest_level))
+    shot_rep, _ = representation(_reduce(shot, finest_level))
+    levels = max(finest_level, int(np.floor(np.log2(min(reference.shape[:2]) / 256))))
+    pyramid = [None] * finest_level + [(ref_rep, shot_rep, ref_mask)]
+    for _ in range(levels - finest_level):
+        r, s, m = pyramid[-1]
+        size = ((r.shape[1] + 1) // 2, (r.shape[0] + 1) // 2)
+        pyramid.append((cv2.pyrDown(r), cv2.pyrDown(s), cv2.resize(m, size, interpolation=cv2.INTER_NEAREST)))
+    warp = np.eye(3, dtype=np.float32) if motion is Motion.HOMOGRAPHY else np.eye(2, 3, dtype=np.float32)
+    coarse_ref, coarse_shot, _ = pyramid[levels]
+    window = cv2.createHanningWindow(coarse_ref.shape[::-1], cv2.CV_32F)
+    (dx, dy), _ = cv2.phaseCorrelate(coarse_ref, coarse_shot, window)
+    warp[0, 2], warp[1, 2] = dx, dy
+    correlation = 0.0
+    for level in range(levels, finest_level - 1, -1):
+        r, s, m = pyramid[level]
+        criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, *((300, 1e-8) if level == finest_level else (100, 1e-5)))
+        if level < levels:
+            warp = _scale_warp(warp, 2.0)
+        try:
+            correlation, warp = cv2.findTransformECC(r, s, warp, motion.cv_type, criteria, m, 3)
+        except cv2.error as exc:
+            return Alignment(_scale_warp(warp, 2.0**finest_level), 0.0, False, f"ECC did not converge at level {level}: {str(exc).splitlines()[-1]}")
+    warp = _scale_warp(warp, 2.0**finest_level)
+    width = reference.shape[1]
+    shift = float(np.hypot(warp[0, 2], warp[1, 2]))
+    rotation = float(np.degrees(np.arctan2(warp[1, 0], warp[0, 0])))
+    if correlation < min_correlation:
+        return Alignment(warp, float(correlation), False, f"ECC correlation {correlation:.2f} below {min_correlation}")
+    if shift > max_shift_frac * width or abs(rotation) > max_rotation_deg:
+        return Alignment(warp, float(correlation), False, f"implausible warp: shift {shift:.1f} px, rotation {rotation:.2f} deg")
+    return Alignment(warp, float(correlation), True)
+
+
+def apply_warp(shot: np.ndarray, warp: np.ndarray) -> np.ndarray:
+    """Resample ``shot`` onto the reference grid: out(x) = shot(W·x)."""
+    h, w = shot.shape[:2]
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    if warp.shape[0] == 3:
+        return cv2.warpPerspective(shot, warp, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+    return cv2.warpAffine(shot, warp, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)

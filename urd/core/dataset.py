@@ -1,0 +1,1284 @@
+"""The urd dataset: the one module that reads and writes manifests.
+
+Layout::
+
+    DATASET/
+      dataset.json              dataset manifest (schema "urd.core.dataset")
+      calibration.json          mounting offset of the polarizer with its history (schema
+                                "urd.calibration"); written by `Dataset.save_calibration`
+                                for `calib.store`
+      calibration/sweep_NN/     the sweeps behind it: scenes like any other (owned by
+                                `calib.store`, created by `Dataset.new_sweep`)
+      .urd.lock                 the lock file of commands that write (`Dataset.lock`)
+      scene_01/
+        scene.json              scene manifest (schema "urd.scene")
+        raw/                    the RAW shots as captured, e.g. shot_00_000.0deg.dng
+        aligned/                16-bit linear TIFF per shot, aligned to the first shot
+        truth/                  ground truth, for scenes from the virtual camera only; its
+                                truth.json, written last, holds each file's size and SHA-256
+        results/METHOD/         R.tiff, T.tiff (linear 16-bit), sRGB previews, extra maps
+
+Guarantees, all kept here:
+
+* **typed**: commands use `Dataset`, `Scene` and `Shot`; nothing else reads or writes a
+  manifest key. Every field is checked on load, with errors naming the file and the field;
+  newer schema versions are refused.
+* **atomic**: every write goes to a temporary file that is renamed into place; new outputs of
+  a re-run (``--redo``, ``--force``) are staged beside the old ones and the manifest is the
+  commit point (`Scene._commit`): it names the old files, then the staged new ones, then the
+  new ones under their final names, never a missing file; old files go only after that. A run
+  killed in between is rolled forward when the dataset's lock is next taken (`Dataset.recover`).
+* **confined**: file paths in a manifest are relative and stay inside their scene folder.
+* **verified**: files are checked against their size and SHA-256 before use (a cache keyed by
+  size, mtime, ctime and inode avoids re-hashing unchanged files); `Scene.verify` hashes
+  everything in full, ground truth included.
+* **locked**: commands that write take the dataset's lock; a second one is told who holds it.
+* **idempotent**: `Dataset.shot_index` maps RAW content hashes to scenes, so ingest skips
+  shots it already has.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import contextlib
+import copy
+import dataclasses
+import datetime as _dt
+import fcntl
+import hashlib
+import json
+import math
+import os
+import re
+import shutil
+import tempfile
+from pathlib import Path, PurePosixPath
+from typing import Any, Callable, Iterator
+
+from urd.core import __version__
+from urd.core.errors import DatasetBusyError, DatasetError, ManifestError, UrdError
+
+SCHEMA_VERSION = 1
+DATASET_MANIFEST = "dataset.json"
+SCENE_MANIFEST = "scene.json"
+CALIBRATION_FILE = "calibration.json"
+LOCK_FILE = ".urd.lock"
+HASH_CACHE = ".urd-hashes.json"
+TRUTH_FILE = "truth.json"
+STAGING_PREFIX = ".staging-"
+MAX_DEPTH = 32                          # nesting levels a manifest may have (urd writes at most 5)
+MAX_ANGLE_DEG = 720.0                   # largest |angle| a manifest may hold (deg): two turns
+TEMPORARY = re.compile(r"^\..+(\.tmp(\.[^.]+)?|\.\d+\.link)$")   # `atomic_path` and `_place` leftovers
+SCENE_NAME = re.compile(r"^scene_(\d{2,})$")
+SHA256 = re.compile(r"^[0-9a-f]{64}$")
+
+
+def now_iso() -> str:
+    """The current UTC time as ISO 8601 text."""
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds")
+
+
+def sha256_file(path: Path) -> str:
+    """SHA-256 hex digest of a file's bytes."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+# ---------------------------------------------------------------- atomic writes
+
+
+@contextlib.contextmanager
+def atomic_path(path: Path, overwrite: bool = False) -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; on success rename it onto ``path``.
+
+    On any exception the temporary file is removed and ``path`` is untouched. Raises
+    DatasetError if ``path`` exists and ``overwrite`` is false.
+    """
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise DatasetError(f"refusing to overwrite existing file {path}")
+    try:
+        fd, tmp_name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+    except OSError as exc:
+        raise DatasetError(f"cannot write in {path.parent}: {exc.strerror or exc}") from exc
+    os.close(fd)
+    tmp = Path(tmp_name)
+    try:
+        os.chmod(tmp, 0o644)
+        yield tmp
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+@contextlib.contextmanager
+def pid_lock(path: Path, busy: Callable[[str], Exception], unopenable: Callable[[OSError], Exception]) -> Iterator[None]:
+    """Hold an exclusive lock on the file ``path`` (created if missing), with this process's
+    pid written in it while held. Raises ``busy(holder pid)`` when another open of it holds the
+    lock, ``unopenable(error)`` when it cannot be opened."""
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as exc:
+        raise unopenable(exc) from exc
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise busy(os.pread(fd, 64, 0).decode(errors="replace").strip() or "unknown") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        try:
+            yield
+        finally:
+            os.ftruncate(fd, 0)
+    finally:
+        os.close(fd)
+
+
+def write_bytes_atomic(path: Path, data: bytes, overwrite: bool = False) -> None:
+    """Write ``data`` to ``path`` atomically (see `atomic_path`)."""
+    with atomic_path(path, overwrite) as tmp:
+        try:
+            tmp.write_bytes(data)
+        except OSError as exc:
+            raise DatasetError(f"cannot write {path}: {exc.strerror or exc}") from exc
+
+
+def write_json_atomic(path: Path, record: dict, overwrite: bool = True) -> None:
+    """Write a JSON record atomically, replacing the old version only once complete."""
+    write_bytes_atomic(path, (json.dumps(record, indent=2) + "\n").encode(), overwrite)
+
+
+def read_json(path: Path) -> Any:
+    """Read a JSON file; ManifestError when missing, unparsable, or nested deeper than
+    `MAX_DEPTH` levels (no urd manifest is; such a file would overflow Python's stack)."""
+    try:
+        record = json.loads(Path(path).read_text())
+    except FileNotFoundError as exc:
+        raise ManifestError(f"{path}: manifest not found") from exc
+    except RecursionError:
+        record = None
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise ManifestError(f"{path}: not valid JSON ({exc})") from exc
+    if record is None or not _nesting_within(record, MAX_DEPTH):
+        raise ManifestError(f"{path}: nested more than {MAX_DEPTH} levels deep, which no urd manifest is "
+                            "(damaged or not written by urd); restore it from a backup")
+    return record
+
+
+def _nesting_within(value: Any, limit: int) -> bool:
+    """True when lists and objects in ``value`` nest at most ``limit`` levels (no recursion)."""
+    pending = [(value, 1)]
+    while pending:
+        item, depth = pending.pop()
+        if isinstance(item, (dict, list)):
+            if depth > limit:
+                return False
+            pending.extend((child, depth + 1) for child in (item.values() if isinstance(item, dict) else item))
+    return True
+
+
+# ---------------------------------------------------------------- validation
+
+NUMBER = (int, float)
+OPTIONAL_NUMBER = (int, float, type(None))
+
+
+def _check(record: Any, where: str, required: dict[str, Any], optional: dict[str, Any] | None = None) -> dict:
+    """Check an object's fields by type; ManifestError naming ``where`` and the field."""
+    if not isinstance(record, dict):
+        raise ManifestError(f"{where}: expected an object, got {type(record).__name__}")
+    for key, kind in {**required, **(optional or {})}.items():
+        if key not in record:
+            if key in required:
+                raise ManifestError(f"{where}: missing field '{key}'")
+            continue
+        value = record[key]
+        if not isinstance(value, kind) or (isinstance(value, bool) and bool not in _as_tuple(kind)):
+            raise ManifestError(f"{where}: field '{key}' has type {type(value).__name__}, "
+                                f"expected {' or '.join(t.__name__ for t in _as_tuple(kind))}")
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ManifestError(f"{where}: field '{key}' is {value}, expected a finite number")
+    return record
+
+
+def _as_tuple(kind: Any) -> tuple:
+    return kind if isinstance(kind, tuple) else (kind,)
+
+
+def _check_numbers(values: Any, where: str, limit: float = math.inf) -> None:
+    """A list of finite numbers of magnitude at most ``limit``; ManifestError otherwise."""
+    if not isinstance(values, list) or not all(isinstance(v, NUMBER) and not isinstance(v, bool) for v in values):
+        raise ManifestError(f"{where}: expected a list of numbers, got {values!r:.80}")
+    for i, value in enumerate(values):
+        if not (math.isfinite(value) and abs(value) <= limit):
+            raise ManifestError(f"{where}[{i}]: is {value!r:.40}, expected a finite number"
+                                + (f" within ±{limit:g}" if math.isfinite(limit) else ""))
+
+
+def _check_angles(record: dict, where: str, keys: tuple[str, ...]) -> None:
+    """The angle fields ``keys`` of ``record`` (deg; absent or None allowed) lie within ±`MAX_ANGLE_DEG`."""
+    for key in keys:
+        value = record.get(key)
+        if value is not None and not abs(value) <= MAX_ANGLE_DEG:
+            raise ManifestError(f"{where}: field '{key}' is {value!r:.40} deg, expected an angle within ±{MAX_ANGLE_DEG:g} deg")
+
+
+def _check_schema(record: dict, where: str, schema: str) -> None:
+    if record["schema"] != schema:
+        raise ManifestError(f"{where}: field 'schema' is {record['schema']!r}, expected {schema!r}")
+    version = record["schema_version"]
+    if version < 1:
+        raise ManifestError(f"{where}: field 'schema_version' is {version}, expected 1 to {SCHEMA_VERSION}")
+    if version > SCHEMA_VERSION:
+        raise ManifestError(f"{where}: field 'schema_version' is {version}, written by a newer urd; "
+                            f"this urd {__version__} reads up to {SCHEMA_VERSION}: upgrade urd")
+
+
+def confined_path(base: Path, relative: Any, where: str) -> Path:
+    """``base / relative`` for a manifest path that stays inside ``base``; ManifestError for an
+    absolute path, a ``..`` component, or a link leading outside."""
+    if not isinstance(relative, str) or not relative:
+        raise ManifestError(f"{where}: expected a relative file path, got {relative!r}")
+    pure = PurePosixPath(relative)
+    if pure.is_absolute() or ".." in pure.parts or "\\" in relative or relative.startswith("~"):
+        raise ManifestError(f"{where}: file path {relative!r} leaves the scene folder "
+                            "(manifest paths must be relative, without '..')")
+    path = Path(base) / pure
+    if not path.resolve().is_relative_to(Path(base).resolve()):
+        raise ManifestError(f"{where}: file path {relative!r} is a link that leads outside the scene folder")
+    return path
+
+
+def _check_file(record: Any, where: str, base: Path) -> None:
+    _check(record, where, {"file": str, "size": int, "sha256": str})
+    confined_path(base, record["file"], f"{where}.file")
+    if not SHA256.match(record["sha256"]):
+        raise ManifestError(f"{where}: field 'sha256' is not a SHA-256 hex digest")
+    if record["size"] < 0:
+        raise ManifestError(f"{where}: field 'size' is negative")
+
+
+SHOT_REQUIRED = {"index": int, "angle_commanded_deg": NUMBER, "angle_measured_deg": OPTIONAL_NUMBER,
+                 "angle_calibrated_deg": OPTIONAL_NUMBER, "file": str, "size": int, "sha256": str, "time": str}
+SHOT_OPTIONAL = {"stage_position_deg": OPTIONAL_NUMBER, "camera": (dict, type(None))}
+SHOT_ANGLES = ("angle_commanded_deg", "angle_measured_deg", "angle_calibrated_deg", "stage_position_deg")
+
+
+def validate_scene(record: Any, where: str, base: Path) -> dict:
+    """Check every field of a scene manifest; ManifestError naming file and field."""
+    _check(record, where, {"schema": str, "schema_version": int, "name": str, "created": str, "source": str,
+                           "capture": dict, "shots": list, "provenance": list},
+           {"ingest": dict, "results": dict, "calibration": dict, "swap": dict})
+    _check_schema(record, where, "urd.scene")
+    capture = _check(record["capture"], f"{where}: capture", {}, {"angles_deg": list, "complete": bool,
+                                                                   "offset_deg": NUMBER, "tolerance_deg": NUMBER})
+    if "angles_deg" in capture:
+        _check_numbers(capture["angles_deg"], f"{where}: capture.angles_deg", MAX_ANGLE_DEG)
+    _check_angles(capture, f"{where}: capture", ("offset_deg",))
+    indices = []
+    for i, shot in enumerate(record["shots"]):
+        _check(shot, f"{where}: shots[{i}]", SHOT_REQUIRED, SHOT_OPTIONAL)
+        _check_file(shot, f"{where}: shots[{i}]", base)
+        _check_angles(shot, f"{where}: shots[{i}]", SHOT_ANGLES)
+        if shot["index"] < 0:
+            raise ManifestError(f"{where}: shots[{i}]: field 'index' is {shot['index']}, expected 0 or more")
+        indices.append(shot["index"])
+    if len(set(indices)) != len(indices):
+        raise ManifestError(f"{where}: shots: duplicate shot indices {sorted(indices)}")
+    for i, entry in enumerate(record["provenance"]):
+        _check(entry, f"{where}: provenance[{i}]", {"step": str, "time": str, "urd_version": str, "parameters": dict})
+    if "ingest" in record:
+        ingest = _check(record["ingest"], f"{where}: ingest", {"time": str, "ok": bool, "options": dict,
+                                                              "angles_deg": list, "aligned": list},
+                        {"alignment": (list, str), "error": str, "shot_hashes": list})
+        _check_numbers(ingest["angles_deg"], f"{where}: ingest.angles_deg", MAX_ANGLE_DEG)
+        for i, entry in enumerate(ingest["aligned"]):
+            _check_file(entry, f"{where}: ingest.aligned[{i}]", base)
+        if ingest["ok"] and len(ingest["aligned"]) < 3:
+            raise ManifestError(f"{where}: ingest.aligned: expected at least 3 aligned shots, got {len(ingest['aligned'])}")
+        if not ingest["ok"] and "error" not in ingest:
+            raise ManifestError(f"{where}: ingest: missing field 'error' of a failed ingest")
+    for method, entry in record.get("results", {}).items():
+        _check(entry, f"{where}: results.{method}", {"time": str, "method": str, "files": list},
+               {"angles_deg": list, "parameters": dict, "truth_metrics": (dict, type(None)), "stale": str})
+        if "angles_deg" in entry:
+            _check_numbers(entry["angles_deg"], f"{where}: results.{method}.angles_deg", MAX_ANGLE_DEG)
+        for i, f in enumerate(entry["files"]):
+            _check_file(f, f"{where}: results.{method}.files[{i}]", base)
+    if "calibration" in record:
+        calib = _check(record["calibration"], f"{where}: calibration", {"time": str, "applied": bool, "errors_deg": list,
+                                                                        "uncertainty_deg": list})
+        _check_numbers(calib["errors_deg"], f"{where}: calibration.errors_deg", MAX_ANGLE_DEG)
+        _check_numbers(calib["uncertainty_deg"], f"{where}: calibration.uncertainty_deg")
+    if "swap" in record:
+        swap = _check(record["swap"], f"{where}: swap", {"remove": list})
+        for i, name in enumerate(swap["remove"]):
+            confined_path(base, name, f"{where}: swap.remove[{i}]")
+    return record
+
+
+def validate_dataset(record: Any, where: str) -> dict:
+    """Check a dataset manifest; ManifestError naming file and field."""
+    _check(record, where, {"schema": str, "schema_version": int, "created": str, "urd_version": str},
+           {"description": str})
+    _check_schema(record, where, "urd.core.dataset")
+    return record
+
+
+def validate_calibration(record: Any, where: str) -> dict:
+    """Check a calibration record (``calibration.json``); ManifestError naming file and field."""
+    fields = {"schema": str, "schema_version": int, "time": str, "offset_deg": NUMBER, "uncertainty_deg": NUMBER,
+              "target_angle_deg": NUMBER, "history": list}
+    _check(record, where, fields, {"modulation": NUMBER, "sweep": str, "residual_rms": NUMBER})
+    _check_schema(record, where, "urd.calibration")
+    _check_angles(record, where, ("offset_deg", "target_angle_deg"))
+    for i, old in enumerate(record["history"]):
+        _check(old, f"{where}: history[{i}]", {"time": str, "offset_deg": NUMBER})
+    return record
+
+
+def provenance(step: str, parameters: dict) -> dict:
+    """A provenance entry: which step ran, when, with which urd version and parameters."""
+    return {"step": step, "time": now_iso(), "urd_version": __version__, "parameters": parameters}
+
+
+def _file_records(record: dict) -> list[dict]:
+    """Every file record a scene manifest names (shots, aligned stack, results), the live dicts."""
+    files = list(record["shots"]) + list(record.get("ingest", {}).get("aligned", []))
+    return files + [rec for entry in record.get("results", {}).values() for rec in entry["files"]]
+
+
+def _final_name(name: str) -> str:
+    """The final name of a manifest file name: ``.staging-XXXX/aligned/shot_00.tiff`` →
+    ``aligned/shot_00.tiff`` (a staged file of a committed swap); other names are final."""
+    parts = PurePosixPath(name).parts
+    return PurePosixPath(*parts[1:]).as_posix() if parts[0].startswith(STAGING_PREFIX) and len(parts) > 1 else name
+
+
+def _path_chain(base: Path, relative: str) -> list[Path]:
+    """``base/a``, ``base/a/b``, ... ``base/relative``: each path on the way to a relative name."""
+    parts = PurePosixPath(relative).parts
+    return [Path(base).joinpath(*parts[: i + 1]) for i in range(len(parts))]
+
+
+def _place(source: Path, target: Path) -> None:
+    """Give ``target`` the content of ``source`` in one step (a hard link, else a copy, renamed
+    onto it); ``source`` stays."""
+    link = target.with_name(f".{target.name}.{os.getpid()}.link")
+    link.unlink(missing_ok=True)
+    try:
+        os.link(source, link)
+    except OSError:
+        shutil.copy2(source, link)
+    try:
+        os.replace(link, target)
+    except BaseException:
+        link.unlink(missing_ok=True)
+        raise
+
+
+def write_truth_record(folder: Path, info: dict) -> None:
+    """Write a ground-truth folder's ``truth.json``: ``info`` (gain, camera, ...) and the size
+    and SHA-256 of every other file in ``folder``. Write it last: its presence marks the folder
+    complete, and `Scene.verify` checks the files against it."""
+    folder = Path(folder)
+    files = [{"file": p.name, "size": p.stat().st_size, "sha256": sha256_file(p)}
+             for p in sorted(folder.iterdir()) if p.is_file() and p.name != TRUTH_FILE and not p.name.startswith(".")]
+    write_json_atomic(folder / TRUTH_FILE, {**info, "files": files})
+
+
+# ---------------------------------------------------------------- shots and status
+
+
+@dataclasses.dataclass(frozen=True)
+class Shot:
+    """One shot of a scene. Angles in degrees (image-plane convention, see README)."""
+
+    index: int
+    file: str
+    size: int
+    sha256: str
+    time: str
+    angle_commanded_deg: float
+    angle_measured_deg: float | None = None
+    angle_calibrated_deg: float | None = None
+    stage_position_deg: float | None = None
+    camera: dict | None = None
+
+    @property
+    def angle_deg(self) -> float:
+        """Best known polarizer angle: calibrated, else measured, else commanded (deg)."""
+        for angle in (self.angle_calibrated_deg, self.angle_measured_deg, self.angle_commanded_deg):
+            if angle is not None:
+                return float(angle)
+        raise AssertionError("a shot always has a commanded angle")
+
+    def record(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneStatus:
+    """Where a scene stands. ``state``: broken, incomplete, captured, alignment failed, ingested."""
+
+    name: str
+    state: str
+    shots: int
+    expected: int
+    angles_deg: list[float]
+    methods: list[str]
+    calibrated: bool = False
+    problem: str | None = None
+    stale: tuple[str, ...] = ()
+
+    def describe(self) -> str:
+        """One line for a terminal."""
+        if self.state == "broken":
+            return f"{self.name}: BROKEN ({self.problem})"
+        angles = ",".join(f"{a:g}" for a in self.angles_deg)
+        parts = [f"{self.name}: {self.shots} shots at {angles} deg"]
+        if self.state == "incomplete":
+            parts.append(f"INCOMPLETE ({self.shots} of {self.expected} shots; resume the capture)")
+        else:
+            parts.append({"captured": "not ingested", "ingested": "aligned",
+                          "alignment failed": "ALIGNMENT FAILED"}[self.state])
+        parts.append("angles calibrated" if self.calibrated else "nominal angles")
+        methods = [f"{m} (STALE: from an earlier alignment; separate again with --force)" if m in self.stale else m
+                   for m in self.methods]
+        parts.append(", ".join(methods) if methods else "no results")
+        return ", ".join(parts)
+
+
+@dataclasses.dataclass(frozen=True)
+class Result:
+    """A method's stored results: files by name (``R.tiff`` → path), the reference angle it was
+    given (deg), warnings about its input (and that the results are stale, computed from an
+    earlier alignment, when they are), the TIFF full scale, PSNR/SSIM against ground truth
+    (virtual scenes), and the rest of its record (parameters, weights, time) as ``description``."""
+
+    method: str
+    files: dict[str, Path]
+    reference_deg: float | None
+    warnings: list[str]
+    full_scale: float
+    truth_metrics: dict | None
+    description: dict
+
+
+@dataclasses.dataclass(frozen=True)
+class OffsetCalibration:
+    """The polarizer's mounting offset (deg) with its uncertainty, the sweep it was fitted to
+    (a scene folder, or None), and when."""
+
+    offset_deg: float
+    uncertainty_deg: float
+    modulation: float | None
+    target_angle_deg: float
+    time: str
+    sweep: Path | None
+    earlier: int
+
+
+# ---------------------------------------------------------------- hash cache
+
+
+def _stamp(path: Path) -> list[int]:
+    """What changes whenever a file's bytes can have changed: size, mtime and ctime (ns), inode
+    (ctime cannot be set back, and a copied or restored file gets a new inode)."""
+    stat = path.stat()
+    return [stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns, stat.st_ino]
+
+
+def _hash(scene_dir: Path, path: Path, cache: dict, full: bool) -> str:
+    """SHA-256 of ``path``, taken from ``cache`` when its `_stamp` is unchanged (never with
+    ``full``); the cache entry is refreshed from what was hashed."""
+    key = path.relative_to(scene_dir).as_posix()
+    stamp = _stamp(path)
+    hit = cache.get(key)
+    if not full and isinstance(hit, list) and len(hit) == 5 and hit[:4] == stamp and isinstance(hit[4], str):
+        return hit[4]
+    digest = sha256_file(path)
+    if _stamp(path) == stamp:
+        cache[key] = stamp + [digest]
+    else:
+        cache.pop(key, None)
+    return digest
+
+
+# ---------------------------------------------------------------- scene
+
+
+class Scene:
+    """One scene folder and its manifest. Construct through `Dataset` (or ``Scene(path)`` for
+    a scene folder given directly); every change is saved atomically at once."""
+
+    def __init__(self, path: Path):
+        self.path = Path(path)
+        self.name = self.path.name
+        self._record: dict | None = None
+
+    # -- reading
+
+    @property
+    def manifest_path(self) -> Path:
+        return self.path / SCENE_MANIFEST
+
+    def exists(self) -> bool:
+        return self.manifest_path.is_file()
+
+    def _data(self) -> dict:
+        if self._record is None:
+            self._record = validate_scene(read_json(self.manifest_path), str(self.manifest_path), self.path)
+        return self._record
+
+    def reload(self) -> "Scene":
+        """Forget the cached manifest (another process may have changed it)."""
+        self._record = None
+        return self
+
+    def load(self, verify: bool = True) -> dict:
+        """A validated copy of the manifest, for inspection; with ``verify`` the RAW shots are
+        checked against their hashes first."""
+        self.reload()
+        if verify:
+            self.check_files(self._data()["shots"])
+        return copy.deepcopy(self._data())
+
+    def shots(self) -> list[Shot]:
+        """The recorded shots, in index order."""
+        known = {f.name for f in dataclasses.fields(Shot)}
+        return [Shot(**{k: v for k, v in s.items() if k in known}) for s in sorted(self._data()["shots"], key=lambda s: s["index"])]
+
+    def angles_deg(self) -> list[float]:
+        """Best known polarizer angle of each shot (deg): calibrated, else measured, else commanded."""
+        return [shot.angle_deg for shot in self.shots()]
+
+    def uncalibrated_angles_deg(self) -> list[float]:
+        """Each shot's measured, else commanded, angle (deg): the base of a calibration."""
+        return [dataclasses.replace(s, angle_calibrated_deg=None).angle_deg for s in self.shots()]
+
+    def capture_angles_deg(self) -> list[float] | None:
+        """The angles the capture plan asked for (deg), or None for ingested RAW folders."""
+        angles = self._data()["capture"].get("angles_deg")
+        return None if angles is None else [float(a) for a in angles]
+
+    def capture_settings(self) -> tuple[float, float]:
+        """Mounting offset and read-back tolerance (deg) the capture runs with, for resuming it
+        the same way."""
+        capture = self._data()["capture"]
+        return float(capture.get("offset_deg", 0.0)), float(capture.get("tolerance_deg", 0.5))
+
+    def is_complete(self) -> bool:
+        """True when every planned shot was taken (always for ingested RAW folders)."""
+        return bool(self._data()["capture"].get("complete", True))
+
+    def raw_paths(self) -> list[Path]:
+        """Absolute paths of the RAW shots, in shot order (confined to the scene folder)."""
+        return [confined_path(self.path, s.file, str(self.manifest_path)) for s in self.shots()]
+
+    def raw_hashes(self) -> set[str]:
+        """Content hashes of the RAW files this scene holds (or was ingested from)."""
+        data = self._data()
+        return {s["sha256"] for s in data["shots"]} | set(data.get("ingest", {}).get("shot_hashes", []))
+
+    def ingest_outcome(self) -> tuple[bool, str | None] | None:
+        """(aligned?, the error when not) of the last ingest, or None before any."""
+        ingest = self._data().get("ingest")
+        return None if ingest is None else (ingest["ok"], ingest.get("error"))
+
+    def is_ingested(self) -> bool:
+        return "ingest" in self._data()
+
+    def methods(self) -> list[str]:
+        """Methods whose results the scene holds."""
+        return sorted(self._data().get("results", {}))
+
+    def result(self, method: str, verify: bool = True) -> Result:
+        """A method's results; with ``verify`` its files are checked against their hashes."""
+        entry = self._data().get("results", {}).get(method)
+        if entry is None:
+            raise DatasetError(f"{self.name} has no results of {method!r} (results: {self.methods()})")
+        if verify:
+            self.check_files(entry["files"])
+        files = {Path(f["file"]).name: confined_path(self.path, f["file"], str(self.manifest_path)) for f in entry["files"]}
+        known = ("files", "reference_deg", "warnings", "full_scale", "truth_metrics", "stale")
+        warnings = list(entry.get("warnings", [])) + ([f"STALE: {entry['stale']}"] if "stale" in entry else [])
+        return Result(method, files, entry.get("reference_deg"), warnings,
+                      float(entry.get("full_scale", 2.0)), copy.deepcopy(entry.get("truth_metrics")),
+                      {k: copy.deepcopy(v) for k, v in entry.items() if k not in known})
+
+    def shot_errors_deg(self) -> list[float] | None:
+        """Per-shot angle errors (deg) from `urd calibrate shots`, or None."""
+        calibration = self._data().get("calibration")
+        return None if calibration is None else [float(e) for e in calibration["errors_deg"]]
+
+    def provenance(self) -> list[dict]:
+        return copy.deepcopy(self._data()["provenance"])
+
+    def truth_dir(self) -> Path:
+        """Folder of the virtual camera's ground truth (may not exist)."""
+        return self.path / "truth"
+
+    def results_dir(self, method: str) -> Path:
+        return self.path / "results" / method
+
+    def lock(self) -> contextlib.AbstractContextManager:
+        """The write lock of the dataset holding this scene (see `Dataset.lock`)."""
+        for root in (self.path.parent, self.path.parent.parent):
+            if (root / DATASET_MANIFEST).is_file():
+                return Dataset(root).lock()
+        raise DatasetError(f"{self.path} is not inside an urd dataset (no {DATASET_MANIFEST} above it)")
+
+    def status(self) -> SceneStatus:
+        """Where the scene stands; a scene whose manifest cannot be read is 'broken'."""
+        try:
+            data = self._data()
+        except (ManifestError, OSError) as exc:
+            return SceneStatus(self.name, "broken", 0, 0, [], [], problem=str(exc))
+        shots = self.shots()
+        planned = self.capture_angles_deg()
+        expected = len(planned) if planned else len(shots)
+        if not self.is_complete():
+            state = "incomplete"
+        elif "ingest" not in data:
+            state = "captured"
+        else:
+            state = "ingested" if data["ingest"]["ok"] else "alignment failed"
+        calibrated = bool(data.get("calibration", {}).get("applied"))
+        results = data.get("results", {})
+        return SceneStatus(self.name, state, len(shots), expected, [s.angle_commanded_deg for s in shots],
+                           sorted(results), calibrated, stale=tuple(sorted(m for m, e in results.items() if "stale" in e)))
+
+    # -- integrity
+
+    def _load_cache(self) -> dict:
+        """The hash cache (`_hash`); empty when missing or unreadable."""
+        try:
+            cache = read_json(self.path / HASH_CACHE)
+        except (ManifestError, OSError):
+            return {}
+        return cache if isinstance(cache, dict) else {}
+
+    def _save_cache(self, cache: dict) -> None:
+        with contextlib.suppress(DatasetError, OSError):          # a read-only dataset still verifies
+            write_json_atomic(self.path / HASH_CACHE, cache)
+
+    def _check_intact(self, rec: dict, cache: dict, full: bool, hint: bool = True) -> None:
+        """ManifestError unless the file of ``rec`` exists inside the scene with its size and SHA-256
+        (``hint``: the message suggests 'urd verify', which `verify` itself does not)."""
+        path = confined_path(self.path, rec["file"], str(self.manifest_path))
+        if not path.is_file():
+            raise ManifestError(f"{path}: listed in the manifest but missing")
+        if path.stat().st_size != rec["size"] or _hash(self.path, path, cache, full) != rec["sha256"]:
+            raise ManifestError(f"{path}: SHA-256 or size does not match the manifest (corrupted or changed)"
+                                + ("; run 'urd verify' to check the whole dataset" if hint else ""))
+
+    def check_files(self, records: list[dict], full: bool = False) -> None:
+        """Every listed file exists inside the scene with its recorded size and SHA-256;
+        ManifestError otherwise. Unchanged files are recognized by their `_stamp` unless
+        ``full``, which hashes every byte."""
+        cache = self._load_cache()
+        before = copy.deepcopy(cache)
+        try:
+            for rec in records:
+                self._check_intact(rec, cache, full)
+        finally:
+            if cache != before:
+                self._save_cache(cache)
+
+    def verify(self) -> list[str]:
+        """Problems of this scene (empty when every listed file is present and intact), every
+        file hashed in full: shots, aligned stack, results and the virtual camera's ground truth."""
+        try:
+            data = self.reload()._data()
+        except (ManifestError, OSError) as exc:
+            return [str(exc)]
+        records = data["shots"] + data.get("ingest", {}).get("aligned", [])
+        records += [rec for entry in data.get("results", {}).values() for rec in entry["files"]]
+        problems = []
+        try:
+            records += self._truth_records()
+        except (ManifestError, DatasetError) as exc:
+            problems.append(str(exc))
+        cache = {}
+        for rec in records:
+            try:
+                self._check_intact(rec, cache, full=True, hint=False)
+            except (ManifestError, OSError) as exc:
+                problems.append(str(exc))
+        self._save_cache(cache)
+        return problems
+
+    def _truth_records(self) -> list[dict]:
+        """File records (relative to the scene) of the ground truth that ``truth/truth.json``
+        lists; empty without a truth folder or for one of an older urd (no file list).
+        DatasetError for a truth folder a stopped capture left incomplete."""
+        folder = self.truth_dir()
+        if not folder.is_dir():
+            return []
+        where = folder / TRUTH_FILE
+        try:
+            record = read_json(where)
+        except ManifestError as exc:
+            raise DatasetError(f"{folder}: incomplete ground truth ({exc}; a capture was stopped while writing it); "
+                               f"move the folder away and resume the capture with 'urd capture --scene {self.name}' "
+                               "to write it again") from exc
+        _check(record, str(where), {}, {"files": list})
+        records = []
+        for i, rec in enumerate(record.get("files", [])):
+            _check_file(rec, f"{where}: files[{i}]", folder)
+            records.append({**rec, "file": f"{folder.name}/{rec['file']}"})
+        return records
+
+    def truth_files(self) -> dict[str, Path] | None:
+        """The virtual camera's ground truth files by name (``R_obs.tiff`` → path), checked
+        against the sizes and SHA-256 in ``truth/truth.json`` (not those of an older urd, which
+        wrote none); None when the scene has no ground truth. ManifestError for a damaged file,
+        DatasetError for an incomplete truth folder."""
+        records = self._truth_records()
+        if not self.truth_dir().is_dir():
+            return None
+        self.check_files(records)
+        if records:
+            return {Path(rec["file"]).name: self.path / rec["file"] for rec in records}
+        return {p.name: p for p in sorted(self.truth_dir().glob("*.tiff"))}
+
+    def load_stack(self, codes: bool = False) -> tuple["Any", list[float]]:
+        """The aligned stack (N, H, W, 3) float32 linear, hash-verified, and its best known
+        polarizer angles (deg); with ``codes`` the stored uint16 codes (65535 = 1.0; half the
+        memory, `separate.optics.code_scale`)."""
+        import numpy as np
+        import tifffile
+
+        from urd.core.images import u16_to_linear
+
+        ingest = self._data().get("ingest")
+        if not self.is_complete():
+            raise DatasetError(f"{self.name} is an incomplete capture ({len(self.shots())} of "
+                               f"{len(self.capture_angles_deg() or [])} shots); resume it with urd capture --scene {self.name}")
+        if not ingest:
+            raise DatasetError(f"{self.name} is not ingested yet; run: urd ingest {self.path}")
+        if not ingest["ok"]:
+            raise DatasetError(f"{self.name}: {ingest['error']}")
+        self.check_files(ingest["aligned"])
+        paths = [confined_path(self.path, f["file"], str(self.manifest_path)) for f in ingest["aligned"]]
+        images = None
+        with concurrent.futures.ThreadPoolExecutor(max_workers=2) as pool:     # the next file decodes meanwhile
+            for i, stored in enumerate(pool.map(tifffile.imread, paths)):
+                if images is None:
+                    dtype = np.uint16 if codes else np.float32
+                    images = np.empty((len(paths),) + stored.shape, dtype)    # filled in place: no 2x peak
+                if codes:
+                    images[i] = stored
+                else:
+                    u16_to_linear(stored, out=images[i])
+                del stored
+        return images, self.angles_deg()
+
+    # -- writing
+
+    def _save(self) -> None:
+        validate_scene(self._record, str(self.manifest_path), self.path)
+        write_json_atomic(self.manifest_path, self._record)
+
+    def file_record(self, path: Path) -> dict:
+        """Size and SHA-256 of a file inside the scene, with its path relative to the scene."""
+        path = Path(path)
+        return {"file": path.relative_to(self.path).as_posix(), "size": path.stat().st_size, "sha256": sha256_file(path)}
+
+    def add_shot(self, index: int, path: Path, angle_commanded_deg: float, time: str | None = None,
+                 angle_measured_deg: float | None = None, stage_position_deg: float | None = None,
+                 camera: dict | None = None) -> Shot:
+        """Record a shot whose file is already in place inside the scene (hashed here)."""
+        data = self._data()
+        if any(s["index"] == index for s in data["shots"]):
+            raise DatasetError(f"{self.name} already has shot {index}")
+        shot = Shot(index=index, angle_commanded_deg=float(angle_commanded_deg), angle_measured_deg=angle_measured_deg,
+                    angle_calibrated_deg=None, stage_position_deg=stage_position_deg, time=time or now_iso(),
+                    camera=camera, **self.file_record(path))
+        data["shots"].append(shot.record())
+        data["shots"].sort(key=lambda s: s["index"])
+        self._save()
+        return shot
+
+    def mark_complete(self, parameters: dict) -> None:
+        """The capture has taken every planned shot."""
+        data = self._data()
+        data["capture"].update(complete=True, finished=now_iso())
+        data["provenance"].append(provenance("capture", parameters))
+        self._save()
+
+    def note(self, step: str, parameters: dict) -> None:
+        """Append a provenance entry and save."""
+        self._data()["provenance"].append(provenance(step, parameters))
+        self._save()
+
+    @contextlib.contextmanager
+    def staging(self) -> Iterator[Path]:
+        """A hidden folder inside the scene for outputs being computed; removed afterwards
+        (files handed to `set_ingest` / `add_result` / ... have been moved out of it)."""
+        folder = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=self.path))
+        try:
+            yield folder
+        finally:
+            shutil.rmtree(folder, ignore_errors=True)
+
+    def _output_path(self, relative: str) -> Path:
+        """The final path of an output named ``relative`` (to the scene); DatasetError, before
+        anything changes, when it would leave the scene or a file stands where a folder must be."""
+        try:
+            path = confined_path(self.path, relative, str(self.manifest_path))
+        except ManifestError as exc:
+            links = [p for p in _path_chain(self.path, relative) if p.is_symlink()]
+            where = f"replace the link {links[0]} by a folder" if links else "fix the output name"
+            raise DatasetError(f"{self.name}: cannot store {relative}: {exc}. Nothing was changed (the earlier "
+                               f"outputs are kept); {where} and run the command again") from exc
+        for parent in _path_chain(self.path, relative)[:-1]:
+            if parent.exists() and not parent.is_dir():
+                raise DatasetError(f"{self.name}: cannot store {relative}: {parent} is a file, not a folder. Nothing "
+                                   "was changed (the earlier outputs are kept); move it away and run the command again")
+        return path
+
+    def _commit(self, staged: dict[str, Path], change: Callable[[list[dict]], None]) -> None:
+        """Change the manifest and swap in new output files (final name relative to the scene →
+        staged path) so that it never names a missing file, with the manifest as the commit point:
+
+        1. the staged files move to ``.staging-XXXX/<final name>`` (the manifest still names the old files);
+        2. ``change(records)`` stores their file records, the manifest saved with them and the old
+           files no longer named listed in ``swap`` — the commit;
+        3. `_finish_swap` links each to its final name, removes the old files and saves the final manifest.
+
+        An error or interrupt before 2 changes nothing; after it, the swap is finished by the next
+        `recover` (on taking the dataset's lock) if it was not here.
+        """
+        for relative in staged:
+            self._output_path(relative)
+        data = self._data()
+        before = {rec["file"] for rec in _file_records(data)}
+        folder = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=self.path))
+        try:
+            records = []
+            for relative, path in staged.items():
+                target = folder / relative
+                target.parent.mkdir(parents=True, exist_ok=True)
+                shutil.move(path, target)
+                records.append(self.file_record(target))
+            change(records)
+            after = {_final_name(rec["file"]) for rec in _file_records(data)}
+            data["swap"] = {"remove": sorted(before - after)}
+            self._save()
+        except BaseException:
+            self._record = None
+            if not self._on_disk_names(folder.name):
+                shutil.rmtree(folder, ignore_errors=True)
+            raise
+        self._finish_swap()
+        shutil.rmtree(folder, ignore_errors=True)
+
+    def _on_disk_names(self, folder: str) -> bool:
+        """True when the saved manifest names a file inside the scene's folder ``folder`` (or
+        cannot be read: then nothing may be removed)."""
+        try:
+            return any(rec["file"].startswith(f"{folder}/") for rec in _file_records(read_json(self.manifest_path)))
+        except (ManifestError, OSError, TypeError, KeyError, AttributeError):
+            return True
+
+    def _finish_swap(self) -> None:
+        """Finish a committed swap (see `_commit`): each file the manifest names under a staging
+        folder gets its final name (a hard link, else a copy), the old files listed in ``swap``
+        are removed, the manifest is saved without ``swap``, and the emptied staging folders go.
+        DatasetError (the manifest still consistent) when a file cannot be put in place."""
+        data = self._data()
+        folders = set()
+        try:
+            for rec in _file_records(data):
+                final = _final_name(rec["file"])
+                if final == rec["file"]:
+                    continue
+                source = self.path / rec["file"]
+                try:
+                    target = self._output_path(final)
+                    target.parent.mkdir(parents=True, exist_ok=True)
+                    _place(source, target)
+                except OSError as exc:
+                    raise DatasetError(f"{self.name}: the new {final} is stored as {source} but cannot be put in "
+                                       f"place ({exc.strerror or exc}); fix that and run the command again "
+                                       "(it finishes this first)") from exc
+                folders.add(PurePosixPath(rec["file"]).parts[0])
+                rec["file"] = final
+            named = {rec["file"] for rec in _file_records(data)}
+            for name in data.get("swap", {}).get("remove", []):
+                if name not in named:
+                    confined_path(self.path, name, str(self.manifest_path)).unlink(missing_ok=True)
+            data.pop("swap", None)
+            self._save()
+        except BaseException:
+            self._record = None
+            raise
+        for name in folders:
+            shutil.rmtree(self.path / name, ignore_errors=True)
+
+    def set_ingest(self, ok: bool, options: dict, alignment: list | str, staged: dict[str, Path],
+                   error: str | None = None, shot_hashes: list[str] | None = None) -> None:
+        """Record an ingest: staged aligned files (final name → staged path) are swapped in;
+        aligned files of an earlier ingest that are no longer named are removed. What was
+        computed from an earlier alignment is superseded: results are marked stale (kept, with
+        the command that renews them), a per-shot angle calibration is removed (its record and
+        the calibrated angles are kept in the provenance)."""
+        record = {"time": now_iso(), "ok": ok, "options": options, "alignment": alignment, "aligned": []}
+        if error is not None:
+            record["error"] = error
+        if shot_hashes:
+            record["shot_hashes"] = shot_hashes
+
+        def change(files: list[dict]) -> None:
+            data = self._data()
+            earlier = self._supersede(data) if "ingest" in data else None
+            data["ingest"] = {**record, "angles_deg": self.angles_deg(), "aligned": files}
+            if earlier:
+                data["provenance"].append(provenance("supersede", earlier))
+            data["provenance"].append(provenance("ingest", options))
+
+        self._commit(staged if ok else {}, change)
+
+    def _supersede(self, data: dict) -> dict:
+        """Mark results stale and remove the per-shot calibration of ``data`` (before a new
+        alignment); returns what was superseded, for the provenance (empty when nothing)."""
+        earlier = {}
+        for method, entry in data.get("results", {}).items():
+            if "stale" not in entry:
+                entry["stale"] = (f"computed from an earlier alignment (the scene was ingested again at {now_iso()}); "
+                                  f"renew with: urd separate {self.name} --method {method} --force")
+                earlier.setdefault("stale_results", []).append(method)
+        if "calibration" in data:
+            earlier["calibration"] = data.pop("calibration")
+            earlier["angles_calibrated_deg"] = [s.get("angle_calibrated_deg") for s in data["shots"]]
+            for shot in data["shots"]:
+                shot["angle_calibrated_deg"] = None
+        if earlier:
+            earlier["reason"] = "computed from the earlier alignment"
+        return earlier
+
+    def check_no_results(self, method: str) -> None:
+        """DatasetError if the manifest already records results of ``method`` (replacing them takes --force)."""
+        if method in self.methods():
+            raise DatasetError(f"{self.name} already has {method} results ({self.results_dir(method)}); "
+                               "pass --force to replace them")
+
+    def add_result(self, method: str, staged: dict[str, Path], entry: dict, replace: bool = False) -> Result:
+        """Record a method's results: staged files (final name → staged path) are swapped in
+        over the previous results (only with ``replace``); ``entry`` holds the method's
+        description (parameters, weights, metrics). Returns the stored entry."""
+        if not replace:
+            self.check_no_results(method)
+        base = {**entry, "time": now_iso(), "method": method}
+
+        def change(files: list[dict]) -> None:
+            data = self._data()
+            data.setdefault("results", {})[method] = {**base, "files": files}
+            data["provenance"].append(provenance(f"separate {method}", entry.get("parameters", {})))
+
+        self._commit(staged, change)
+        return self.result(method, verify=False)
+
+    def set_shot_calibration(self, record: dict, calibrated_deg: list[float] | None) -> None:
+        """Store per-shot angle errors; with ``calibrated_deg`` also each shot's calibrated angle."""
+        data = self._data()
+        data["calibration"] = {"time": now_iso(), "applied": calibrated_deg is not None, **record}
+        if calibrated_deg is not None:
+            for shot, angle in zip(sorted(data["shots"], key=lambda s: s["index"]), calibrated_deg):
+                shot["angle_calibrated_deg"] = round(float(angle), 4)
+        data["provenance"].append(provenance("calibrate shots", {"apply": calibrated_deg is not None}))
+        self._save()
+
+    def recover(self) -> list[Path]:
+        """Finish what a killed run left (call with the dataset's lock held): a committed swap is
+        rolled forward (`_finish_swap`); staging folders and temporary files that the manifest
+        does not name are removed; a truth folder left incomplete is moved aside to
+        ``truth-incomplete-N`` (so that resuming the capture writes it again). A scene whose
+        manifest cannot be read is left as it is. Returns what was removed or moved."""
+        inside = self.path.resolve()
+        folders = [self.path, self.path / "raw", self.path / "aligned", self.truth_dir()]
+        folders += [p for p in (self.path / "results").glob("*") if p.resolve().is_relative_to(inside)]
+        staging = sorted(self.path.glob(f"{STAGING_PREFIX}*"))
+        temporary = [p for folder in folders if folder.is_dir() and folder.resolve().is_relative_to(inside)
+                     for p in folder.glob(".*") if TEMPORARY.match(p.name) and p.is_file()]
+        truth = self.truth_dir()
+        torn = truth.is_dir() and not (truth / TRUTH_FILE).is_file()
+        if not (staging or temporary or torn) or not self.exists():
+            return []
+        try:
+            data = self.reload()._data()
+            if "swap" in data:
+                self._finish_swap()
+                data = self._data()
+        except (ManifestError, DatasetError, OSError):
+            return []
+        named = {rec["file"] for rec in _file_records(data)}
+        used = {PurePosixPath(name).parts[0] for name in named}
+        removed = []
+        for path in staging:
+            if path.name not in used:
+                shutil.rmtree(path, ignore_errors=True)
+                removed.append(path)
+        for path in temporary:
+            if path.exists() and path.relative_to(self.path).as_posix() not in named:
+                path.unlink(missing_ok=True)
+                removed.append(path)
+        if torn:
+            n = 1
+            while (self.path / f"truth-incomplete-{n}").exists():
+                n += 1
+            truth.rename(self.path / f"truth-incomplete-{n}")
+            removed.append(truth)
+        return removed
+
+    def remove_stale(self) -> list[Path]:
+        """Remove what killed runs left (`recover`), and unrecorded hidden files in ``raw/`` and
+        ``aligned/`` (e.g. a shot downloaded but not stored). Returns what was removed. Call
+        with the dataset's lock held."""
+        removed = self.recover()
+        named = {rec["file"] for rec in _file_records(self._data())} if self.exists() else set()
+        for folder in (self.path / "raw", self.path / "aligned"):
+            for path in folder.glob(".*") if folder.is_dir() else []:
+                if path.is_file() and path.relative_to(self.path).as_posix() not in named:
+                    path.unlink()
+                    removed.append(path)
+        return removed
+
+    def discard_if_empty(self) -> bool:
+        """Remove the scene folder if no shot was ever recorded in it (a capture that failed
+        before its first shot); True if removed."""
+        if self.exists() and self._data()["shots"]:
+            return False
+        leftovers = [p for p in self.path.rglob("*") if p.is_file() and p.name != SCENE_MANIFEST and not p.name.startswith(".")]
+        if leftovers:
+            return False
+        shutil.rmtree(self.path, ignore_errors=True)
+        return True
+
+
+def new_scene_record(name: str, source: str, capture: dict) -> dict:
+    """An empty scene manifest (no shots yet)."""
+    return {"schema": "urd.scene", "schema_version": SCHEMA_VERSION, "name": name, "created": now_iso(),
+            "source": source, "capture": capture, "shots": [], "provenance": []}
+
+
+def default_root(cwd: Path = Path(".")) -> Path:
+    """The dataset a command uses when none is named: ``cwd`` if it holds a dataset manifest,
+    else ``cwd/dataset`` (where ``urd capture`` and ``urd ingest`` put scenes by default)."""
+    cwd = Path(cwd)
+    return cwd if (cwd / DATASET_MANIFEST).is_file() else cwd / "dataset"
+
+
+# ---------------------------------------------------------------- dataset
+
+_HELD: dict[Path, int] = {}          # lock depth per dataset held by this process
+
+
+class Dataset:
+    """A dataset root: ``dataset.json``, ``calibration.json`` and scene folders."""
+
+    def __init__(self, root: Path):
+        self.root = Path(root)
+
+    @property
+    def manifest_path(self) -> Path:
+        return self.root / DATASET_MANIFEST
+
+    @classmethod
+    def open_or_create(cls, root: Path, description: str = "") -> "Dataset":
+        """Open a dataset root, creating the folder and its manifest when new."""
+        root = Path(root)
+        try:
+            root.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise DatasetError(f"cannot create dataset folder {root}: {exc.strerror or exc}") from exc
+        ds = cls(root)
+        if ds.manifest_path.exists():
+            validate_dataset(read_json(ds.manifest_path), str(ds.manifest_path))
+        else:
+            write_json_atomic(ds.manifest_path, {"schema": "urd.core.dataset", "schema_version": SCHEMA_VERSION,
+                                                 "created": now_iso(), "urd_version": __version__,
+                                                 "description": description}, overwrite=False)
+        return ds
+
+    @classmethod
+    def open(cls, root: Path) -> "Dataset":
+        """Open an existing dataset; DatasetError when there is none."""
+        ds = cls(root)
+        if not ds.manifest_path.is_file():
+            raise DatasetError(f"{root} is not an urd dataset (no {DATASET_MANIFEST})")
+        validate_dataset(read_json(ds.manifest_path), str(ds.manifest_path))
+        return ds
+
+    @contextlib.contextmanager
+    def lock(self) -> Iterator[None]:
+        """Hold the dataset's write lock; DatasetBusyError naming the holder's pid when another
+        process has it. Re-entrant within a process."""
+        key = self.root.resolve()
+        if _HELD.get(key):
+            _HELD[key] += 1
+            try:
+                yield
+            finally:
+                _HELD[key] -= 1
+            return
+        with pid_lock(self.root / LOCK_FILE,
+                      busy=lambda pid: DatasetBusyError(f"dataset {self.root} busy (held by pid {pid}); "
+                                                        "wait for that command to finish"),
+                      unopenable=lambda exc: DatasetError(f"cannot lock dataset {self.root}: {exc.strerror or exc}")):
+            _HELD[key] = 1
+            try:
+                self.recover()
+                yield
+            finally:
+                del _HELD[key]
+
+    def recover(self) -> None:
+        """Finish or clean up what killed runs left (called on taking the lock): staged scenes
+        never adopted are removed; each scene and calibration sweep is recovered (`Scene.recover`)."""
+        self.remove_stale()
+        sweeps = sorted((self.root / "calibration").glob("sweep_*"))
+        for scene in self.scenes() + [Scene(path) for path in sweeps if path.is_dir()]:
+            with contextlib.suppress(UrdError, OSError):
+                scene.recover()
+
+    def scene_names(self) -> list[str]:
+        """Names of the scene folders present (readable or not), sorted by number."""
+        names = [p.name for p in self.root.iterdir() if p.is_dir() and SCENE_NAME.match(p.name)]
+        return sorted(names, key=lambda n: int(SCENE_NAME.match(n).group(1)))
+
+    def scenes(self) -> list[Scene]:
+        """Every scene folder; a broken one reports itself through `Scene.status`."""
+        return [Scene(self.root / name) for name in self.scene_names()]
+
+    def scene(self, name: str) -> Scene:
+        """The scene called ``name``; DatasetError if there is no such folder or no manifest."""
+        path = self.root / name
+        if not SCENE_NAME.match(name) or not path.is_dir():
+            known = ", ".join(self.scene_names()) or "none"
+            raise DatasetError(f"no scene '{name}' in {self.root} (scenes: {known})")
+        scene = Scene(path)
+        if not scene.exists():
+            raise DatasetError(f"scene folder {path} has no {SCENE_MANIFEST} (an empty or broken scene)")
+        return scene
+
+    def next_scene_name(self) -> str:
+        """The first unused name after the highest existing scene number."""
+        numbers = [int(SCENE_NAME.match(n).group(1)) for n in self.scene_names()]
+        return f"scene_{(max(numbers, default=0) + 1):02d}"
+
+    def new_scene(self, source: str, capture: dict, name: str | None = None) -> Scene:
+        """Create a scene folder with its manifest; never reuses an existing folder."""
+        name = name or self.next_scene_name()
+        if not SCENE_NAME.match(name):
+            raise DatasetError(f"expected a scene name like scene_01, got {name!r}")
+        return _create_scene(self.root / name, source, capture)
+
+    def adopt_scene(self, staged: Path) -> Scene:
+        """Move a scene assembled in a staging folder (see `staged_scene`) into place under the
+        next free name."""
+        name = self.next_scene_name()
+        scene = Scene(staged)
+        scene._data()["name"] = name
+        scene._save()
+        os.rename(staged, self.root / name)
+        return Scene(self.root / name)
+
+    @contextlib.contextmanager
+    def staged_scene(self, source: str, capture: dict) -> Iterator[Scene]:
+        """A new scene assembled in a hidden folder of the dataset; removed unless adopted."""
+        folder = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=self.root))
+        umask = os.umask(0)
+        os.umask(umask)
+        folder.chmod(0o777 & ~umask)                              # mkdtemp's 0700 would stay with the adopted scene
+        try:
+            yield _create_scene(folder, source, capture, exist_ok=True)
+        finally:
+            shutil.rmtree(folder, ignore_errors=True)
+
+    def remove_stale(self) -> None:
+        """Remove staging folders (scenes being assembled) left by killed runs (call with the lock held)."""
+        for path in self.root.glob(f"{STAGING_PREFIX}*"):
+            shutil.rmtree(path, ignore_errors=True)
+
+    def shot_index(self) -> dict[str, str]:
+        """Content hash of every RAW shot already in the dataset → its scene's name."""
+        index = {}
+        for scene in self.scenes():
+            with contextlib.suppress(ManifestError, OSError):
+                index.update({digest: scene.name for digest in scene.raw_hashes()})
+        return index
+
+    def latest_incomplete(self) -> Scene | None:
+        """The newest scene whose capture stopped before its last shot, if any."""
+        for scene in reversed(self.scenes()):
+            if scene.status().state == "incomplete":
+                return scene
+        return None
+
+    # -- calibration
+
+    @property
+    def calibration_path(self) -> Path:
+        return self.root / CALIBRATION_FILE
+
+    def _calibration_record(self) -> dict | None:
+        if not self.calibration_path.is_file():
+            return None
+        return validate_calibration(read_json(self.calibration_path), str(self.calibration_path))
+
+    def calibration(self) -> OffsetCalibration | None:
+        """The polarizer's mounting offset calibration, or None when not measured."""
+        record = self._calibration_record()
+        if record is None:
+            return None
+        sweep = confined_path(self.root, record["sweep"], str(self.calibration_path)) if "sweep" in record else None
+        return OffsetCalibration(float(record["offset_deg"]), float(record["uncertainty_deg"]), record.get("modulation"),
+                                 float(record["target_angle_deg"]), record["time"], sweep, len(record["history"]))
+
+    def offset_deg(self) -> float:
+        """The polarizer's mounting offset (deg), 0 when not calibrated."""
+        calibration = self.calibration()
+        return calibration.offset_deg if calibration else 0.0
+
+    def save_calibration(self, fit: dict, target_angle_deg: float, sweep: Scene) -> OffsetCalibration:
+        """Write ``calibration.json`` from a fit record (offset_deg, uncertainty_deg, modulation,
+        residual_rms); an earlier calibration moves into its ``history``."""
+        old = self._calibration_record()
+        record = {"schema": "urd.calibration", "schema_version": SCHEMA_VERSION, "time": now_iso(), **fit,
+                  "target_angle_deg": float(target_angle_deg), "sweep": sweep.path.relative_to(self.root).as_posix(),
+                  "history": (old["history"] + [{k: v for k, v in old.items() if k != "history"}]) if old else []}
+        validate_calibration(record, str(self.calibration_path))
+        write_json_atomic(self.calibration_path, record)
+        return self.calibration()
+
+    def new_sweep(self, capture: dict) -> Scene:
+        """A new calibration sweep scene under ``calibration/sweep_NN``."""
+        folder = self.root / "calibration"
+        folder.mkdir(exist_ok=True)
+        n = 1
+        while (folder / f"sweep_{n:02d}").exists():
+            n += 1
+        return _create_scene(folder / f"sweep_{n:02d}", "calibration sweep", capture)
+
+
+def _create_scene(path: Path, source: str, capture: dict, exist_ok: bool = False) -> Scene:
+    try:
+        path.mkdir(exist_ok=exist_ok)
+    except FileExistsError as exc:
+        raise DatasetError(f"scene {path} already exists; refusing to overwrite it") from exc
+    except OSError as exc:
+        raise DatasetError(f"cannot create scene folder {path}: {exc.strerror or exc}") from exc
+    scene = Scene(path)
+    scene._record = new_scene_record(path.name, source, capture)
+    scene._save()
+    return scene

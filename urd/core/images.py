@@ -1,0 +1,106 @@
+"""Reading image files (not RAW): frames of polarization cameras and ``--images`` inputs.
+
+One transfer rule for every command: 16-bit (and 12-bit data stored in 16 bits) and float
+files are linear; 8-bit files are read with the chosen `Transfer`, by default ``linear``
+(the sensor codes of machine-vision and polarization cameras); ``srgb`` linearizes 8-bit
+PNG/JPEG photos from ordinary cameras with the IEC 61966-2-1 curve. Integer codes are scaled so
+that 1.0 is the largest code of their type (255, 65535: 12-bit data stored in 16 bits reaches
+4095/65535); float files are taken as they are.
+"""
+
+from __future__ import annotations
+
+import enum
+from pathlib import Path
+
+import cv2
+import numpy as np
+import tifffile
+
+from urd.core.errors import DatasetError, RawFormatError
+
+IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg")
+
+
+class Transfer(str, enum.Enum):
+    """How 8-bit codes map to linear light."""
+
+    LINEAR = "linear"
+    SRGB = "srgb"
+
+
+def srgb_to_linear(x: np.ndarray) -> np.ndarray:
+    """sRGB-encoded [0, 1] → linear [0, 1] (IEC 61966-2-1), float32."""
+    x = np.asarray(x, np.float32)
+    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+def linear_to_u16(image: np.ndarray, full_scale: float = 1.0) -> np.ndarray:
+    """Linear values → 16-bit codes of urd's linear TIFFs, ``full_scale`` mapping to 65535
+    (aligned shots: 1.0; results: 2.0), rounded and clipped."""
+    return np.clip(np.rint(image * (65535.0 / full_scale)), 0, 65535).astype(np.uint16)
+
+
+def u16_to_linear(codes: np.ndarray, full_scale: float = 1.0, out: np.ndarray | None = None) -> np.ndarray:
+    """Inverse of `linear_to_u16`: float32 linear values, into ``out`` when given (no copy)."""
+    return np.multiply(codes, np.float32(full_scale / 65535.0), out=out, dtype=np.float32)
+
+
+def srgb_encode(linear: np.ndarray) -> np.ndarray:
+    """Linear [0, 1] → sRGB-encoded [0, 1] (IEC 61966-2-1), float32; input clipped to [0, 1], NaN → 0."""
+    x = np.clip(np.nan_to_num(np.asarray(linear, np.float32)), 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055).astype(np.float32)
+
+
+def to_display(image: np.ndarray, gain: float = 1.0) -> np.ndarray:
+    """H×W×C (C = 1 or 3) or H×W linear float image × ``gain`` → H×W×3 uint8 sRGB (values
+    above 1 after the gain clip to 255)."""
+    x = np.asarray(image, np.float32)
+    if x.ndim == 2:
+        x = x[..., None]
+    if x.shape[-1] == 1:
+        x = np.repeat(x, 3, axis=-1)
+    return np.rint(srgb_encode(x * np.float32(gain)) * 255.0).astype(np.uint8)
+
+
+def read_raw_codes(path: Path) -> np.ndarray:
+    """The file's pixel codes as stored (H×W or H×W×3 in RGB order); RawFormatError if unreadable."""
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"{path}: no such file")
+    try:
+        data = tifffile.imread(path) if path.suffix.lower() in (".tif", ".tiff") else cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    except (OSError, ValueError) as exc:
+        raise RawFormatError(f"{path}: not an image file urd can read ({exc})") from exc
+    if data is None:
+        raise RawFormatError(f"{path}: not an image file urd can read")
+    if data.ndim == 3 and path.suffix.lower() not in (".tif", ".tiff"):
+        data = data[..., 2::-1] if data.shape[-1] >= 3 else data[..., 0]
+    return data
+
+
+def to_linear(data: np.ndarray, transfer: Transfer = Transfer.LINEAR) -> np.ndarray:
+    """Pixel codes → linear float32 by the module's rule (1.0 = the type's largest code; floats as they are)."""
+    if data.dtype in (np.uint8, np.uint16):
+        return codes_to_linear(data, data.dtype, transfer)
+    if data.dtype.kind == "f":
+        return data.astype(np.float32)
+    raise RawFormatError(f"expected 8-bit, 16-bit or float pixels, got {data.dtype}")
+
+
+def codes_to_linear(codes: np.ndarray, dtype: np.dtype, transfer: Transfer = Transfer.LINEAR) -> np.ndarray:
+    """Codes of an 8- or 16-bit file, in any numeric array (e.g. interpolated by demosaicing),
+    → linear float32 by the module's rule, clipped to [0, 1] (1.0 = ``dtype``'s largest code)."""
+    dtype = np.dtype(dtype)
+    if dtype not in (np.uint8, np.uint16):
+        raise RawFormatError(f"expected codes of 8- or 16-bit pixels, got {dtype}")
+    x = np.clip(np.asarray(codes, np.float32) / float(np.iinfo(dtype).max), 0.0, 1.0)
+    return srgb_to_linear(x) if dtype == np.uint8 and Transfer(transfer) is Transfer.SRGB else x
+
+
+def read_image(path: Path, transfer: Transfer = Transfer.LINEAR) -> np.ndarray:
+    """An image file as linear float32 H×W×3 (grey files repeated into three channels)."""
+    data = to_linear(read_raw_codes(path), transfer)
+    if data.ndim == 2:
+        data = np.repeat(data[..., None], 3, axis=2)
+    return np.ascontiguousarray(data[..., :3])
