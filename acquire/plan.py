@@ -21,8 +21,9 @@ from typing import Callable
 
 from acquire.camera import Camera
 from acquire.ell14 import Ell14
-from urd.core.dataset import Dataset, Scene, atomic_path, sha256_file
+from urd.core.dataset import Dataset, Scene
 from urd.core.errors import CaptureInterrupted, DatasetError, DeviceError, ManifestError, UrdError
+from urd.core.files import atomic_path, sha256_file
 from urd.core.progress import Progress
 
 

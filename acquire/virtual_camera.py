@@ -28,7 +28,8 @@ from acquire.dng import write_dng
 from separate import optics
 from separate.optics import parabola_aoi, photo_to_linear
 from urd.core import raw as rawio
-from urd.core.dataset import TRUTH_FILE, atomic_path, write_truth_record
+from urd.core.dataset import TRUTH_FILE, write_truth_record
+from urd.core.files import atomic_path
 
 
 @dataclasses.dataclass

@@ -18,8 +18,9 @@ import numpy as np
 
 from calib.polarizer import ShotErrors, estimate_shot_errors, fit_offset
 from urd.core import raw as rawio
-from urd.core.dataset import Dataset, Scene, read_json
+from urd.core.dataset import Dataset, Scene
 from urd.core.errors import CalibrationError
+from urd.core.files import read_json
 from urd.core.progress import Progress
 
 

@@ -11,7 +11,7 @@ from separate.bench import SEED, format_table
 from separate.bench_check import weights_line
 from separate.plots import plot_bars, plot_lines
 from separate.robustness import AXES
-from urd.core.dataset import atomic_path
+from urd.core.files import atomic_path
 
 
 def write_text(path: Path, text: str) -> None:

@@ -14,7 +14,7 @@ from typing import Callable, Sequence
 import cv2
 import numpy as np
 
-from urd.core.dataset import atomic_path
+from urd.core.files import atomic_path
 
 
 #: Colours (BGR) of the series, matplotlib's "tab10".

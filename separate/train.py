@@ -30,7 +30,7 @@ from separate.model import with_fresnel_base
 from separate.networks import build_model
 from separate.precision import Precision, resolve
 from separate.synthesis import AngleMode, SynthesisConfig, Synthesizer, default_pool
-from urd.core.dataset import atomic_path, pid_lock
+from urd.core.files import atomic_path, pid_lock
 from urd.core.errors import TrainingError, WeightsError
 
 
@@ -181,7 +181,7 @@ RESUMABLE_CHANGES = {"steps", "max_minutes", "threads", "precision", "val_every"
 
 
 def run_lock(run_dir: Path) -> contextlib.AbstractContextManager:
-    """``run_dir``'s training lock (`urd.core.dataset.pid_lock`); TrainingError naming the holder's
+    """``run_dir``'s training lock (`urd.core.files.pid_lock`); TrainingError naming the holder's
     pid when another process is training in that folder."""
     return pid_lock(Path(run_dir) / ".lock",
                     busy=lambda pid: TrainingError(f"run {run_dir} is being trained by another process (pid {pid})"),

@@ -184,3 +184,29 @@ def test_scene_folders_made_from_a_raw_folder_follow_the_umask(tmp_path, dataset
     umask = os.umask(0)
     os.umask(umask)
     assert (tmp_path / "new" / "scene_01").stat().st_mode & 0o777 == 0o777 & ~umask
+
+
+# 11. results are easy to read: the demo names the previews to open and explains clipped.png; mosaic ingest
+#     says which frame became which scene
+
+def test_the_demo_ends_with_the_previews_to_open_and_what_clipped_png_means(tmp_path):
+    out = invoke("demo", tmp_path / "demo", "--size", "192x128")
+    assert out.exit_code == 0, out.output
+    line = next(line for line in out.stdout.splitlines() if line.startswith("open the previews: "))
+    previews = line.removeprefix("open the previews: ").split("  ")
+    assert [p.rsplit("/", 1)[1] for p in previews] == ["T_preview.png", "R_preview.png"]
+    assert all(os.path.isfile(p) for p in previews)
+    assert "clipped.png: no pixel is clipped in any shot (the mask is all black)" in out.stdout
+
+
+def test_mosaic_ingest_names_the_frame_of_each_scene(tmp_path):
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    rng = np.random.default_rng(0)
+    import cv2
+
+    for name in ("left.png", "right.png"):
+        cv2.imwrite(str(frames / name), rng.integers(20, 200, (64, 96), dtype=np.uint8))
+    out = invoke("ingest", frames, tmp_path / "ds", "--mosaic", "imx250mzr", "--demosaic", "bilinear")
+    assert out.exit_code == 0, out.output
+    assert "ingested scene_01 (from left.png)" in out.stdout and "ingested scene_02 (from right.png)" in out.stdout

@@ -16,8 +16,9 @@ import tifffile
 
 from rig import capture_virtual
 from separate.methods import get_method
-from urd.core.dataset import Dataset, Scene, write_json_atomic
+from urd.core.dataset import Dataset, Scene
 from urd.core.errors import DatasetError, ManifestError, WeightsError
+from urd.core.files import write_json_atomic
 from urd.ingest import IngestOptions, ingest, ingest_scene
 from urd.report import report_text, verify
 from urd.separation import separate_scene

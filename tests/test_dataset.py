@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from urd.core import dataset
+from urd.core import dataset, files
 from urd.core.errors import DatasetError, ManifestError
 
 
@@ -18,7 +18,7 @@ def make_scene(tmp_path):
     (scene.path / "raw").mkdir()
     for i, angle in enumerate((0, 45, 90)):
         path = scene.path / "raw" / f"shot_{i:02d}.dng"
-        dataset.write_bytes_atomic(path, bytes([i]) * 1000)
+        files.write_bytes_atomic(path, bytes([i]) * 1000)
         scene.add_shot(i, path, angle, angle_measured_deg=angle + 0.01)
     return ds, scene, scene.load()
 
@@ -80,20 +80,20 @@ def test_scene_folders_are_never_reused(tmp_path):
 
 def test_no_silent_overwrite(tmp_path):
     path = tmp_path / "a.bin"
-    dataset.write_bytes_atomic(path, b"one")
+    files.write_bytes_atomic(path, b"one")
     with pytest.raises(DatasetError, match="refusing to overwrite"):
-        dataset.write_bytes_atomic(path, b"two")
+        files.write_bytes_atomic(path, b"two")
     assert path.read_bytes() == b"one"
 
 
 def test_interrupted_write_leaves_old_manifest_intact(tmp_path):
     path = tmp_path / "scene.json"
-    dataset.write_json_atomic(path, {"version": "old"})
+    files.write_json_atomic(path, {"version": "old"})
     # A child process starts writing a large manifest and is killed mid-write.
     code = (
-        "import sys, urd.core.dataset as d, pathlib, time\n"
+        "import sys, urd.core.files as f, pathlib, time\n"
         "p = pathlib.Path(sys.argv[1])\n"
-        "with d.atomic_path(p, overwrite=True) as tmp:\n"
+        "with f.atomic_path(p, overwrite=True) as tmp:\n"
         "    with open(tmp, 'w') as fh:\n"
         "        fh.write('{\"version\": \"new\", \"pad\": \"' + 'x' * 100000)\n"
         "        fh.flush()\n"
@@ -107,7 +107,7 @@ def test_interrupted_write_leaves_old_manifest_intact(tmp_path):
     assert json.loads(path.read_text()) == {"version": "old"}
     # the exception path cleans its temporary file
     with pytest.raises(RuntimeError):
-        with dataset.atomic_path(path, overwrite=True) as tmp:
+        with files.atomic_path(path, overwrite=True) as tmp:
             tmp.write_text("partial")
             raise RuntimeError("boom")
     assert json.loads(path.read_text()) == {"version": "old"}

@@ -18,8 +18,9 @@ from acquire.rig import SimSettings
 from rig import capture_virtual
 from separate.methods import get_method
 from urd import ingest as ingest_mod
-from urd.core.dataset import Dataset, write_json_atomic
+from urd.core.dataset import Dataset
 from urd.core.errors import CaptureInterrupted, DatasetBusyError, DatasetError, ManifestError
+from urd.core.files import write_json_atomic
 from urd.ingest import IngestOptions, ingest_folder, ingest_scene
 from urd.report import report_text, verify
 from urd.separation import separate_scene

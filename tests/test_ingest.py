@@ -63,7 +63,7 @@ def test_unalignable_scene_is_flagged_and_no_stack_is_written(tmp_path):
     src = other.path / other.load()["shots"][2]["file"]
     dst = scene.path / record["shots"][2]["file"]
     shutil.copyfile(src, dst)
-    from urd.core.dataset import write_json_atomic
+    from urd.core.files import write_json_atomic
     record["shots"][2].update(scene.file_record(dst))
     write_json_atomic(scene.manifest_path, record)
     out = urd("ingest", scene.path)

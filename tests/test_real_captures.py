@@ -88,3 +88,7 @@ def test_a_wine_glass_seen_through_keeps_its_light_in_the_transmission():
     assert estimate.basis is Basis.TRANSMISSION
     r_hat, t_hat = get_method("network")[0](stack, angles)
     assert r_hat.sum() / (r_hat + t_hat).sum() < 0.15
+
+
+def test_the_default_captures_folder_is_the_shared_data():
+    assert samples.captures() == CAPTURES

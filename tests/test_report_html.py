@@ -1,5 +1,5 @@
-"""The static HTML report (`urd.report_html`): pure image functions, the files and links it
-writes, escaping, atomic folder handling, and the page in a real browser.
+"""The static HTML report (`urd.report_html`): pure image functions (`urd.report_images`), the
+files and links it writes, escaping, atomic folder handling, and the page in a real browser.
 
 The browser test drives the system Chromium through Selenium and the system chromedriver
 (Debian packages ``chromium`` and ``chromium-driver``, pip package ``selenium``); it skips with
@@ -28,10 +28,9 @@ from urd.report_html import (
     ReportExistsError,
     ResultView,
     SceneView,
-    aolp_image,
-    polarization_maps,
     write_html_report,
 )
+from urd.report_images import aolp_image, polarization_maps
 from urd.core.images import srgb_encode
 
 H, W = 96, 128

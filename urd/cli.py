@@ -304,7 +304,9 @@ def ingest(
         if outcome.state == "failed":
             typer.secho(f"FAILED {where}: {outcome.error}", fg=typer.colors.RED, err=True)
         elif outcome.state == "ingested":
-            typer.echo(f"ingested {outcome.name} (from {len(outcome.files)} files)")
+            names = ", ".join(p.name for p in outcome.files)
+            origin = f"from {len(outcome.files)} files" if len(outcome.files) > 3 else f"from {names}"
+            typer.echo(f"ingested {outcome.name} ({origin})")
         else:
             typer.echo(f"{outcome.state} {where}: {outcome.error}")
     if not report.outcomes:
@@ -485,6 +487,7 @@ def separate(
     for path in result.files:
         typer.echo(f"wrote {Path(path).resolve()}")
     report_truth(result.truth_metrics)
+    show_previews(result.files)
 
 
 def separate_dataset(dataset: Optional[Path], method: str, weights: Optional[Path], tile: Optional[int], chosen,
@@ -685,6 +688,22 @@ def demo(
         raise typer.BadParameter(str(exc)) from None
     result = run_guarded(run_demo, folder, width, height, seed, precision, typer.echo, progress=TerminalProgress())
     report_truth(result.truth_metrics)
+    show_previews(result.files)
+
+
+def show_previews(files: list) -> None:
+    """Point to the files to open first: the sRGB previews, and what clipped.png means."""
+    previews = [Path(p) for p in files if Path(p).name.endswith("_preview.png")]
+    if previews:
+        typer.echo("open the previews: " + "  ".join(str(p.resolve()) for p in sorted(previews, reverse=True)))
+    clipped = next((Path(p) for p in files if Path(p).name == "clipped.png"), None)
+    if clipped is not None:
+        import cv2
+
+        mask = cv2.imread(str(clipped), cv2.IMREAD_GRAYSCALE)
+        share = 0.0 if mask is None else float((mask > 0).mean())
+        typer.echo("clipped.png: no pixel is clipped in any shot (the mask is all black)" if share == 0 else
+                   f"clipped.png: {100 * share:.2f}% of the pixels are clipped in some shot (white): R and T there are guesses")
 
 
 def main() -> None:

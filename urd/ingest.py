@@ -31,8 +31,9 @@ import tifffile
 
 from urd.core import raw as rawio
 from urd.core.align import Motion, align, apply_warp
-from urd.core.dataset import Dataset, Scene, atomic_path, sha256_file
+from urd.core.dataset import Dataset, Scene
 from urd.core.errors import AlignmentError, DatasetError, RawFormatError, UrdError
+from urd.core.files import atomic_path, sha256_file
 from urd.core.images import IMAGE_SUFFIXES, Transfer, codes_to_linear, linear_to_u16, read_raw_codes
 from urd.core.progress import Progress
 

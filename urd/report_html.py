@@ -19,9 +19,7 @@ load lazily. What the page shows of each scene:
   provenance, and a comparison slider between any two of them;
 * once per report, the Malus-law sweep behind the polarizer offset, drawn as an inline SVG plot.
 
-Display: linear values are multiplied by one gain k per scene, k = 1 / (99.5th percentile of
-S0), shots by 2k (a shot records (S0 + S1 cos 2φ + S2 sin 2φ)/2, so 2·I_φ is on S0's scale);
-then sRGB-encoded (IEC 61966-2-1) and clipped to [0, 1].
+The images, and the display gain they are shown with, come from `urd.report_images`.
 
 The report folder is built in a fresh staging folder beside ``out_dir`` and renamed into place
 when complete; an existing folder is replaced only with ``overwrite=True`` and only when it is
@@ -41,21 +39,25 @@ import tempfile
 from pathlib import Path
 from typing import Callable, Sequence
 
-import cv2
 import numpy as np
 
-from separate.optics import aolp, dolp, stokes_from_images
 from urd.core.errors import DatasetError
 from urd.core.images import srgb_encode, to_display
+from urd.report_images import (
+    AOLP_FULL_SATURATION_DOLP,
+    EXPOSURE_PERCENTILE,
+    WrittenImage,
+    aolp_image,
+    as_hwc,
+    colormap_image,
+    exposure_gain,
+    field_image,
+    polarization_maps,
+    write_image,
+)
 
-#: Percentile of S0 mapped to white (per scene).
-EXPOSURE_PERCENTILE = 99.5
-#: DoLP at which the AoLP map reaches full saturation.
-AOLP_FULL_SATURATION_DOLP = 0.3
 #: Written into index.html; `write_html_report` replaces only folders whose index.html has it.
 GENERATOR = "urd report_html 1"
-#: JPEG quality of full-resolution views and of thumbnails.
-JPEG_QUALITY_FULL, JPEG_QUALITY_THUMB = 95, 90
 
 
 class ReportExistsError(DatasetError, FileExistsError):
@@ -125,65 +127,6 @@ class SceneView:
 
 
 # ---------------------------------------------------------------------------------------------
-# Pure image functions
-
-
-def colormap_image(values: np.ndarray) -> np.ndarray:
-    """H×W values in [0, 1] (clipped) → H×W×3 uint8 RGB through the viridis colormap."""
-    codes = np.round(np.clip(np.nan_to_num(np.asarray(values, np.float32)), 0.0, 1.0) * 255.0).astype(np.uint8)
-    return cv2.applyColorMap(codes, cv2.COLORMAP_VIRIDIS)[..., ::-1].copy()
-
-
-def hsv_to_rgb(h: np.ndarray, s: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Hue in turns [0, 1), saturation and value in [0, 1] (arrays of one shape) → (..., 3) float32 RGB."""
-    h6 = np.mod(np.asarray(h, np.float32), 1.0) * 6.0
-    sector = np.floor(h6).astype(np.int64) % 6
-    f = h6 - np.floor(h6)
-    s, v = np.asarray(s, np.float32), np.asarray(v, np.float32)
-    p, q, t = v * (1 - s), v * (1 - f * s), v * (1 - (1 - f) * s)
-    r = np.choose(sector, [v, q, p, p, t, v])
-    g = np.choose(sector, [t, v, v, q, p, p])
-    b = np.choose(sector, [p, p, t, v, v, q])
-    return np.stack([r, g, b], axis=-1).astype(np.float32)
-
-
-def aolp_image(aolp_rad: np.ndarray, dolp_map: np.ndarray, value: np.ndarray) -> np.ndarray:
-    """AoLP as hue: H×W maps → H×W×3 uint8 RGB.
-
-    Hue = AoLP over 0..180° (0° red, 60° green, 120° blue); saturation = DoLP /
-    `AOLP_FULL_SATURATION_DOLP` (clipped); value = ``value`` in [0, 1] (the displayed S0).
-    """
-    hue = np.mod(np.asarray(aolp_rad, np.float64), np.pi) / np.pi
-    sat = np.clip(np.nan_to_num(np.asarray(dolp_map, np.float32)) / AOLP_FULL_SATURATION_DOLP, 0.0, 1.0)
-    rgb = hsv_to_rgb(hue, sat, np.clip(value, 0.0, 1.0))
-    return np.round(rgb * 255.0).astype(np.uint8)
-
-
-def polarization_maps(shots: Sequence[tuple[float, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """S0 (H×W×C), DoLP (H×W) and AoLP (H×W, rad) of aligned shots, by `separate.optics`.
-
-    DoLP and AoLP are those of the Stokes vector summed over the colour channels (the light's
-    total polarization). Raises ValueError when the angles do not determine a Stokes fit.
-    """
-    angles = np.radians([float(a) for a, _ in shots])
-    stack = np.stack([_as_hwc(image) for _, image in shots]).astype(np.float32)
-    stokes = stokes_from_images(stack, angles)                      # (3, H, W, C)
-    total = stokes.sum(axis=-1)                                     # (3, H, W)
-    return stokes[0], np.clip(dolp(total), 0.0, 1.0), aolp(total)
-
-
-def _as_hwc(image: np.ndarray) -> np.ndarray:
-    image = np.asarray(image)
-    return image[..., None] if image.ndim == 2 else image
-
-
-def _exposure_gain(s0: np.ndarray) -> float:
-    """k = 1 / (EXPOSURE_PERCENTILE-th percentile of S0), 1 when that is not positive."""
-    p = float(np.percentile(np.nan_to_num(s0), EXPOSURE_PERCENTILE)) if s0.size else 0.0
-    return 1.0 / p if math.isfinite(p) and p > 1e-12 else 1.0
-
-
-# ---------------------------------------------------------------------------------------------
 # Argument checks
 
 
@@ -225,45 +168,7 @@ def _check_scene(scene: SceneView, index: int) -> None:
 
 
 # ---------------------------------------------------------------------------------------------
-# Files
-
-
-@dataclasses.dataclass
-class _Image:
-    """A written image: relative paths of its full, thumbnail (and medium) views, and their sizes."""
-
-    full: str
-    thumb: str
-    size: tuple[int, int]          # (width, height) of the full view
-    thumb_size: tuple[int, int]
-    mid: str | None = None
-
-
-def _resize_long_side(rgb: np.ndarray, long_side: int) -> np.ndarray:
-    scale = long_side / max(rgb.shape[:2])
-    if scale >= 1:
-        return rgb
-    size = (max(1, round(rgb.shape[1] * scale)), max(1, round(rgb.shape[0] * scale)))
-    return cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
-
-
-def _write_jpeg(path: Path, rgb: np.ndarray, quality: int) -> tuple[int, int]:
-    ok, data = cv2.imencode(".jpg", np.ascontiguousarray(rgb[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, quality])
-    if not ok:
-        raise DatasetError(f"{path}: JPEG encoding failed")
-    path.write_bytes(data.tobytes())
-    return rgb.shape[1], rgb.shape[0]
-
-
-def _write_image(root: Path, rel_stem: str, rgb: np.ndarray, thumb_px: int, mid: bool = False) -> _Image:
-    """Write the full view and thumbnail (and a medium view) of an H×W×3 uint8 RGB image."""
-    size = _write_jpeg(root / f"{rel_stem}.jpg", rgb, JPEG_QUALITY_FULL)
-    thumb_size = _write_jpeg(root / f"{rel_stem}_t.jpg", _resize_long_side(rgb, thumb_px), JPEG_QUALITY_THUMB)
-    image = _Image(f"{rel_stem}.jpg", f"{rel_stem}_t.jpg", size, thumb_size)
-    if mid:
-        _write_jpeg(root / f"{rel_stem}_m.jpg", _resize_long_side(rgb, 2 * thumb_px), JPEG_QUALITY_FULL)
-        image.mid = f"{rel_stem}_m.jpg"
-    return image
+# The report folder
 
 
 def _slug(text: str) -> str:
@@ -294,7 +199,7 @@ def _fmt_signed(value: float, digits: int = 2) -> str:
     return ("+" if value > 0 else "") + _fmt(value, digits)
 
 
-def _figure(image: _Image, caption: str, extra: str = "", label: str = "") -> str:
+def _figure(image: WrittenImage, caption: str, extra: str = "", label: str = "") -> str:
     """A thumbnail linking to its full view; ``caption`` and ``extra`` are HTML."""
     (w, h), (tw, th) = image.size, image.thumb_size
     title = _e(f"{label} — {w}×{h}, click for full resolution" if label else f"{w}×{h}")
@@ -439,13 +344,6 @@ def _status_badge(status: str) -> str:
 # One scene
 
 
-def _field_image(field_deg: np.ndarray) -> tuple[np.ndarray, float, float]:
-    """A reference field (deg) as a viridis image over its own range, and that range (deg)."""
-    lo, hi = float(np.min(field_deg)), float(np.max(field_deg))
-    span = hi - lo if hi - lo > 1e-6 else 1.0
-    return colormap_image((np.asarray(field_deg, np.float32) - lo) / span), lo, hi
-
-
 #: How the ground-truth figures of a result (`urd.separation.truth_metrics`) are labelled.
 TRUTH_LABELS = {"T": "T̂", "R": "R̂", "T_no_separation": "no separation (S0 as T)"}
 
@@ -487,11 +385,11 @@ def _scene_html(scene: SceneView, index: int, root: Path, folder: str, thumb_px:
     elif scene.shots:
         notes.append(f"no polarization maps: {len(scene.shots)} shot(s), Stokes parameters need 3 or more angles")
     if s0 is not None:
-        gain, basis = _exposure_gain(s0), "S0"
+        gain, basis = exposure_gain(s0), "S0"
     elif scene.shots:
-        gain, basis = _exposure_gain(2 * np.mean([_as_hwc(im) for _, im in scene.shots], axis=0)), "2 × the mean shot"
+        gain, basis = exposure_gain(2 * np.mean([as_hwc(im) for _, im in scene.shots], axis=0)), "2 × the mean shot"
     elif scene.results:
-        gain, basis = _exposure_gain(_as_hwc(scene.results[0].r) + _as_hwc(scene.results[0].t)), \
+        gain, basis = exposure_gain(as_hwc(scene.results[0].r) + as_hwc(scene.results[0].t)), \
             f"R̂ + T̂ of {scene.results[0].method}"
     else:
         gain, basis = 1.0, ""
@@ -512,7 +410,7 @@ def _scene_html(scene: SceneView, index: int, root: Path, folder: str, thumb_px:
     if scene.shots:
         figs = []
         for k, (angle, image) in enumerate(scene.shots):
-            written = _write_image(root, f"{folder}/shot_{k:02d}", to_display(image, 2 * gain), thumb_px)
+            written = write_image(root, f"{folder}/shot_{k:02d}", to_display(image, 2 * gain), thumb_px)
             caption = f"φ = {_fmt(float(angle), 1)}°"
             if scene.shot_errors_deg is not None:
                 caption += f' <span class="err">calib. error {_fmt_signed(float(scene.shot_errors_deg[k]))}°</span>'
@@ -525,10 +423,10 @@ def _scene_html(scene: SceneView, index: int, root: Path, folder: str, thumb_px:
     s0_image = None
     if maps is not None:
         dolp_map, aolp_map = maps
-        s0_image = _write_image(root, f"{folder}/s0", to_display(s0, gain), thumb_px, mid=bool(scene.results))
+        s0_image = write_image(root, f"{folder}/s0", to_display(s0, gain), thumb_px, mid=bool(scene.results))
         value = srgb_encode(s0.mean(axis=-1) * gain)
-        dolp_image = _write_image(root, f"{folder}/dolp", colormap_image(dolp_map), thumb_px)
-        aolp_written = _write_image(root, f"{folder}/aolp", aolp_image(aolp_map, dolp_map, value), thumb_px)
+        dolp_image = write_image(root, f"{folder}/dolp", colormap_image(dolp_map), thumb_px)
+        aolp_written = write_image(root, f"{folder}/aolp", aolp_image(aolp_map, dolp_map, value), thumb_px)
         wheel_note = "dashed line: reference angle φ⊥" if scene.reference_deg is not None else ""
         parts.append('<h3>Polarization</h3><div class="row">'
                      + _figure(s0_image, "S0 (unpolarized intensity)", label=f"{scene.name} S0")
@@ -545,18 +443,18 @@ def _scene_html(scene: SceneView, index: int, root: Path, folder: str, thumb_px:
             options.append((s0_image.mid, "S0 (input)"))
         for m, result in enumerate(scene.results):
             stem = f"{folder}/m{m:02d}_{_slug(result.method)}"
-            r_img = _write_image(root, f"{stem}_R", to_display(result.r, gain), thumb_px, mid=True)
-            t_img = _write_image(root, f"{stem}_T", to_display(result.t, gain), thumb_px, mid=True)
+            r_img = write_image(root, f"{stem}_R", to_display(result.r, gain), thumb_px, mid=True)
+            t_img = write_image(root, f"{stem}_T", to_display(result.t, gain), thumb_px, mid=True)
             options += [(t_img.mid, f"{result.method} · T̂"), (r_img.mid, f"{result.method} · R̂")]
             cells = [_figure(r_img, "R̂ (reflection)", label=f"{scene.name} {result.method} R̂"),
                      _figure(t_img, "T̂ (transmission)", label=f"{scene.name} {result.method} T̂")]
             if result.confidence is not None:
-                c_img = _write_image(root, f"{stem}_conf", colormap_image(result.confidence), thumb_px)
+                c_img = write_image(root, f"{stem}_conf", colormap_image(result.confidence), thumb_px)
                 cells.append(_figure(c_img, "reflection presence", _colorbar("0", "1", "presence"),
                                      label=f"{scene.name} {result.method} reflection presence"))
             if result.reference_field is not None:
-                field_rgb, lo, hi = _field_image(result.reference_field)
-                f_img = _write_image(root, f"{stem}_phi", field_rgb, thumb_px)
+                field_rgb, lo, hi = field_image(result.reference_field)
+                f_img = write_image(root, f"{stem}_phi", field_rgb, thumb_px)
                 cells.append(_figure(f_img, "reference φ⊥ used", _colorbar(f"{_fmt(lo, 1)}°", f"{_fmt(hi, 1)}°", "φ⊥"),
                                      label=f"{scene.name} {result.method} reference φ⊥"))
             truth = _truth_line(result.truth) if result.truth else ""

@@ -31,8 +31,9 @@ import tifffile
 
 from separate import metrics
 from separate.reference import Inspection, decide_side, field_at, inspect_stack
-from urd.core.dataset import STAGING_PREFIX, Scene, atomic_path
+from urd.core.dataset import STAGING_PREFIX, Scene
 from urd.core.errors import DatasetError
+from urd.core.files import atomic_path
 from urd.core.images import Transfer, linear_to_u16, read_image, to_display
 
 FULL_SCALE = 2.0

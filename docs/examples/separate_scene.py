@@ -1,6 +1,6 @@
 """Separate one scene of an urd dataset from Python, compare two methods and save the maps.
 
-    urd demo --out urd-demo                               # a simulated dataset with one scene
+    urd demo                                              # a simulated dataset with one scene: urd-demo/
     python docs/examples/separate_scene.py urd-demo scene_01 maps/
 """
 

@@ -21,13 +21,14 @@ Layout::
 Guarantees, all kept here:
 
 * **typed**: commands use `Dataset`, `Scene` and `Shot`; nothing else reads or writes a
-  manifest key. Every field is checked on load, with errors naming the file and the field;
-  newer schema versions are refused.
-* **atomic**: every write goes to a temporary file that is renamed into place; new outputs of
-  a re-run (``--redo``, ``--force``) are staged beside the old ones and the manifest is the
-  commit point (`Scene._commit`): it names the old files, then the staged new ones, then the
-  new ones under their final names, never a missing file; old files go only after that. A run
-  killed in between is rolled forward when the dataset's lock is next taken (`Dataset.recover`).
+  manifest key. Every field is checked on load (`urd.core.manifest`), with errors naming the
+  file and the field; newer schema versions are refused.
+* **atomic**: every write goes to a temporary file that is renamed into place (`urd.core.files`);
+  new outputs of a re-run (``--redo``, ``--force``) are staged beside the old ones and the
+  manifest is the commit point (`Scene._commit`): it names the old files, then the staged new
+  ones, then the new ones under their final names, never a missing file; old files go only
+  after that. A run killed in between is rolled forward when the dataset's lock is next taken
+  (`Dataset.recover`).
 * **confined**: file paths in a manifest are relative and stay inside their scene folder.
 * **verified**: files are checked against their size and SHA-256 before use (a cache keyed by
   size, mtime, ctime and inode avoids re-hashing unchanged files); `Scene.verify` hashes
@@ -43,11 +44,6 @@ import concurrent.futures
 import contextlib
 import copy
 import dataclasses
-import datetime as _dt
-import fcntl
-import hashlib
-import json
-import math
 import os
 import re
 import shutil
@@ -57,8 +53,18 @@ from typing import Any, Callable, Iterator
 
 from urd.core import __version__
 from urd.core.errors import DatasetBusyError, DatasetError, ManifestError, UrdError
+from urd.core.files import pid_lock, read_json, sha256_file, write_json_atomic
+from urd.core.manifest import (
+    SCHEMA_VERSION,
+    confined_path,
+    now_iso,
+    provenance,
+    validate_calibration,
+    validate_dataset,
+    validate_scene,
+    validate_truth,
+)
 
-SCHEMA_VERSION = 1
 DATASET_MANIFEST = "dataset.json"
 SCENE_MANIFEST = "scene.json"
 CALIBRATION_FILE = "calibration.json"
@@ -66,287 +72,11 @@ LOCK_FILE = ".urd.lock"
 HASH_CACHE = ".urd-hashes.json"
 TRUTH_FILE = "truth.json"
 STAGING_PREFIX = ".staging-"
-MAX_DEPTH = 32                          # nesting levels a manifest may have (urd writes at most 5)
-MAX_ANGLE_DEG = 720.0                   # largest |angle| a manifest may hold (deg): two turns
-TEMPORARY = re.compile(r"^\..+(\.tmp(\.[^.]+)?|\.\d+\.link)$")   # `atomic_path` and `_place` leftovers
+TEMPORARY = re.compile(r"^\..+(\.tmp(\.[^.]+)?|\.\d+\.link)$")   # `urd.core.files.atomic_path` and `_place` leftovers
 SCENE_NAME = re.compile(r"^scene_(\d{2,})$")
-SHA256 = re.compile(r"^[0-9a-f]{64}$")
 
 
-def now_iso() -> str:
-    """The current UTC time as ISO 8601 text."""
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds")
-
-
-def sha256_file(path: Path) -> str:
-    """SHA-256 hex digest of a file's bytes."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
-# ---------------------------------------------------------------- atomic writes
-
-
-@contextlib.contextmanager
-def atomic_path(path: Path, overwrite: bool = False) -> Iterator[Path]:
-    """Yield a temporary path beside ``path``; on success rename it onto ``path``.
-
-    On any exception the temporary file is removed and ``path`` is untouched. Raises
-    DatasetError if ``path`` exists and ``overwrite`` is false.
-    """
-    path = Path(path)
-    if path.exists() and not overwrite:
-        raise DatasetError(f"refusing to overwrite existing file {path}")
-    try:
-        fd, tmp_name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
-    except OSError as exc:
-        raise DatasetError(f"cannot write in {path.parent}: {exc.strerror or exc}") from exc
-    os.close(fd)
-    tmp = Path(tmp_name)
-    try:
-        os.chmod(tmp, 0o644)
-        yield tmp
-        with open(tmp, "rb+") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-
-
-@contextlib.contextmanager
-def pid_lock(path: Path, busy: Callable[[str], Exception], unopenable: Callable[[OSError], Exception]) -> Iterator[None]:
-    """Hold an exclusive lock on the file ``path`` (created if missing), with this process's
-    pid written in it while held. Raises ``busy(holder pid)`` when another open of it holds the
-    lock, ``unopenable(error)`` when it cannot be opened."""
-    try:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-    except OSError as exc:
-        raise unopenable(exc) from exc
-    try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise busy(os.pread(fd, 64, 0).decode(errors="replace").strip() or "unknown") from None
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-        try:
-            yield
-        finally:
-            os.ftruncate(fd, 0)
-    finally:
-        os.close(fd)
-
-
-def write_bytes_atomic(path: Path, data: bytes, overwrite: bool = False) -> None:
-    """Write ``data`` to ``path`` atomically (see `atomic_path`)."""
-    with atomic_path(path, overwrite) as tmp:
-        try:
-            tmp.write_bytes(data)
-        except OSError as exc:
-            raise DatasetError(f"cannot write {path}: {exc.strerror or exc}") from exc
-
-
-def write_json_atomic(path: Path, record: dict, overwrite: bool = True) -> None:
-    """Write a JSON record atomically, replacing the old version only once complete."""
-    write_bytes_atomic(path, (json.dumps(record, indent=2) + "\n").encode(), overwrite)
-
-
-def read_json(path: Path) -> Any:
-    """Read a JSON file; ManifestError when missing, unparsable, or nested deeper than
-    `MAX_DEPTH` levels (no urd manifest is; such a file would overflow Python's stack)."""
-    try:
-        record = json.loads(Path(path).read_text())
-    except FileNotFoundError as exc:
-        raise ManifestError(f"{path}: manifest not found") from exc
-    except RecursionError:
-        record = None
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise ManifestError(f"{path}: not valid JSON ({exc})") from exc
-    if record is None or not _nesting_within(record, MAX_DEPTH):
-        raise ManifestError(f"{path}: nested more than {MAX_DEPTH} levels deep, which no urd manifest is "
-                            "(damaged or not written by urd); restore it from a backup")
-    return record
-
-
-def _nesting_within(value: Any, limit: int) -> bool:
-    """True when lists and objects in ``value`` nest at most ``limit`` levels (no recursion)."""
-    pending = [(value, 1)]
-    while pending:
-        item, depth = pending.pop()
-        if isinstance(item, (dict, list)):
-            if depth > limit:
-                return False
-            pending.extend((child, depth + 1) for child in (item.values() if isinstance(item, dict) else item))
-    return True
-
-
-# ---------------------------------------------------------------- validation
-
-NUMBER = (int, float)
-OPTIONAL_NUMBER = (int, float, type(None))
-
-
-def _check(record: Any, where: str, required: dict[str, Any], optional: dict[str, Any] | None = None) -> dict:
-    """Check an object's fields by type; ManifestError naming ``where`` and the field."""
-    if not isinstance(record, dict):
-        raise ManifestError(f"{where}: expected an object, got {type(record).__name__}")
-    for key, kind in {**required, **(optional or {})}.items():
-        if key not in record:
-            if key in required:
-                raise ManifestError(f"{where}: missing field '{key}'")
-            continue
-        value = record[key]
-        if not isinstance(value, kind) or (isinstance(value, bool) and bool not in _as_tuple(kind)):
-            raise ManifestError(f"{where}: field '{key}' has type {type(value).__name__}, "
-                                f"expected {' or '.join(t.__name__ for t in _as_tuple(kind))}")
-        if isinstance(value, float) and not math.isfinite(value):
-            raise ManifestError(f"{where}: field '{key}' is {value}, expected a finite number")
-    return record
-
-
-def _as_tuple(kind: Any) -> tuple:
-    return kind if isinstance(kind, tuple) else (kind,)
-
-
-def _check_numbers(values: Any, where: str, limit: float = math.inf) -> None:
-    """A list of finite numbers of magnitude at most ``limit``; ManifestError otherwise."""
-    if not isinstance(values, list) or not all(isinstance(v, NUMBER) and not isinstance(v, bool) for v in values):
-        raise ManifestError(f"{where}: expected a list of numbers, got {values!r:.80}")
-    for i, value in enumerate(values):
-        if not (math.isfinite(value) and abs(value) <= limit):
-            raise ManifestError(f"{where}[{i}]: is {value!r:.40}, expected a finite number"
-                                + (f" within ±{limit:g}" if math.isfinite(limit) else ""))
-
-
-def _check_angles(record: dict, where: str, keys: tuple[str, ...]) -> None:
-    """The angle fields ``keys`` of ``record`` (deg; absent or None allowed) lie within ±`MAX_ANGLE_DEG`."""
-    for key in keys:
-        value = record.get(key)
-        if value is not None and not abs(value) <= MAX_ANGLE_DEG:
-            raise ManifestError(f"{where}: field '{key}' is {value!r:.40} deg, expected an angle within ±{MAX_ANGLE_DEG:g} deg")
-
-
-def _check_schema(record: dict, where: str, schema: str) -> None:
-    if record["schema"] != schema:
-        raise ManifestError(f"{where}: field 'schema' is {record['schema']!r}, expected {schema!r}")
-    version = record["schema_version"]
-    if version < 1:
-        raise ManifestError(f"{where}: field 'schema_version' is {version}, expected 1 to {SCHEMA_VERSION}")
-    if version > SCHEMA_VERSION:
-        raise ManifestError(f"{where}: field 'schema_version' is {version}, written by a newer urd; "
-                            f"this urd {__version__} reads up to {SCHEMA_VERSION}: upgrade urd")
-
-
-def confined_path(base: Path, relative: Any, where: str) -> Path:
-    """``base / relative`` for a manifest path that stays inside ``base``; ManifestError for an
-    absolute path, a ``..`` component, or a link leading outside."""
-    if not isinstance(relative, str) or not relative:
-        raise ManifestError(f"{where}: expected a relative file path, got {relative!r}")
-    pure = PurePosixPath(relative)
-    if pure.is_absolute() or ".." in pure.parts or "\\" in relative or relative.startswith("~"):
-        raise ManifestError(f"{where}: file path {relative!r} leaves the scene folder "
-                            "(manifest paths must be relative, without '..')")
-    path = Path(base) / pure
-    if not path.resolve().is_relative_to(Path(base).resolve()):
-        raise ManifestError(f"{where}: file path {relative!r} is a link that leads outside the scene folder")
-    return path
-
-
-def _check_file(record: Any, where: str, base: Path) -> None:
-    _check(record, where, {"file": str, "size": int, "sha256": str})
-    confined_path(base, record["file"], f"{where}.file")
-    if not SHA256.match(record["sha256"]):
-        raise ManifestError(f"{where}: field 'sha256' is not a SHA-256 hex digest")
-    if record["size"] < 0:
-        raise ManifestError(f"{where}: field 'size' is negative")
-
-
-SHOT_REQUIRED = {"index": int, "angle_commanded_deg": NUMBER, "angle_measured_deg": OPTIONAL_NUMBER,
-                 "angle_calibrated_deg": OPTIONAL_NUMBER, "file": str, "size": int, "sha256": str, "time": str}
-SHOT_OPTIONAL = {"stage_position_deg": OPTIONAL_NUMBER, "camera": (dict, type(None))}
-SHOT_ANGLES = ("angle_commanded_deg", "angle_measured_deg", "angle_calibrated_deg", "stage_position_deg")
-
-
-def validate_scene(record: Any, where: str, base: Path) -> dict:
-    """Check every field of a scene manifest; ManifestError naming file and field."""
-    _check(record, where, {"schema": str, "schema_version": int, "name": str, "created": str, "source": str,
-                           "capture": dict, "shots": list, "provenance": list},
-           {"ingest": dict, "results": dict, "calibration": dict, "swap": dict})
-    _check_schema(record, where, "urd.scene")
-    capture = _check(record["capture"], f"{where}: capture", {}, {"angles_deg": list, "complete": bool,
-                                                                   "offset_deg": NUMBER, "tolerance_deg": NUMBER})
-    if "angles_deg" in capture:
-        _check_numbers(capture["angles_deg"], f"{where}: capture.angles_deg", MAX_ANGLE_DEG)
-    _check_angles(capture, f"{where}: capture", ("offset_deg",))
-    indices = []
-    for i, shot in enumerate(record["shots"]):
-        _check(shot, f"{where}: shots[{i}]", SHOT_REQUIRED, SHOT_OPTIONAL)
-        _check_file(shot, f"{where}: shots[{i}]", base)
-        _check_angles(shot, f"{where}: shots[{i}]", SHOT_ANGLES)
-        if shot["index"] < 0:
-            raise ManifestError(f"{where}: shots[{i}]: field 'index' is {shot['index']}, expected 0 or more")
-        indices.append(shot["index"])
-    if len(set(indices)) != len(indices):
-        raise ManifestError(f"{where}: shots: duplicate shot indices {sorted(indices)}")
-    for i, entry in enumerate(record["provenance"]):
-        _check(entry, f"{where}: provenance[{i}]", {"step": str, "time": str, "urd_version": str, "parameters": dict})
-    if "ingest" in record:
-        ingest = _check(record["ingest"], f"{where}: ingest", {"time": str, "ok": bool, "options": dict,
-                                                              "angles_deg": list, "aligned": list},
-                        {"alignment": (list, str), "error": str, "shot_hashes": list})
-        _check_numbers(ingest["angles_deg"], f"{where}: ingest.angles_deg", MAX_ANGLE_DEG)
-        for i, entry in enumerate(ingest["aligned"]):
-            _check_file(entry, f"{where}: ingest.aligned[{i}]", base)
-        if ingest["ok"] and len(ingest["aligned"]) < 3:
-            raise ManifestError(f"{where}: ingest.aligned: expected at least 3 aligned shots, got {len(ingest['aligned'])}")
-        if not ingest["ok"] and "error" not in ingest:
-            raise ManifestError(f"{where}: ingest: missing field 'error' of a failed ingest")
-    for method, entry in record.get("results", {}).items():
-        _check(entry, f"{where}: results.{method}", {"time": str, "method": str, "files": list},
-               {"angles_deg": list, "parameters": dict, "truth_metrics": (dict, type(None)), "stale": str})
-        if "angles_deg" in entry:
-            _check_numbers(entry["angles_deg"], f"{where}: results.{method}.angles_deg", MAX_ANGLE_DEG)
-        for i, f in enumerate(entry["files"]):
-            _check_file(f, f"{where}: results.{method}.files[{i}]", base)
-    if "calibration" in record:
-        calib = _check(record["calibration"], f"{where}: calibration", {"time": str, "applied": bool, "errors_deg": list,
-                                                                        "uncertainty_deg": list})
-        _check_numbers(calib["errors_deg"], f"{where}: calibration.errors_deg", MAX_ANGLE_DEG)
-        _check_numbers(calib["uncertainty_deg"], f"{where}: calibration.uncertainty_deg")
-    if "swap" in record:
-        swap = _check(record["swap"], f"{where}: swap", {"remove": list})
-        for i, name in enumerate(swap["remove"]):
-            confined_path(base, name, f"{where}: swap.remove[{i}]")
-    return record
-
-
-def validate_dataset(record: Any, where: str) -> dict:
-    """Check a dataset manifest; ManifestError naming file and field."""
-    _check(record, where, {"schema": str, "schema_version": int, "created": str, "urd_version": str},
-           {"description": str})
-    _check_schema(record, where, "urd.core.dataset")
-    return record
-
-
-def validate_calibration(record: Any, where: str) -> dict:
-    """Check a calibration record (``calibration.json``); ManifestError naming file and field."""
-    fields = {"schema": str, "schema_version": int, "time": str, "offset_deg": NUMBER, "uncertainty_deg": NUMBER,
-              "target_angle_deg": NUMBER, "history": list}
-    _check(record, where, fields, {"modulation": NUMBER, "sweep": str, "residual_rms": NUMBER})
-    _check_schema(record, where, "urd.calibration")
-    _check_angles(record, where, ("offset_deg", "target_angle_deg"))
-    for i, old in enumerate(record["history"]):
-        _check(old, f"{where}: history[{i}]", {"time": str, "offset_deg": NUMBER})
-    return record
-
-
-def provenance(step: str, parameters: dict) -> dict:
-    """A provenance entry: which step ran, when, with which urd version and parameters."""
-    return {"step": step, "time": now_iso(), "urd_version": __version__, "parameters": parameters}
+# ---------------------------------------------------------------- staged swap
 
 
 def _file_records(record: dict) -> list[dict]:
@@ -382,6 +112,9 @@ def _place(source: Path, target: Path) -> None:
     except BaseException:
         link.unlink(missing_ok=True)
         raise
+
+
+# ---------------------------------------------------------------- ground truth
 
 
 def write_truth_record(folder: Path, info: dict) -> None:
@@ -730,12 +463,8 @@ class Scene:
             raise DatasetError(f"{folder}: incomplete ground truth ({exc}; a capture was stopped while writing it); "
                                f"move the folder away and resume the capture with 'urd capture --scene {self.name}' "
                                "to write it again") from exc
-        _check(record, str(where), {}, {"files": list})
-        records = []
-        for i, rec in enumerate(record.get("files", [])):
-            _check_file(rec, f"{where}: files[{i}]", folder)
-            records.append({**rec, "file": f"{folder.name}/{rec['file']}"})
-        return records
+        validate_truth(record, str(where), folder)
+        return [{**rec, "file": f"{folder.name}/{rec['file']}"} for rec in record.get("files", [])]
 
     def truth_files(self) -> dict[str, Path] | None:
         """The virtual camera's ground truth files by name (``R_obs.tiff`` → path), checked

@@ -17,7 +17,7 @@ import numpy as np
 from urd.core.images import read_image, read_raw_codes
 from urd.core.mosaic import Demosaic, MosaicLayout, demosaic
 
-SHARED = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "polarization"
+SHARED = Path(__file__).resolve().parents[3] / "shared" / "data" / "polarization"
 ANGLES_DEG = (0.0, 45.0, 90.0, 135.0)
 
 
