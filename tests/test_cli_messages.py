@@ -210,3 +210,15 @@ def test_mosaic_ingest_names_the_frame_of_each_scene(tmp_path):
     out = invoke("ingest", frames, tmp_path / "ds", "--mosaic", "imx250mzr", "--demosaic", "bilinear")
     assert out.exit_code == 0, out.output
     assert "ingested scene_01 (from left.png)" in out.stdout and "ingested scene_02 (from right.png)" in out.stdout
+
+
+def test_training_says_from_which_step_it_resumes(tmp_path):
+    config = tmp_path / "tiny.toml"
+    config.write_text('width = 8\npatch = 64\nbatch = 2\nmicro_batch = 2\nsteps = 2\nval_samples = 2\nval_every = 2\n')
+    first = invoke("train", config, tmp_path / "run")
+    assert first.exit_code == 0, first.output
+    assert "step 2: loss" in first.output and "min of training" in first.output
+    config.write_text(config.read_text().replace("steps = 2", "steps = 3"))
+    again = invoke("train", config, tmp_path / "run")
+    assert again.exit_code == 0, again.output
+    assert f"resuming {tmp_path / 'run'} from step 2 of 3" in again.output and "stopped at step 3" in again.output

@@ -20,3 +20,19 @@ def test_eta_counts_the_units_done_here_not_before_a_resume(monkeypatch):
     assert out.getvalue().split("\r")[-1].rstrip().endswith("done")
     bar(0, 3, "separate")                     # a new label starts a new line and a new clock
     assert "\n" in out.getvalue() and "ETA --:--" in out.getvalue().split("\r")[-1]
+
+
+def test_a_line_break_keeps_the_clock_running(monkeypatch):
+    now = [0.0]
+    monkeypatch.setattr(progress.time, "monotonic", lambda: now[0])
+    out = io.StringIO()
+    bar = progress.TerminalProgress(out)
+    bar(0, 100, "train")
+    now[0] += 30.0
+    bar(50, 100, "train")
+    bar.break_line()
+    out.write("step 50: val PSNR T 30.00 dB\n")
+    now[0] += 30.0
+    bar(100, 100, "train")
+    assert "\nstep 50: val PSNR T 30.00 dB\n" in out.getvalue()
+    assert "1:00" in out.getvalue().split("\r")[-1]          # elapsed since the start, not since the break

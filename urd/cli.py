@@ -12,6 +12,7 @@ import dataclasses
 import enum
 import json
 import math
+import os
 import sys
 from pathlib import Path
 from typing import Optional
@@ -547,13 +548,22 @@ def train(
     def show(record: dict) -> None:
         bar(record["step"], cfg.steps, "train")
         if "psnr_t" in record:
-            bar.close()
             loss = f"loss {record['loss']:.5f}" if "loss" in record else "the --init weights"
-            typer.echo(f"step {record['step']}: {loss}, val PSNR T {record['psnr_t']:.2f} dB, R {record['psnr_r']:.2f} dB")
+            bar.break_line()
+            typer.echo(f"step {record['step']}: {loss}, val PSNR T {record['psnr_t']:.2f} dB, R {record['psnr_r']:.2f} dB "
+                       f"({record['wall_s'] / 60:.1f} min of training)")
 
+    last = Path(run_dir) / "last.pt"
+    if last.is_file():
+        from separate.train import load_checkpoint
+
+        state = run_guarded(load_checkpoint, last)
+        typer.echo(f"resuming {run_dir} from step {state['step']} of {cfg.steps} ({last}; "
+                   f"{state.get('wall_s', 0.0) / 60:.1f} min trained so far)")
     record = run_guarded(train_run, cfg, run_dir, init, progress=show)
     bar.close()
-    typer.echo(f"stopped at step {record.get('step')}; checkpoints in {Path(run_dir).resolve()}")
+    if os.environ.get("RANK", "0") == "0":                   # under torchrun, rank 0 reports
+        typer.echo(f"stopped at step {record.get('step')}; checkpoints in {Path(run_dir).resolve()}")
 
 
 @app.command()

@@ -52,6 +52,14 @@ class TerminalProgress:
         self.stream.write(f"\r{label[:40]:<40} [{bar}] {100 * frac:3.0f}% {done}/{total} {_clock(elapsed)} {eta}  ")
         self.stream.flush()
 
+    def break_line(self) -> None:
+        """End the current line so that other output can follow; the progress goes on in a new
+        line with its timing (elapsed time and rate still counted from the label's first call)."""
+        if self.label is not None:
+            self.stream.write("\n")
+            self.stream.flush()
+        self.last_draw = 0.0
+
     def close(self) -> None:
         """End the current line."""
         if self.label is not None:
