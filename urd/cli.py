@@ -568,6 +568,7 @@ def train(
 
 @app.command()
 def bench(
+    ctx: typer.Context,
     quick: bool = typer.Option(False, "--quick", help="The paper's evaluation, reduced (< 10 min on 2 cores): tables, CSV and plots in docs/bench/quick, checked against docs/bench/expected-quick.json."),
     full: bool = typer.Option(False, "--full", help="The paper's full evaluation (about 30 min on 2 cores): cross-validation, robustness, speed into docs/bench/full."),
     large: bool = typer.Option(False, "--24mp", help="With --full: also time the network and Schechner on a 24 MP scene."),
@@ -582,6 +583,7 @@ def bench(
     jobs: int = typer.Option(2, min=1, help="With --ablation: training runs side by side (one thread each)."),
     runs: Optional[Path] = typer.Option(None, help="With --ablation: folder of the training runs (unfinished ones resume; default runs/ablation, or runs/ablation-STEPS with --steps)."),
     steps: Optional[int] = typer.Option(None, min=1, help="With --ablation: training steps of every run (default: the configs' 4000; e.g. 16000 on a GPU); its runs in runs/ablation-STEPS and its report in OUT/ablation-STEPS."),
+    virtual: bool = typer.Option(False, "--virtual", help="The virtual-camera set: flat panes rendered by urd's virtual camera at angles of incidence 20-75 deg and a wide view (phi_perp turning 50 deg), the network against Schechner, Kong, Farid and no separation (4 photo pairs of 768x512; --methods to choose); tables in OUT/virtual (default docs/bench/virtual)."),
 ) -> None:
     """Benchmark the methods on synthetic data with ground truth: by default one table of RMSE /
     PSNR / SSIM of R and T per method (with network and direct: their paired T PSNR difference);
@@ -592,9 +594,13 @@ def bench(
     Example:
       urd bench --methods none,schechner,network --count 16
       urd bench --quick
+      urd bench --virtual
     """
     if large and not full:
         raise typer.BadParameter("--24mp goes with --full")
+    if virtual:
+        bench_virtual(methods if given(ctx, "methods") else None, out)
+        return
     if not ablation and (seeds != "0,1" or jobs != 2 or runs is not None or steps is not None):
         raise typer.BadParameter("--seeds, --jobs, --runs and --steps go with --ablation")
     if ablation:
@@ -626,6 +632,23 @@ def bench(
     typer.echo(format_table(rows))
     if {"network", "direct"} <= {r["method"] for r in rows}:
         typer.echo(format_paired(rows, "network", "direct"))
+
+
+def bench_virtual(methods: Optional[str], out: Optional[Path]) -> None:
+    """``urd bench --virtual``: print the tables and write them into OUT/virtual/tables.md."""
+    from separate.bench_run import DEFAULT_OUT
+    from urd.core.files import write_bytes_atomic
+    from urd.virtual_bench import DEFAULT_METHODS, run_virtual_bench
+
+    chosen = tuple(methods.split(",")) if methods else DEFAULT_METHODS
+    bar = TerminalProgress()
+    tables = run_guarded(run_virtual_bench, chosen, progress=bar)
+    bar.close()
+    folder = (out or DEFAULT_OUT) / "virtual"
+    folder.mkdir(parents=True, exist_ok=True)
+    write_bytes_atomic(folder / "tables.md", tables.encode(), overwrite=True)
+    typer.echo(tables)
+    typer.echo(f"wrote {(folder / 'tables.md').resolve()}")
 
 
 @app.command()
