@@ -71,3 +71,17 @@ def test_a_kill_during_separate_all_leaves_finished_scenes_intact(three_scenes):
     assert out.stdout.count("skipped: has network results") == len(finished)
     assert all(methods == ["network"] for methods in methods_of(three_scenes).values())
     assert not list(three_scenes.glob("*/.staging-*"))
+
+
+def test_ingest_a_dataset_with_two_jobs(tmp_path):
+    ds = Dataset.open_or_create(tmp_path / "ds")
+    for seed in range(3):
+        capture_virtual(ds, size=(192, 128), shake_px=1.0, shake_deg=0.1, seed=seed)
+    out = urd("ingest", ds.root, "--jobs", "2")
+    assert out.returncode == 0, out.stderr
+    assert [line.split(" (")[0] for line in out.stdout.splitlines()] == [f"ingested scene_0{i}" for i in (1, 2, 3)]
+    assert all(Dataset.open(ds.root).scene(f"scene_0{i}").is_ingested() for i in (1, 2, 3))
+    assert urd("verify", ds.root).returncode == 0
+    again = urd("ingest", ds.root, "--jobs", "2")
+    assert again.returncode == 0 and again.stdout.count("already ingested") == 3
+    assert not list(ds.root.glob("*/.staging-*"))

@@ -271,6 +271,7 @@ def ingest(
     mosaic: Optional[str] = typer.Option(None, help="SOURCE holds polarization-camera frames (PNG/TIFF) with this layout: imx250mzr, imx250myr or wen2019; one scene per frame."),
     demosaic: str = typer.Option("newton", help="Demosaicing of --mosaic frames: none (sites as they are, unregistered), bilinear, newton (registers the four polarizer sites)."),
     transfer: str = typer.Option("linear", help="8-bit frames: linear (sensor codes, polarization cameras) or srgb (photos from ordinary cameras). 16-bit frames are always linear."),
+    jobs: int = typer.Option(1, min=1, help="Worker processes for the scenes of a dataset (SOURCE a dataset folder): each decodes and aligns one scene at a time."),
 ) -> None:
     """Decode RAW shots to linear images, group them into scenes and align each scene (ECC).
 
@@ -280,7 +281,7 @@ def ingest(
     Example:
       urd ingest raw/
       urd ingest raw/ dataset --angles 0,45,90,135
-      urd ingest dataset
+      urd ingest dataset --jobs 2
     """
     from urd.core.align import Motion
     from urd.core.images import Transfer
@@ -297,7 +298,7 @@ def ingest(
         layout, method = choice(MosaicLayout, mosaic, "--mosaic"), choice(Demosaic, demosaic, "--demosaic")
     transfer_rule = choice(Transfer, transfer, "--transfer")
     report = run_guarded(ingest_workflow, source, dataset or default_root(), opts, layout, method, transfer_rule,
-                         progress=TerminalProgress())
+                         progress=TerminalProgress(), jobs=jobs)
     for path in report.ignored:
         typer.echo(f"ignored (not a RAW file name): {path.resolve()}", err=True)
     for outcome in report.outcomes:

@@ -24,6 +24,7 @@ from __future__ import annotations
 import dataclasses
 import datetime as _dt
 import shutil
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +32,7 @@ import tifffile
 
 from urd.core import raw as rawio
 from urd.core.align import Motion, align, apply_warp
-from urd.core.dataset import Dataset, Scene
+from urd.core.dataset import STAGING_PREFIX, Dataset, Scene
 from urd.core.errors import AlignmentError, DatasetError, RawFormatError, UrdError
 from urd.core.files import atomic_path, sha256_file
 from urd.core.images import IMAGE_SUFFIXES, Transfer, codes_to_linear, linear_to_u16, read_raw_codes
@@ -141,11 +142,27 @@ def write_aligned(path: Path, image: np.ndarray) -> None:
         tifffile.imwrite(tmp, linear_to_u16(image), photometric="rgb")
 
 
-def process_scene(scene: Scene, opts: IngestOptions, progress: Progress | None = None) -> None:
-    """Decode and align the shots of ``scene``; stage ``aligned/`` and record the ingest.
+@dataclasses.dataclass
+class PreparedIngest:
+    """A scene decoded and aligned, its aligned shots written into a staging folder inside the
+    scene, not yet recorded (`prepare_ingest`; `commit_ingest` records it)."""
+
+    scene: Path
+    ok: bool
+    alignment: list
+    staging: Path | None
+    staged: dict[str, Path]
+    error: str | None = None
+
+
+def prepare_ingest(scene: Scene, opts: IngestOptions, progress: Progress | None = None) -> PreparedIngest:
+    """Decode and align the shots of ``scene`` and stage ``aligned/`` in a new staging folder of
+    the scene, without touching its manifest (so that several processes can prepare scenes of
+    one dataset while one commits them; the dataset's recovery removes the folder should the
+    process die first).
 
     Raises RawFormatError for an undecodable shot, AlignmentError for mixed sizes; a failed
-    alignment is recorded (ok false) with no aligned stack.
+    alignment is prepared as ok false, with no aligned stack.
     """
     paths = scene.raw_paths()
     label = f"ingest {scene.name}"
@@ -167,21 +184,40 @@ def process_scene(scene: Scene, opts: IngestOptions, progress: Progress | None =
     alignment = [{"shot": 0, "reference": True}] + [{"shot": i, **r.record()} for i, r in enumerate(results, 1)]
     if not all(r.ok for r in results):
         bad = [f"shot {i}: {r.reason}" for i, r in enumerate(results, 1) if not r.ok]
-        scene.set_ingest(False, opts.record(), alignment, {},
-                         error="alignment failed, no aligned stack written (" + "; ".join(bad) + ")")
-        return
-    with scene.staging() as staging:
+        return PreparedIngest(scene.path, False, alignment, None, {},
+                              "alignment failed, no aligned stack written (" + "; ".join(bad) + ")")
+    staging = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=scene.path))
+    try:
         staged = {}
         for i in range(len(paths)):
             staged[f"aligned/shot_{i:02d}.tiff"] = staging / f"shot_{i:02d}.tiff"
             write_aligned(staged[f"aligned/shot_{i:02d}.tiff"], images.pop(i))
-        scene.set_ingest(True, opts.record(), alignment, staged)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
     if progress:
         progress(len(paths), len(paths), label)
+    return PreparedIngest(scene.path, True, alignment, staging, staged)
 
 
-def ingest_scene(scene: Scene, opts: IngestOptions, progress: Progress | None = None) -> SceneOutcome:
-    """Process a captured scene in place (not again unless ``opts.redo``)."""
+def commit_ingest(scene: Scene, prepared: PreparedIngest, opts: IngestOptions) -> None:
+    """Record a prepared ingest in the scene's manifest (`Scene.set_ingest`; the caller holds the
+    dataset's lock); the staging folder is removed either way."""
+    try:
+        scene.set_ingest(prepared.ok, opts.record(), prepared.alignment, prepared.staged, error=prepared.error)
+    finally:
+        if prepared.staging is not None:
+            shutil.rmtree(prepared.staging, ignore_errors=True)
+
+
+def process_scene(scene: Scene, opts: IngestOptions, progress: Progress | None = None) -> None:
+    """Decode and align the shots of ``scene``, stage ``aligned/`` and record the ingest
+    (`prepare_ingest`, then `commit_ingest`)."""
+    commit_ingest(scene, prepare_ingest(scene, opts, progress), opts)
+
+
+def _not_to_ingest(scene: Scene, opts: IngestOptions) -> SceneOutcome | None:
+    """Why a captured scene is not processed (broken, incomplete, already ingested), or None."""
     status = scene.reload().status()
     if status.state == "broken":
         return SceneOutcome(scene.name, [], status.problem, "failed")
@@ -190,13 +226,68 @@ def ingest_scene(scene: Scene, opts: IngestOptions, progress: Progress | None = 
                             f"resume it with: urd capture --scene {scene.name} (same --stage and --angles)", "incomplete")
     if scene.is_ingested() and not opts.redo:
         return SceneOutcome(scene.name, [], "already ingested (--redo decodes and aligns it again)", "skipped")
+    return None
+
+
+def _outcome(scene: Scene) -> SceneOutcome:
+    """The outcome of a scene whose ingest was recorded."""
+    ok, error = scene.reload().ingest_outcome()
+    return SceneOutcome(scene.name, scene.raw_paths(), error, "ingested" if ok else "failed")
+
+
+def ingest_scene(scene: Scene, opts: IngestOptions, progress: Progress | None = None) -> SceneOutcome:
+    """Process a captured scene in place (not again unless ``opts.redo``)."""
+    skipped = _not_to_ingest(scene, opts)
+    if skipped is not None:
+        return skipped
     try:
         scene.check_files([{"file": s.file, "size": s.size, "sha256": s.sha256} for s in scene.shots()])
         process_scene(scene, opts, progress)
     except UrdError as exc:
         return SceneOutcome(scene.name, [], str(exc), "failed")
-    ok, error = scene.ingest_outcome()
-    return SceneOutcome(scene.name, scene.raw_paths(), error, "ingested" if ok else "failed")
+    return _outcome(scene)
+
+
+def _prepare_worker(path: str, opts: IngestOptions) -> PreparedIngest:
+    """Worker process: check and prepare one scene (`prepare_ingest`)."""
+    scene = Scene(Path(path))
+    scene.check_files([{"file": s.file, "size": s.size, "sha256": s.sha256} for s in scene.shots()])
+    return prepare_ingest(scene, opts)
+
+
+def ingest_scenes(scenes: list[Scene], opts: IngestOptions, jobs: int, progress: Progress | None = None) -> list[SceneOutcome]:
+    """Ingest captured scenes of one dataset in place with ``jobs`` worker processes: workers
+    decode and align (`prepare_ingest`), this process (holding the dataset's lock) records each
+    scene as it is done, so a kill leaves every recorded scene intact; a failing scene is reported
+    and the others go on. Progress counts scenes."""
+    import concurrent.futures
+    import multiprocessing
+
+    outcomes, todo = [], []
+    for scene in scenes:
+        skipped = _not_to_ingest(scene, opts)
+        if skipped is None:
+            todo.append(scene)
+        else:
+            outcomes.append(skipped)
+    label = f"ingest ({jobs} jobs)"
+    if progress:
+        progress(0, len(todo), label)
+    context = multiprocessing.get_context("spawn")               # fresh interpreters, as urd.batch
+    with concurrent.futures.ProcessPoolExecutor(jobs, mp_context=context) as pool:
+        futures = {pool.submit(_prepare_worker, str(scene.path), opts): scene for scene in todo}
+        for done, future in enumerate(concurrent.futures.as_completed(futures), 1):
+            scene = futures[future]
+            try:
+                commit_ingest(scene, future.result(), opts)
+                outcomes.append(_outcome(scene))
+            except Exception as exc:  # noqa: BLE001 - one scene's failure, whatever it is, must not stop the others
+                outcomes.append(SceneOutcome(scene.name, [], str(exc) if isinstance(exc, UrdError)
+                                             else f"{type(exc).__name__}: {exc}", "failed"))
+            if progress:
+                progress(done, len(todo), label)
+    order = {scene.name: k for k, scene in enumerate(scenes)}
+    return sorted(outcomes, key=lambda o: order.get(o.name, len(order)))
 
 
 def ingest_group(ds: Dataset, files: list[Path], opts: IngestOptions, progress: Progress | None = None) -> SceneOutcome:
@@ -306,9 +397,12 @@ def ingest_mosaic(ds: Dataset, path: Path, layout, demosaic, transfer: Transfer 
 
 
 def ingest(source: Path, root: Path, opts: IngestOptions, mosaic=None, demosaic="newton",
-           transfer: Transfer = Transfer.LINEAR, progress: Progress | None = None) -> IngestReport:
+           transfer: Transfer = Transfer.LINEAR, progress: Progress | None = None, jobs: int = 1) -> IngestReport:
     """The workflow of ``urd ingest``: a RAW folder (or mosaic frames) into the dataset at
-    ``root``, or a captured scene / a whole dataset in place (see the module docstring)."""
+    ``root``, or a captured scene / a whole dataset in place (see the module docstring); a
+    dataset's scenes with ``jobs`` worker processes when ``jobs`` > 1 (`ingest_scenes`)."""
+    if jobs < 1:
+        raise ValueError(f"expected at least 1 job, got {jobs}")
     source = Path(source)
     if not source.exists():
         raise DatasetError(f"{source}: no such folder or file")
@@ -332,4 +426,6 @@ def ingest(source: Path, root: Path, opts: IngestOptions, mosaic=None, demosaic=
         if scenes == []:
             return ingest_folder(source, ds, opts, progress)
         targets = [ds.root / name for name in (scenes or ds.scene_names())]
+        if jobs > 1:
+            return IngestReport(ingest_scenes([Scene(path) for path in targets], opts, jobs, progress), [])
         return IngestReport([ingest_scene(Scene(path), opts, progress) for path in targets], [])
