@@ -29,7 +29,7 @@ from typing import Callable
 import numpy as np
 
 from separate import optics
-from separate.reference import decide_side, field_at, inspect_stack, present, present_field
+from separate.reference import present, present_field, resolve_reference
 
 Run = Callable[..., tuple[np.ndarray, np.ndarray]]
 Reference = str | float
@@ -60,21 +60,16 @@ def reference_policy(reference: Reference) -> str:
 
 def chooser(reference: Reference) -> Callable[..., float | np.ndarray]:
     """A function (images, angles_deg, reference_deg, trial) → the reference to present at (deg,
-    a number or an H×W map): ``reference_deg`` if given, else ``reference`` (module docstring);
-    an estimated reference whose side was only assumed is settled by ``trial``, the method's own
-    run, separating both sides (`separate.reference.decide_side`)."""
+    a number or an H×W map): ``reference_deg`` if given, else ``reference`` chosen as every
+    separation in urd chooses it (`separate.reference.resolve_reference`; ``trial``, the
+    method's own silent run, settles an assumed side)."""
     reference = check_reference(reference)
 
     def choose(images: np.ndarray, angles_deg: list[float], reference_deg: float | np.ndarray | None,
                trial: Run) -> float | np.ndarray:
         if reference_deg is not None:
             return reference_deg if np.ndim(reference_deg) == 2 else float(reference_deg)
-        if reference not in ESTIMATED:
-            return float(reference)
-        inspection = decide_side(images, angles_deg, inspect_stack(images, angles_deg), trial)
-        if reference == "auto":
-            return field_at(inspection.field, images.shape[1:3])
-        return inspection.reference_deg
+        return resolve_reference(images, angles_deg, reference, trial)[1]
 
     return choose
 
@@ -99,10 +94,14 @@ def network(weights: Path | None = None, tile: int | None = None, precision: str
     chosen = resolve(precision).value
     choose = chooser(reference)
 
+    def trial(images: np.ndarray, angles_deg: list[float], reference_deg: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A silent run at a given reference (the side decision's trial separations)."""
+        return separate_stack(model, images, list(angles_deg), tile, OVERLAP, chosen, None, reference_deg=reference_deg)
+
     def run(images: np.ndarray, angles_deg: list[float],
             reference_deg: float | np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         # separate_stack presents the shots tile by tile (no second full-size stack)
-        chosen_deg = choose(images, angles_deg, reference_deg, run) if uses_reference else None
+        chosen_deg = choose(images, angles_deg, reference_deg, trial) if uses_reference else None
         r_hat, t_hat = separate_stack(model, images, list(angles_deg), tile, OVERLAP, chosen, progress,
                                       reference_deg=chosen_deg)
         if colour_match:

@@ -26,7 +26,8 @@ bound:
   look the same). urd assumes the transmission dominates, so φ⊥ is the other orientation.
   The network, given the wrong side, ruins a clean transmission-dominated photo (T̂ 34 → 12 dB
   on synthetic scenes at 60°) but leaves a reflection-dominated one about as it was (T̂ ≈ S0).
-  `polarization_warnings` says so;
+  `polarization_warnings` says so. Where a method is at hand, `decide_side` settles the
+  assumption by separating both sides (``Basis.TRIAL`` when it turns the side);
 * no usable polarization (``Basis.NONE``): the first shot's angle (nothing to separate).
 
 All statistics use the luminance reduced to at most `MAX_SIDE` px (area averaging, which
@@ -91,7 +92,8 @@ CLIPPED_WARN = 0.01
 FIELD_PRIOR = 0.02
 #: Pixels whose axis is further than this (deg) from the field are left out of its next fit.
 FIELD_OUTLIER_DEG = 15.0
-#: Fits of the reference field (the first uses every pixel, the others drop the outliers).
+#: Fits of the reference field (each keeps the pixels within `FIELD_OUTLIER_DEG` of the previous
+#: fit; the first, of the global φ⊥).
 FIELD_ITERATIONS = 3
 #: Long side (px) of the stack `decide_side` separates at both sides.
 TRIAL_SIDE = 256
@@ -106,6 +108,7 @@ class Basis(enum.Enum):
     TAILS = "tails"
     STRONG = "strong"
     TRANSMISSION = "transmission"
+    TRIAL = "trial"
     NONE = "none"
 
 
@@ -439,8 +442,10 @@ def present_field(images: np.ndarray, angles_deg: Sequence[float], field_deg: np
     """
     phi = check_stack(images, angles_deg)
     field_deg = np.asarray(field_deg, np.float32)
-    if field_deg.shape != images.shape[1:3] or not np.isfinite(field_deg).all():
-        raise ValueError(f"expected a finite reference field of shape {images.shape[1:3]}, got {field_deg.shape}")
+    if field_deg.shape != images.shape[1:3]:
+        raise ValueError(f"expected a reference field of shape {images.shape[1:3]}, got {field_deg.shape}")
+    if not np.isfinite(field_deg).all():
+        raise ValueError(f"expected a finite reference field, got {int((~np.isfinite(field_deg)).sum())} non-finite values")
     pinv = np.linalg.pinv(optics.stokes_matrix(phi)).astype(np.float32)
     out = np.empty((3,) + images.shape[1:], np.float32)
     for y in range(0, images.shape[1], rows):
@@ -623,13 +628,16 @@ def reduced_stack(images: np.ndarray, max_side: int = MAX_SIDE) -> np.ndarray:
     return out
 
 
-def decide_side(images: np.ndarray, angles_deg: Sequence[float], inspection: "Inspection",
-                trial: Callable[[np.ndarray, list[float], float | np.ndarray], tuple[np.ndarray, np.ndarray]]) -> "Inspection":
+Trial = Callable[[np.ndarray, list[float], "float | np.ndarray"], tuple[np.ndarray, np.ndarray]]
+
+
+def decide_side(images: np.ndarray, angles_deg: Sequence[float], inspection: "Inspection", trial: Trial,
+                use_field: bool = True) -> "Inspection":
     """Settle an assumed side of φ⊥ by separating both (Schechner's criterion, on the method's
     own output): where the side was only assumed (``Basis.TRANSMISSION``: weak polarization of
     one orientation), ``trial`` separates the stack reduced to `TRIAL_SIDE` px at the reference
-    and at it + 90°, and the side whose layers share less mutual information wins. Other bases
-    come back unchanged.
+    (the field with ``use_field``, else the one angle) and at it + 90°, and the side whose
+    layers share less mutual information wins. Other bases come back unchanged.
 
     Measured on 48 synthetic scenes × 3 angle sets (the benchmark's patches): the network's T̂ was
     0.78 dB below the true φ⊥ with the assumed side, 0.40 dB with this decision (on the 21
@@ -644,13 +652,13 @@ def decide_side(images: np.ndarray, angles_deg: Sequence[float], inspection: "In
             h×w field (deg).
 
     Returns:
-        ``inspection``, or one turned by 90° (reference, field, presence map) with a note in its
-        warnings.
+        ``inspection``, or one turned by 90° (estimate with ``Basis.TRIAL``, reference, field,
+        presence map) with a note in its warnings.
     """
     if inspection.estimate.basis is not Basis.TRANSMISSION:
         return inspection
     small = reduced_stack(images, TRIAL_SIDE)
-    field = field_at(inspection.field, small.shape[1:3])
+    field = field_at(inspection.field, small.shape[1:3]) if use_field else inspection.reference_deg
     scores = []
     for turn in (0.0, 90.0):
         r_hat, t_hat = trial(small, list(angles_deg), field + turn)
@@ -660,7 +668,38 @@ def decide_side(images: np.ndarray, angles_deg: Sequence[float], inspection: "In
     reference = float(np.mod(inspection.reference_deg + 90.0, 180.0))
     note = (f"the side of the reference was decided by separating both: {reference:.1f} deg (the reflection dominates) "
             f"gave layers sharing less information ({scores[1]:.3f} against {scores[0]:.3f} nats) than the assumed "
-            f"{inspection.reference_deg:.1f} deg; pass --reference {inspection.reference_deg:.1f} to keep the assumption")
+            f"{inspection.reference_deg:.1f} deg; pass --reference {inspection.reference_deg:.1f} to keep the assumption "
+            "(one angle for the whole view)")
     warnings = [w for w in inspection.warnings if "urd assumes the transmission dominates" not in w] + [note]
     turned = inspect_stack(images, angles_deg, reference)                 # the presence map along the new side
-    return dataclasses.replace(turned, estimate=inspection.estimate, field=inspection.field + 90.0, warnings=warnings)
+    low, high = inspection.estimate.dolp_range
+    estimate = ReferenceEstimate(reference, inspection.estimate.axis_strength, Basis.TRIAL, (-high, -low))
+    return dataclasses.replace(turned, estimate=estimate, warnings=warnings,
+                               field=inspection.field + np.float32(reference - inspection.reference_deg))
+
+
+def resolve_reference(images: np.ndarray, angles_deg: Sequence[float], reference: str | float,
+                      trial: Trial | None) -> tuple["Inspection", float | np.ndarray]:
+    """The inspection of a stack and the reference to present it at, as every separation in urd
+    chooses them: "auto", the estimated field (H×W deg); "global", the estimated angle; a number,
+    that angle. An estimated side that was only assumed is settled by ``trial`` (`decide_side`;
+    None: not settled, for methods that see S0 only).
+
+    Args:
+        images: (N, H, W, C) linear shots (float, or uint16 codes).
+        angles_deg: the N polarizer angles (deg).
+        reference: "auto", "global" or degrees.
+        trial: a method's silent run, (images, angles_deg, reference) → (R̂, T̂), or None.
+
+    Returns:
+        (inspection, reference): the `Inspection` and the reference (deg, a number or an H×W field).
+    """
+    estimated = reference in ("auto", "global")
+    if isinstance(reference, str) and not estimated:
+        raise ValueError(f"expected reference 'auto', 'global' or an angle in degrees, got {reference!r}")
+    inspection = inspect_stack(images, angles_deg, None if estimated else float(reference))
+    if estimated and trial is not None:
+        inspection = decide_side(images, angles_deg, inspection, trial, use_field=reference == "auto")
+    if reference == "auto":
+        return inspection, field_at(inspection.field, images.shape[1:3])
+    return inspection, inspection.reference_deg

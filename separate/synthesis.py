@@ -21,7 +21,7 @@ From two natural photos, in linear light (inverse gamma 2.2):
    the side is left to the reference estimator (ANY teaches it to hedge against a wrong side);
 6. exposure, shot and read noise, and rejection of flat, dark or saturated patches.
 
-Three further switches, off by default (the paper's pipeline and the benchmark's data stay as
+Further switches, off by default (the paper's pipeline and the benchmark's data stay as
 they were), on in training the physics-anchored network (``configs/cpu-fresnel.toml``):
 
 * ``phi_field_prob``: φ⊥ turning linearly across the patch by up to ``phi_field_max_deg`` (a

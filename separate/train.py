@@ -236,11 +236,13 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
         source = last if resumed else init
         state = load_checkpoint(source, device)
         stored = {"channels": 3, **state.get("model_config", {})}
-        if not resumed and model.config().get("base") == "fresnel" and "base" not in stored:
+        if not resumed and model.config().get("base") == "fresnel" and "base" not in stored \
+                and stored.get("variant", "canonical") == "canonical":
             start = build_model(stored)                     # a canonical-base start: its head grows zero inputs
             start.load_state_dict({k: v.float() for k, v in state["model"].items()})
-            state = {**state, "model": with_fresnel_base(start).state_dict()}
-            stored = {"channels": 3, **model.config()}
+            converted = with_fresnel_base(start)
+            state = {**state, "model": converted.state_dict()}
+            stored = {"channels": 3, **converted.config()}
         if stored != {"channels": 3, **model.config()}:
             raise WeightsError(f"{source} holds a network {stored}, not the {model.config()} of this config "
                                "(for resize up-sampling from transposed weights: tools/resize_upsampling.py)")

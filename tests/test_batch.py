@@ -85,3 +85,11 @@ def test_ingest_a_dataset_with_two_jobs(tmp_path):
     again = urd("ingest", ds.root, "--jobs", "2")
     assert again.returncode == 0 and again.stdout.count("already ingested") == 3
     assert not list(ds.root.glob("*/.staging-*"))
+
+
+def test_ingest_jobs_is_for_a_dataset_not_a_raw_folder(tmp_path):
+    raw = tmp_path / "raw"
+    raw.mkdir()
+    out = urd("ingest", raw, tmp_path / "ds", "--jobs", "2")
+    assert out.returncode == 1 and "expected a dataset or scene folder with --jobs 2" in out.stderr
+    assert not (tmp_path / "ds").exists()

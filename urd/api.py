@@ -56,20 +56,18 @@ def separate(images: np.ndarray, angles_deg: Sequence[float], method: str = "net
     return Layers(t_hat, r_hat)
 
 
-def polarization_maps(images: np.ndarray, angles_deg: Sequence[float], reference: str | float = "auto") -> dict[str, np.ndarray]:
+def polarization_maps(images: np.ndarray, angles_deg: Sequence[float], reference: str | float = "auto",
+                      method: str = "network") -> dict[str, np.ndarray]:
     """S0, S1, S2 (H×W×C), DoLP, AoLP, φ⊥ and θ (H×W) of a stack (`separate.maps.MAPS`: units).
 
-    ``reference`` as in `separate`: the φ⊥ map is the estimated field ("auto"), one estimated
-    angle ("global") or the given angle.
+    ``reference`` as in `separate`, chosen the same way (`separate.reference.resolve_reference`):
+    the φ⊥ map is the estimated field ("auto"), one estimated angle ("global") or the given
+    angle; an assumed side is settled by separating both sides with ``method``.
     """
     from separate.maps import polarization_maps as maps
-    from separate.reference import estimate_reference_deg, estimate_reference_field
+    from separate.methods import get_method
+    from separate.reference import resolve_reference
 
     angles = [float(a) for a in angles_deg]
-    if reference == "auto":
-        chosen: float | np.ndarray = estimate_reference_field(images, angles)
-    elif reference == "global":
-        chosen = estimate_reference_deg(images, angles)
-    else:
-        chosen = float(reference)
-    return maps(images, angles, chosen)
+    trial = get_method(method)[0] if reference in ("auto", "global") else None
+    return maps(images, angles, resolve_reference(images, angles, reference, trial)[1])

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Iterator
 
 from urd.core.dataset import Dataset, Scene
-from urd.core.progress import Progress
+from urd.core.progress import Progress, plural
 
 
 @dataclasses.dataclass
@@ -85,7 +85,7 @@ def separate_all(root: Path, method: str, options: dict, force: bool = False, re
     with ds.lock():
         chosen, outcomes = targets(ds, method, force)
         threads = max(1, (os.cpu_count() or 1) // jobs)
-        label = f"separate --all ({method}, {jobs} job{'s' if jobs > 1 else ''})"
+        label = f"separate --all ({method}, {plural(jobs, 'job')})"
         if progress:
             progress(0, len(chosen), label)
         for done, (scene, prepared) in enumerate(_prepared(chosen, method, options, reference, maps, jobs, threads), 1):
@@ -113,9 +113,12 @@ def _prepared(scenes: list[Scene], method: str, options: dict, reference: str | 
                 yield scene, exc
         return
     context = multiprocessing.get_context("spawn")                  # fresh interpreters: no forked torch state
-    with concurrent.futures.ProcessPoolExecutor(jobs, mp_context=context) as pool:
+    pool = concurrent.futures.ProcessPoolExecutor(jobs, mp_context=context)
+    try:
         futures = {pool.submit(_prepare, str(scene.path), method, options, reference, maps, threads): scene
                    for scene in scenes}
         for future in concurrent.futures.as_completed(futures):
             error = future.exception()
             yield futures[future], error if error is not None else future.result()
+    finally:
+        pool.shutdown(cancel_futures=True)              # an interrupt does not wait for the queued scenes

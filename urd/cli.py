@@ -22,7 +22,7 @@ import typer
 from urd import __version__
 from urd.core.dataset import default_root
 from urd.core.errors import CaptureInterrupted, UrdError
-from urd.core.progress import TerminalProgress
+from urd.core.progress import TerminalProgress, plural
 
 DATASET_HELP = "Dataset folder (default: the current folder if it holds dataset.json, else ./dataset)."
 HELP_OPTIONS = {"help_option_names": ["-h", "--help"]}
@@ -54,11 +54,6 @@ def fail(message: str, code: int = 1) -> None:
     """Print an error line and exit with ``code``."""
     typer.secho(f"error: {message}", fg=typer.colors.RED, err=True)
     raise typer.Exit(code)
-
-
-def plural(count: int, noun: str) -> str:
-    """'1 scene', '3 scenes'."""
-    return f"{count} {noun}{'' if count == 1 else 's'}"
 
 
 def given(ctx: typer.Context, name: str) -> bool:
@@ -498,7 +493,7 @@ def separate_dataset(dataset: Optional[Path], method: str, weights: Optional[Pat
     scene; exit 1 when any failed."""
     from urd.batch import separate_all
 
-    root = dataset or default_root()
+    root = existing_dataset(dataset)
     options = ({"weights": weights, "tile": tile, "precision": chosen.value, "colour_match": colour_match}
                if method in ("network", "ceilnet") else params)
     outcomes = run_guarded(separate_all, root, method, options, force, reference, maps, jobs, progress=TerminalProgress())
@@ -506,7 +501,7 @@ def separate_dataset(dataset: Optional[Path], method: str, weights: Optional[Pat
         typer.echo(f"{outcome.scene}: {outcome.state}{': ' + outcome.detail if outcome.detail else ''}")
     failed = sum(o.state == "failed" for o in outcomes)
     done = sum(o.state == "separated" for o in outcomes)
-    typer.echo(f"{done} scene{'s' if done != 1 else ''} separated with {method}, {failed} failed; results in each "
+    typer.echo(f"{plural(done, 'scene')} separated with {method}, {failed} failed; results in each "
                f"scene's results/{method}/ (look at them: urd report {root} --html report)")
     if failed:
         raise typer.Exit(1)
@@ -555,7 +550,7 @@ def train(
                        f"({record['wall_s'] / 60:.1f} min of training)")
 
     last = Path(run_dir) / "last.pt"
-    if last.is_file():
+    if last.is_file() and os.environ.get("RANK", "0") == "0":
         from separate.train import load_checkpoint
 
         state = run_guarded(load_checkpoint, last)
@@ -600,6 +595,8 @@ def bench(
     if large and not full:
         raise typer.BadParameter("--24mp goes with --full")
     if virtual:
+        if quick or full or ablation or given(ctx, "count") or given(ctx, "size"):
+            raise typer.BadParameter("--virtual goes alone (with --methods and --out): it has its own scenes")
         bench_virtual(methods if given(ctx, "methods") else None, out)
         return
     if not ablation and (seeds != "0,1" or jobs != 2 or runs is not None or steps is not None):

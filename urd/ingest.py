@@ -274,7 +274,8 @@ def ingest_scenes(scenes: list[Scene], opts: IngestOptions, jobs: int, progress:
     if progress:
         progress(0, len(todo), label)
     context = multiprocessing.get_context("spawn")               # fresh interpreters, as urd.batch
-    with concurrent.futures.ProcessPoolExecutor(jobs, mp_context=context) as pool:
+    pool = concurrent.futures.ProcessPoolExecutor(jobs, mp_context=context)
+    try:
         futures = {pool.submit(_prepare_worker, str(scene.path), opts): scene for scene in todo}
         for done, future in enumerate(concurrent.futures.as_completed(futures), 1):
             scene = futures[future]
@@ -286,6 +287,8 @@ def ingest_scenes(scenes: list[Scene], opts: IngestOptions, jobs: int, progress:
                                              else f"{type(exc).__name__}: {exc}", "failed"))
             if progress:
                 progress(done, len(todo), label)
+    finally:
+        pool.shutdown(cancel_futures=True)                       # an interrupt does not wait for the queued scenes
     order = {scene.name: k for k, scene in enumerate(scenes)}
     return sorted(outcomes, key=lambda o: order.get(o.name, len(order)))
 
@@ -412,6 +415,9 @@ def ingest(source: Path, root: Path, opts: IngestOptions, mosaic=None, demosaic=
         root, scenes = source, None
     else:
         scenes = []
+    if jobs > 1 and (scenes == [] or mosaic is not None):
+        raise ValueError(f"expected a dataset or scene folder with --jobs {jobs}, got {source}: a RAW folder or "
+                         "mosaic frames are ingested by one process (ingest them, then a dataset with --jobs)")
     ds = Dataset.open_or_create(root) if scenes == [] else Dataset.open(root)
     with ds.lock():
         ds.remove_stale()
@@ -428,4 +434,5 @@ def ingest(source: Path, root: Path, opts: IngestOptions, mosaic=None, demosaic=
         targets = [ds.root / name for name in (scenes or ds.scene_names())]
         if jobs > 1:
             return IngestReport(ingest_scenes([Scene(path) for path in targets], opts, jobs, progress), [])
+
         return IngestReport([ingest_scene(Scene(path), opts, progress) for path in targets], [])

@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from urd.core.dataset import Dataset
+from urd.core.progress import plural
 
 
 def report_text(root: Path) -> str:
@@ -15,7 +16,7 @@ def report_text(root: Path) -> str:
     offset = (f"{calibration.offset_deg:.3f} ± {calibration.uncertainty_deg:.3f} deg" if calibration
               else "not calibrated")
     scenes = ds.scenes()
-    lines = [f"dataset {ds.root.resolve()}: {len(scenes)} scene{'' if len(scenes) == 1 else 's'}; polarizer offset {offset}"]
+    lines = [f"dataset {ds.root.resolve()}: {plural(len(scenes), 'scene')}; polarizer offset {offset}"]
     for scene in scenes:
         lines.append(f"  {scene.status().describe()}")
         lines += [f"    {line}" for line in _truth_lines(scene)]

@@ -30,7 +30,7 @@ import numpy as np
 import tifffile
 
 from separate import metrics
-from separate.reference import Inspection, decide_side, field_at, inspect_stack
+from separate.reference import Inspection, resolve_reference
 from urd.core.dataset import STAGING_PREFIX, Scene
 from urd.core.errors import DatasetError
 from urd.core.files import atomic_path
@@ -193,21 +193,20 @@ class Separation:
     truth_metrics: dict | None = None
 
 
-def separate_inspected(images: np.ndarray, angles: list[float], run, reference: str | float
-              ) -> tuple[np.ndarray, np.ndarray, Inspection, float | np.ndarray]:
-    """Inspect the stack (reference angle and field, warnings, presence map; an assumed side
-    settled by separating both, `separate.reference.decide_side`), then run the method at the
-    reference: the estimated field ("auto"), the estimated angle ("global") or the given angle. Returns R̂, T̂, the inspection and the reference used (deg, the field at
-    the reduced size for "auto")."""
-    estimated = reference in ("auto", "global")
-    inspection = inspect_stack(images, angles, None if estimated else float(reference))
-    if estimated:
-        inspection = decide_side(images, angles, inspection, run)
-    if reference == "auto":
-        r_hat, t_hat = run(images, angles, field_at(inspection.field, images.shape[1:3]))
-        return r_hat, t_hat, inspection, inspection.field
-    r_hat, t_hat = run(images, angles, inspection.reference_deg)
-    return r_hat, t_hat, inspection, inspection.reference_deg
+def separate_inspected(images: np.ndarray, angles: list[float], run, reference: str | float,
+                       sees_polarization: bool = True) -> tuple[np.ndarray, np.ndarray, Inspection, float | np.ndarray]:
+    """Inspect the stack and choose the reference as every separation in urd does
+    (`separate.reference.resolve_reference`: the estimated field for "auto", the estimated angle
+    for "global", or the given angle; an assumed side settled by separating both sides with
+    ``run``, unless the method does not ``sees_polarization``), then run the method there.
+
+    Returns:
+        R̂, T̂, the inspection, and the reference used (deg: for "auto" the field on the reduced
+        grid, else the angle).
+    """
+    inspection, chosen = resolve_reference(images, angles, reference, run if sees_polarization else None)
+    r_hat, t_hat = run(images, angles, chosen)
+    return r_hat, t_hat, inspection, inspection.field if reference == "auto" else inspection.reference_deg
 
 
 @dataclasses.dataclass
@@ -233,7 +232,8 @@ def prepare_scene(scene: Scene, method: str, run, info: dict, reference: str | f
     scene.reload()
     scene.truth_files()                                    # damaged ground truth stops it before the work
     images, angles = scene.load_stack(codes=True)          # uint16: half the memory of float32
-    r_hat, t_hat, inspection, used = separate_inspected(images, angles, run, reference)
+    sees_polarization = not str(info.get("reference_policy", "")).startswith("not used")
+    r_hat, t_hat, inspection, used = separate_inspected(images, angles, run, reference, sees_polarization)
     polarization = _maps(images, angles, used) if maps else None
     del images                                            # the largest array: free it before writing
     metrics_truth = truth_metrics(scene, r_hat, t_hat)

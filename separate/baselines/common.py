@@ -5,8 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from separate import optics
-from separate.metrics import mutual_information  # noqa: F401 - the baselines' shared helpers
-from separate.optics import Array, mixture_coefficients, mixture_inverse  # noqa: F401
+from separate.optics import Array, mixture_inverse
 
 
 def canonical(images: np.ndarray, angles_deg: list[float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -27,7 +26,7 @@ def fresnel_inverse(i_perp: np.ndarray, i_par: np.ndarray, theta: np.ndarray | f
 
 
 def mixture_coefficient_slopes(r_s: Array, r_p: Array, dr_s: Array, dr_p: Array) -> tuple[Array, Array]:
-    """Derivatives (da, db) of `mixture_coefficients` for reflectance derivatives dR_s, dR_p
+    """Derivatives (da, db) of `separate.optics.mixture_coefficients` for reflectance derivatives dR_s, dR_p
     (e.g. per radian of θ, `separate.optics.fresnel_reflectance_slope`)."""
     ratio = (r_s + r_p) / (r_s - r_p)
     dratio = 2 * (r_s * dr_p - r_p * dr_s) / (r_s - r_p) ** 2

@@ -39,8 +39,7 @@ import numpy as np
 import torch
 
 from separate import optics
-from separate.baselines.common import (canonical, fresnel_inverse, luminance, mixture_coefficient_slopes,
-                                       mixture_coefficients)
+from separate.baselines.common import canonical, fresnel_inverse, luminance, mixture_coefficient_slopes
 
 PENALTY = 1e3
 
@@ -59,7 +58,7 @@ def _energy(theta: np.ndarray, i_perp: np.ndarray, i_par: np.ndarray, smoothness
     """The penalized energy of a θ map (rad, H×W) for luminance canonical images (H×W), and
     its gradient dE/dθ (per rad, H×W), derived by hand.
 
-    R̂_θ = A(θ)·I⊥ + B(θ)·I∥ and T̂_θ = I⊥ + I∥ − R̂_θ (`separate.baselines.common.mixture_coefficients`),
+    R̂_θ = A(θ)·I⊥ + B(θ)·I∥ and T̂_θ = I⊥ + I∥ − R̂_θ (`separate.optics.mixture_coefficients`),
     so dE/dθ = (∂E/∂R̂ − ∂E/∂T̂)·(A′·I⊥ + B′·I∥) + the smoothness term's gradient.
     """
     h, w = theta.shape
@@ -67,7 +66,7 @@ def _energy(theta: np.ndarray, i_perp: np.ndarray, i_par: np.ndarray, smoothness
     angle = torch.from_numpy(theta)                              # torch's float64 cos/sin: ~8× numpy's here
     r_s, r_p = (r.numpy() for r in optics.fresnel_reflectance(angle))
     dr_s, dr_p = (d.numpy() for d in optics.fresnel_reflectance_slope(angle))
-    a, b = mixture_coefficients(r_s, r_p)
+    a, b = optics.mixture_coefficients(r_s, r_p)
     da, db = mixture_coefficient_slopes(r_s, r_p, dr_s, dr_p)
     s0 = i_perp + i_par
     r_hat = a * i_perp + b * i_par

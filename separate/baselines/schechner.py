@@ -21,30 +21,19 @@ from __future__ import annotations
 
 import numpy as np
 
-from separate import optics
-from separate.baselines.common import canonical, fresnel_inverse, luminance, mutual_information
+from separate.baselines.common import canonical, fresnel_inverse, luminance
+from separate.reference import INCIDENCE_RANGE_DEG, incidence_by_information
 
-#: The θ search range (deg) and step.
-THETA_RANGE_DEG = (10.0, 80.0)
+#: The θ grid step (deg) over `separate.reference.INCIDENCE_RANGE_DEG`.
 GRID_STEP_DEG = 0.5
 
 
 def estimate_theta(i_perp: np.ndarray, i_par: np.ndarray, grid_deg: np.ndarray) -> float:
     """The angle of incidence (rad) minimizing the mutual information of the recovered layers
-    over ``grid_deg`` (deg, ascending); Brewster's angle if the minimum is on the grid's first
-    or last point (module docstring)."""
-    grid_deg = np.asarray(grid_deg, dtype=np.float64)
-    if grid_deg.ndim != 1 or grid_deg.size < 3:
-        raise ValueError(f"expected a grid of at least 3 angles (deg), got {grid_deg.tolist()}")
-    small = (slice(None, None, max(1, i_perp.shape[0] // 256)), slice(None, None, max(1, i_perp.shape[1] // 256)))
-    scores = []
-    for theta in np.radians(grid_deg):
-        r, t = fresnel_inverse(i_perp[small], i_par[small], theta)
-        scores.append(mutual_information(luminance(r), luminance(t)))
-    best = int(np.argmin(scores))
-    if best in (0, grid_deg.size - 1):
-        return optics.brewster_angle()
-    return float(np.radians(grid_deg[best]))
+    over ``grid_deg`` (deg, ascending), on the canonical images' luminance; Brewster's angle if
+    the minimum is on the grid's first or last point (module docstring;
+    `separate.reference.incidence_by_information`)."""
+    return incidence_by_information(luminance(i_perp), luminance(i_par), grid_deg)
 
 
 def separate(images: np.ndarray, angles_deg: list[float], theta_deg: float | None = None,
@@ -56,5 +45,5 @@ def separate(images: np.ndarray, angles_deg: list[float], theta_deg: float | Non
     if theta_deg is not None:
         theta = np.radians(theta_deg)
     else:
-        theta = estimate_theta(i_perp, i_par, np.arange(THETA_RANGE_DEG[0], THETA_RANGE_DEG[1] + grid_step_deg / 2, grid_step_deg))
+        theta = estimate_theta(i_perp, i_par, np.arange(INCIDENCE_RANGE_DEG[0], INCIDENCE_RANGE_DEG[1] + grid_step_deg / 2, grid_step_deg))
     return fresnel_inverse(i_perp, i_par, theta)

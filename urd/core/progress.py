@@ -19,6 +19,11 @@ def _clock(seconds: float) -> str:
     return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}" if seconds >= 3600 else f"{seconds // 60}:{seconds % 60:02d}"
 
 
+def plural(count: int, noun: str) -> str:
+    """'1 scene', '3 scenes'."""
+    return f"{count} {noun}{'' if count == 1 else 's'}"
+
+
 class TerminalProgress:
     """Render progress callbacks as one updating line (a new line when the label changes).
 
