@@ -382,10 +382,10 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
             only where the CPU runs it natively).
         progress: called with (tiles done, tiles total).
         reference_deg: if given, the network sees the shots presented at this reference + 0/45/90°
-            (`separate.reference.present`'s matrix, `presenting_matrix`), rendered tile by
+            (`separate.presentation.present`'s matrix, `presenting_matrix`), rendered tile by
             tile: the same results as presenting the stack first, without a second stack in memory.
-            An H×W map (deg, `separate.reference.field_at`) presents each pixel at its own
-            reference (`separate.reference.present_field`), again tile by tile.
+            An H×W map (deg, `separate.presentation.field_at`) presents each pixel at its own
+            reference (`separate.presentation.present_field`), again tile by tile.
         theta_deg: the angle of incidence (deg) of a physics-anchored network (``base="fresnel"``);
             estimated from the shots at the reference when None
             (`separate.reference.estimate_incidence_deg`). Ignored by other networks.
@@ -422,7 +422,7 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
         reference_rad = np.radians(np.asarray(reference_deg, np.float32))
         angles = [float(a) for a in np.radians(optics.PAPER_ANGLES_DEG)]
     elif reference_deg is not None:
-        from separate.reference import presented_angles_deg, presenting_matrix
+        from separate.presentation import presented_angles_deg, presenting_matrix
 
         mixing = presenting_matrix(angles_deg, float(reference_deg))
         angles = [float(a) for a in np.radians(presented_angles_deg(float(reference_deg)))]

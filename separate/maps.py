@@ -17,7 +17,8 @@ from typing import Sequence
 import numpy as np
 
 from separate import optics
-from separate.reference import check_stack, estimate_incidence_deg, field_at
+from separate.reference import estimate_incidence_deg
+from separate.presentation import check_stack, field_at
 
 #: name → (unit, meaning) of each map `polarization_maps` returns.
 MAPS = {

@@ -8,11 +8,11 @@ float32 linear; ``info``
 describes the method, its parameters and its reference policy for the manifest.
 
 Reference policy of the polarization methods (network, schechner, kong, farid): the shots are
-re-rendered at reference + 0/45/90° (`separate.reference.present`, from the least-squares
+re-rendered at reference + 0/45/90° (`separate.presentation.present`, from the least-squares
 Stokes fit of all N shots; the network's tiles are presented one by one inside
 `separate.infer.separate_stack`) and the method reads φ⊥ within ±45° of the reference. The reference
 is ``reference_deg`` when ``run`` is given one (a number, or an H×W map in degrees, which
-presents each pixel at its own reference: `separate.reference.present_field`); otherwise the
+presents each pixel at its own reference: `separate.presentation.present_field`); otherwise the
 method's ``reference`` option: "auto" estimates the glass's s-direction per pixel, a smooth
 field (`separate.reference.estimate_reference_field`), "global" one angle for the whole view
 (`separate.reference.estimate_reference_deg`), a number (deg) forces it. The methods that see only the unpolarized
@@ -29,7 +29,8 @@ from typing import Callable
 import numpy as np
 
 from separate import optics
-from separate.reference import present, present_field, resolve_reference
+from separate.reference import resolve_reference
+from separate.presentation import present, present_field
 
 Run = Callable[..., tuple[np.ndarray, np.ndarray]]
 Reference = str | float

@@ -62,7 +62,7 @@ def canonical_inputs(obs: torch.Tensor, angles: Sequence[float] = NOMINAL_ANGLES
         shots (B, 3, C, H, W) at angles[0] + 0/45/90° (re-rendered from the Stokes fit unless
         the input already is exactly that), I⊥ and I∥ (B, C, H, W) with φ⊥ within ±45° of
         angles[0]. `separate.methods` (and training data in ``AngleMode.ANY``) hand the network
-        shots presented at the estimated s-direction (`separate.reference.present`), so
+        shots presented at the estimated s-direction (`separate.presentation.present`), so
         angles[0] is φ⊥ itself.
     """
     check_obs(obs)

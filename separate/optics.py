@@ -31,7 +31,7 @@ N_GLASS = 1.474
 #: Display gamma assumed for 8-bit photos (the paper's inverse gamma 2.2).
 GAMMA = 2.2
 #: The paper's polarizer angles (deg from the first shot), and the angles from the reference at
-#: which urd presents shots to every polarization method (`separate.reference.present`).
+#: which urd presents shots to every polarization method (`separate.presentation.present`).
 PAPER_ANGLES_DEG = (0.0, 45.0, 90.0)
 
 Array = Any  # numpy.ndarray or torch.Tensor

@@ -14,7 +14,7 @@ From two natural photos, in linear light (inverse gamma 2.2):
    ``AngleMode.ANY``: an angle set drawn from `ANGLE_SETS_DEG` at φ0 ~ U[0°, 180°), and the
    network's input made exactly as at inference: φ⊥ estimated from the noisy shots with the
    nominal angles (`separate.reference.estimate_reference_deg`) and the shots re-rendered at
-   it + 0/45/90° from their Stokes fit (`separate.reference.present`), clipped below at 0 as
+   it + 0/45/90° from their Stokes fit (`separate.presentation.present`), clipped below at 0 as
    `separate.infer` does;
    ``AngleMode.ANY_TRUE_SIDE``: as ANY, but an estimate on the wrong side of φ⊥ (more than 45°
    away) is turned by 90°, so the network is taught only the canonical mapping and deciding
@@ -52,7 +52,8 @@ import numpy as np
 
 from separate import optics
 from separate.optics import parabola_aoi, photo_to_linear
-from separate.reference import estimate_incidence_deg, field_at, inspect_stack, present, present_field
+from separate.reference import estimate_incidence_deg, inspect_stack
+from separate.presentation import field_at, present, present_field
 
 SHARED_NATURAL = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "natural"
 #: scikit-image photos that ship with the package (no download): the fallback image pool.

@@ -130,7 +130,7 @@ def test_runner_falls_back_to_the_module_for_other_networks():
 
 
 def test_presenting_tile_by_tile_matches_presenting_the_stack():
-    from separate.reference import present
+    from separate.presentation import present
 
     model, _ = load_model()
     rng = np.random.default_rng(2)

@@ -10,15 +10,8 @@ from separate import metrics, optics
 from separate.baselines import kong, schechner
 from separate.baselines.common import canonical
 from separate.methods import get_method
-from separate.reference import (
-    Basis,
-    estimate_reference,
-    estimate_reference_deg,
-    feasible_theta_deg,
-    polarization_warnings,
-    presence_map,
-    present,
-)
+from separate.reference import Basis, estimate_reference, estimate_reference_deg, feasible_theta_deg, polarization_warnings, presence_map
+from separate.presentation import present
 
 SIZE = 64
 PHI_PERP_DEG = 5.0 + 22.5 * np.arange(8)            # anywhere in [0°, 180°)

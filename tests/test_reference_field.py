@@ -12,8 +12,8 @@ from separate import metrics, optics
 from separate.infer import FusedNet, load_model, separate_stack
 from separate.methods import get_method
 from separate.model import SeparationNet, fresnel_bases, with_fresnel_base
-from separate.reference import (estimate_incidence_deg, estimate_reference_deg, estimate_reference_field, field_at,
-                                present, present_field)
+from separate.reference import estimate_incidence_deg, estimate_reference_deg, estimate_reference_field
+from separate.presentation import field_at, present, present_field
 from separate.synthesis import AngleMode, SynthesisConfig, Synthesizer, load_image_pool
 from separate.train import TrainConfig, train
 
