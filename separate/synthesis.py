@@ -305,7 +305,14 @@ class Synthesizer:
                 t_i = cv2.remap(trans, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
             shots.append(optics.render(r_i, t_i, theta, phi_perp, float(phi), cfg.n))
         obs = np.stack(shots).astype(np.float32)
-        r_obs, t_obs = optics.observable_layers(refl, trans, theta, cfg.n)
+        exposed = self._expose(obs, *optics.observable_layers(refl, trans, theta, cfg.n))
+        return None if exposed is None else self._finish(*exposed, nominal, angles, theta, phi_perp)
+
+    def _expose(self, obs: np.ndarray, r_obs: np.ndarray, t_obs: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """Step 6: a random exposure, sensor noise, and the shots clipped to [0, 1]; None for a
+        patch that is saturated, dark or flat."""
+        cfg, rng = self.cfg, self.rng
         exposure = rng.uniform(0.1, 0.35) / max(float((r_obs + t_obs).mean()), 1e-6)
         obs, r_obs, t_obs = obs * exposure, r_obs * exposure, t_obs * exposure
         if cfg.noise:
@@ -313,8 +320,7 @@ class Synthesizer:
             obs = obs + rng.normal(0.0, 1.0, obs.shape).astype(np.float32) * noise_std(obs, shot_gain, read_var)
         if (obs > 1.0).mean() > 0.01 or (r_obs + t_obs).mean() < 0.02 or t_obs.std() < 0.01:
             return None
-        obs = np.clip(obs, 0.0, 1.0).astype(np.float32)
-        return self._finish(obs, nominal, angles, r_obs, t_obs, theta, phi_perp)
+        return np.clip(obs, 0.0, 1.0).astype(np.float32), r_obs, t_obs
 
     def _draw_no_glass(self) -> dict[str, np.ndarray] | None:
         """A view with no glass: one photo with a smooth polarization of its own (module docstring)."""
@@ -328,18 +334,11 @@ class Synthesizer:
         nominal = rng.uniform(0.0, np.pi) + np.radians(offsets)
         angles = (nominal + np.radians(rng.uniform(-cfg.angle_noise_deg, cfg.angle_noise_deg, len(nominal)))).astype(np.float32)
         obs = np.stack([optics.intensity_from_stokes(stokes, float(phi)) for phi in angles]).astype(np.float32)
-        exposure = rng.uniform(0.1, 0.35) / max(float(photo.mean()), 1e-6)
-        obs, t_obs = obs * exposure, photo * exposure
-        if cfg.noise:
-            shot_gain, read_var = draw_noise_levels(rng)
-            obs = obs + rng.normal(0.0, 1.0, obs.shape).astype(np.float32) * noise_std(obs, shot_gain, read_var)
-        if (obs > 1.0).mean() > 0.01 or t_obs.mean() < 0.02 or t_obs.std() < 0.01:
-            return None
-        obs = np.clip(obs, 0.0, 1.0).astype(np.float32)
+        exposed = self._expose(obs, np.zeros_like(photo), photo)
         zeros = np.zeros((p, p), np.float32)
-        return self._finish(obs, nominal, angles, np.zeros_like(t_obs), t_obs, zeros, zeros)
+        return None if exposed is None else self._finish(*exposed, nominal, angles, zeros, zeros)
 
-    def _finish(self, obs: np.ndarray, nominal: np.ndarray, angles: np.ndarray, r_obs: np.ndarray, t_obs: np.ndarray,
+    def _finish(self, obs: np.ndarray, r_obs: np.ndarray, t_obs: np.ndarray, nominal: np.ndarray, angles: np.ndarray,
                 theta: np.ndarray, phi_perp: np.ndarray) -> dict[str, np.ndarray]:
         """A sample from its shots: in the ANY modes presented at the estimated reference (or
         reference field), turned to φ⊥'s side in ANY_TRUE_SIDE where the view has glass (θ > 0),
