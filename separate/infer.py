@@ -51,7 +51,7 @@ import numpy as np
 import torch
 
 from separate import optics
-from separate.model import TARGET_MEAN, ResBlock, ResizeUp, SeparationNet, canonical_inputs, fresnel_bases, theta_channel
+from separate.model import TARGET_MEAN, ResBlock, ResizeUp, SeparationNet, canonical_inputs
 from separate.networks import build_model
 from separate.precision import Precision, resolve
 from urd.core.errors import WeightsError
@@ -175,16 +175,15 @@ class FusedNet:
         return torch.ops.mkldnn._convolution_pointwise.binary(y, x, w, b, conv.padding, conv.stride, conv.dilation,
                                                               conv.groups, "add", 1.0, "relu", [], "")
 
-    def _network_input(self, obs: torch.Tensor, angles: Sequence[float], gain: torch.Tensor, theta: torch.Tensor | None,
+    def _network_input(self, obs: torch.Tensor, angles: Sequence[float], gain: torch.Tensor,
                        rows: int = 128) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The model's network input ``cat(shots, I⊥, I∥[, B_T]) · gain [, θ]``, replicate-padded
-        to the 8-px grid, as one ``dtype`` channels-last tensor, and the residual bases B_R, B_T
-        (float32, unscaled; empty for the direct variant). Built ``rows`` rows at a time
-        (`canonical_inputs` is per pixel), so its temporaries stay small."""
+        """The model's network input ``cat(shots, I⊥, I∥) · gain``, replicate-padded to the
+        8-px grid, as one ``dtype`` channels-last tensor, and the residual bases B_R = I⊥ − I∥,
+        B_T = 2·I∥ (float32, unscaled; empty for the direct variant). Built ``rows`` rows at a
+        time (`canonical_inputs` is per pixel), so its temporaries stay small."""
         b, _, c, h, w = obs.shape
         canonical = self.model.variant == "canonical"
-        fresnel = self.model.base == "fresnel"
-        n_in = c * (5 if canonical else 3) + (c + 1 if fresnel else 0)
+        n_in = c * (5 if canonical else 3)
         x = torch.empty((b, n_in, -(-h // 8) * 8, -(-w // 8) * 8), dtype=self.dtype, memory_format=torch.channels_last)
         shape = (b, c, h, w) if canonical else (b, c, 0, 0)         # channels-last: so are R̂ and T̂
         base_r, base_t = (torch.empty(shape, memory_format=torch.channels_last) for _ in range(2))
@@ -192,15 +191,10 @@ class FusedNet:
             y1 = min(h, y + rows)
             shots, perp, par = canonical_inputs(obs[..., y:y1, :], angles)
             parts = [*shots.unbind(1)] + ([perp, par] if canonical else [])
-            if fresnel:
-                base_r[..., y:y1, :], base_t[..., y:y1, :] = fresnel_bases(perp, par, theta)
-                parts.append(base_t[..., y:y1, :])
-            elif canonical:
+            if canonical:
                 base_r[..., y:y1, :], base_t[..., y:y1, :] = perp - par, 2.0 * par
             for k, part in enumerate(parts):
                 torch.mul(part, gain, out=x[:, k * c : (k + 1) * c, y:y1, :w])
-        if fresnel:
-            x[:, -1:, :h, :w] = theta_channel(theta, x[:, :1, :h, :w])
         x[:, :, h:, :w] = x[:, :, h - 1 : h, :w]
         x[:, :, :, w:] = x[:, :, :, w - 1 : w]
         return x, base_r, base_t
@@ -263,14 +257,14 @@ class FusedNet:
     def __call__(self, obs: torch.Tensor, angles: Sequence[float], scale: torch.Tensor,
                  theta: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """`SeparationNet.forward`: (B, N, C, H, W) float32 linear shots at ``angles`` (rad),
-        (B,) exposure scale and, for ``base="fresnel"``, (B,) θ (rad) → (R̂, T̂), each
-        (B, C, H, W) float32 (channels-last strides). Pass ``obs`` as a temporary to let its
+        (B,) exposure scale and, for ``base="fresnel"``, θ (rad, (B,) or (B, 1, H, W)) → (R̂, T̂),
+        each (B, C, H, W) float32 (channels-last strides). Pass ``obs`` as a temporary to let its
         memory go once the network's input is built."""
         if (theta is None) != (self.model.base != "fresnel"):
             raise ValueError(f"expected theta exactly when base is 'fresnel', got base {self.model.base!r}")
         gain = (TARGET_MEAN / scale.float()).view(-1, 1, 1, 1)
         c, h, w = obs.shape[-3:]
-        x, base_r, base_t = self._network_input(obs.float(), angles, gain, theta)
+        x, base_r, base_t = self._network_input(obs.float(), angles, gain)
         del obs
         held = [x]
         del x
@@ -280,8 +274,12 @@ class FusedNet:
             return out[:, :c].float() / gain, out[:, c : 2 * c].float() / gain
         xi = torch.sigmoid(out[:, 2 * c :].float())          # ξ∥, ξ⊥
         r_hat = torch.lerp(base_r, out[:, c : 2 * c].float() / gain, xi[:, 1:])   # ξ⊥·R̃ + (1 − ξ⊥)·B_R
-        del base_r
         t_hat = torch.lerp(base_t, out[:, :c].float() / gain, xi[:, :1])          # ξ∥·T̃ + (1 − ξ∥)·B_T
+        if self.model.base == "fresnel":
+            i_par = base_t * (0.5 * gain)
+            with torch.no_grad():
+                r_hat, t_hat = self.model.anchor(r_hat * gain, t_hat * gain, base_r * gain + i_par, i_par, theta.float())
+            r_hat, t_hat = r_hat / gain, t_hat / gain
         return r_hat, t_hat
 
 
@@ -366,7 +364,7 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
                    overlap: int = OVERLAP, precision: str = "auto",
                    progress: Callable[[int, int], None] | None = None,
                    reference_deg: float | np.ndarray | None = None,
-                   theta_deg: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   theta_deg: float | np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Separate an aligned stack into (R̂, T̂), each H×W×C float32 linear.
 
     Args:
@@ -386,9 +384,10 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
             tile: the same results as presenting the stack first, without a second stack in memory.
             An H×W map (deg, `separate.presentation.field_at`) presents each pixel at its own
             reference (`separate.presentation.present_field`), again tile by tile.
-        theta_deg: the angle of incidence (deg) of a physics-anchored network (``base="fresnel"``);
-            estimated from the shots at the reference when None
-            (`separate.reference.estimate_incidence_deg`). Ignored by other networks.
+        theta_deg: the angle of incidence (deg) of a physics-anchored network (``base="fresnel"``),
+            a number or a map of any size (resized to H×W, `separate.presentation.field_at`);
+            estimated per pixel from the shots at the reference when None
+            (`separate.reference.estimate_incidence_field`). Ignored by other networks.
     """
     check_inputs(images, angles_deg)
     tile, overlap = check_tiling(tile, overlap)
@@ -401,13 +400,17 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
     if reference_deg is not None and not np.isfinite(reference_deg).all():
         raise ValueError("expected a finite reference angle (deg), map or None, got non-finite values")
     run = runner(model, precision)
-    extra = {}
+    theta = None
     if getattr(model, "base", "canonical") == "fresnel":
-        from separate.reference import estimate_incidence_deg
+        from separate.presentation import field_at
+        from separate.reference import estimate_incidence_field
 
         if theta_deg is None:
-            theta_deg = estimate_incidence_deg(images, angles_deg, angles_deg[0] if reference_deg is None else reference_deg)
-        extra["theta"] = torch.tensor([np.radians(theta_deg)], dtype=torch.float32)
+            theta_deg = estimate_incidence_field(images, angles_deg, angles_deg[0] if reference_deg is None else reference_deg)
+        if not np.isfinite(theta_deg).all() or np.ndim(theta_deg) not in (0, 2):
+            raise ValueError(f"expected a finite angle of incidence (deg) or a 2-D map of them, got shape {np.shape(theta_deg)}")
+        full = np.full((h, w), theta_deg, np.float32) if np.ndim(theta_deg) == 0 else field_at(theta_deg, (h, w))
+        theta = torch.from_numpy(np.radians(full))
     mono = c == 1 or _equal_channels(images)
     angles = [float(a) for a in np.radians(angles_deg)]
     unit = optics.code_scale(images)
@@ -453,6 +456,7 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
     done, total = 0, len(rows) * len(cols)
     for (y, y1), wy in zip(rows, row_weights):
         for (x, x1), wx in zip(cols, col_weights):
+            extra = {} if theta is None else {"theta": theta[y:y1, x:x1][None, None]}
             r_hat, t_hat = run(patch(y, y1, x, x1), angles, scale, **extra)      # a temporary: freed inside once used
             weight = torch.from_numpy(wy[:, None, None] * wx[None, :, None])
             for out, hat in ((r_out, r_hat), (t_out, t_hat)):

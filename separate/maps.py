@@ -5,8 +5,8 @@ Every map is H×W float32 on the luminance (the mean of the colour channels) exc
 which keep the colour channels (H×W×C). Angles are degrees in urd's image-plane convention
 (`separate.optics`: from the +x axis, counter-clockwise as the viewer sees the image): AoLP in
 [0, 180), φ⊥ the reference field (`separate.reference.estimate_reference_field`, continuous, so
-it may leave [0, 180)), θ the estimate of `separate.reference.estimate_incidence_deg` (one value
-for the view, repeated over the map). `MAPS` gives each map's unit and meaning; the exporter
+it may leave [0, 180)), θ the per-pixel estimate of `separate.reference.estimate_incidence_field`
+(a plane fitted to block estimates: it turns across a wide view of a flat pane). `MAPS` gives each map's unit and meaning; the exporter
 writes them into the files' metadata.
 """
 
@@ -17,7 +17,7 @@ from typing import Sequence
 import numpy as np
 
 from separate import optics
-from separate.reference import estimate_incidence_deg
+from separate.reference import estimate_incidence_field
 from separate.presentation import check_stack, field_at
 
 #: name → (unit, meaning) of each map `polarization_maps` returns.
@@ -28,7 +28,7 @@ MAPS = {
     "DoLP": ("1 (0 = unpolarized, 1 = fully polarized)", "degree of linear polarization of the luminance"),
     "AoLP": ("deg in [0, 180), from +x, counter-clockwise", "angle of linear polarization of the luminance"),
     "phi_perp": ("deg, from +x, counter-clockwise", "reference s-direction of the glass used for separation"),
-    "theta": ("deg", "estimated angle of incidence on the glass (one value for the view)"),
+    "theta": ("deg", "estimated angle of incidence on the glass, per pixel (a plane fitted over the frame)"),
 }
 
 
@@ -54,7 +54,7 @@ def polarization_maps(images: np.ndarray, angles_deg: Sequence[float], reference
     lum = stokes.mean(axis=-1)
     reference = np.asarray(reference_deg, np.float32)
     field = field_at(reference, (h, w)) if reference.ndim == 2 else np.full((h, w), float(reference), np.float32)
-    theta = estimate_incidence_deg(images, angles_deg, reference_deg)
+    theta = field_at(estimate_incidence_field(images, angles_deg, reference_deg), (h, w))
     aolp = np.mod(np.degrees(optics.aolp(lum.astype(np.float64))), 180.0).astype(np.float32)
     aolp[aolp >= 180.0] = 0.0                                 # float32 rounding of values just below 180
     return {
@@ -62,5 +62,5 @@ def polarization_maps(images: np.ndarray, angles_deg: Sequence[float], reference
         "DoLP": np.clip(optics.dolp(lum), 0.0, None).astype(np.float32),
         "AoLP": aolp,
         "phi_perp": field,
-        "theta": np.full((h, w), theta, np.float32),
+        "theta": theta,
     }

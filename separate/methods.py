@@ -1,10 +1,11 @@
 """Separation methods by name: the network and the classical baselines share one interface.
 
 ``get_method(name, reference="auto", **options)`` returns ``(run, info)``:
-``run(images, angles_deg, reference_deg=None)`` maps an aligned stack (N, H, W, C) float32
+``run(images, angles_deg, reference_deg=None, trial=False)`` maps an aligned stack (N, H, W, C) float32
 linear, or its uint16 codes (`separate.optics.code_scale`; the network converts them a tile at a
 time, the baselines all at once), and its N ≥ 3 polarizer angles (deg) to (R̂, T̂), each H×W×C
-float32 linear; ``info``
+float32 linear; ``trial=True`` makes it the side decision's trial separation
+(`separate.reference.decide_side`): silent, and for a fresnel network without its gate; ``info``
 describes the method, its parameters and its reference policy for the manifest.
 
 Reference policy of the polarization methods (network, schechner, kong, farid): the shots are
@@ -23,6 +24,7 @@ same for every presentation, so they skip it (and its full-resolution copy).
 from __future__ import annotations
 
 import math
+from functools import partial
 from pathlib import Path
 from typing import Callable
 
@@ -88,21 +90,22 @@ def network(weights: Path | None = None, tile: int | None = None, precision: str
     (`separate.infer.separate_stack`, ``tile`` px, default `separate.infer.default_tile`); the
     shots presented at the reference unless ``uses_reference`` is False (a network that sees only S0)."""
     from separate.infer import OVERLAP, default_tile, load_model, match_histograms, separate_stack
+    from separate.model import SeparationNet, without_gate
     from separate.precision import resolve
 
     model, weights_info = load_model(weights)
     tile = default_tile(model) if tile is None else tile
     chosen = resolve(precision).value
     choose = chooser(reference)
+    trial_model = without_gate(model) if isinstance(model, SeparationNet) else model
 
-    def trial(images: np.ndarray, angles_deg: list[float], reference_deg: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """A silent run at a given reference (the side decision's trial separations)."""
-        return separate_stack(model, images, list(angles_deg), tile, OVERLAP, chosen, None, reference_deg=reference_deg)
-
-    def run(images: np.ndarray, angles_deg: list[float],
-            reference_deg: float | np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def run(images: np.ndarray, angles_deg: list[float], reference_deg: float | np.ndarray | None = None,
+            trial: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        if trial:           # a fresnel network's gate would sway the decision with an inversion on the wrong side
+            return separate_stack(trial_model, images, list(angles_deg), tile, OVERLAP, chosen, None,
+                                  reference_deg=reference_deg)
         # separate_stack presents the shots tile by tile (no second full-size stack)
-        chosen_deg = choose(images, angles_deg, reference_deg, trial) if uses_reference else None
+        chosen_deg = choose(images, angles_deg, reference_deg, partial(run, trial=True)) if uses_reference else None
         r_hat, t_hat = separate_stack(model, images, list(angles_deg), tile, OVERLAP, chosen, progress,
                                       reference_deg=chosen_deg)
         if colour_match:
@@ -134,7 +137,7 @@ def no_separation(reference: Reference = "auto") -> tuple[Run, dict]:
     check_reference(reference)
 
     def run(images: np.ndarray, angles_deg: list[float], reference_deg: float | np.ndarray | None = None,
-            rows: int = 256) -> tuple[np.ndarray, np.ndarray]:
+            trial: bool = False, rows: int = 256) -> tuple[np.ndarray, np.ndarray]:
         s0 = np.empty(images.shape[1:], np.float32)           # a block of rows at a time: codes stay codes
         for y in range(0, images.shape[1], rows):
             s0[y : y + rows] = optics.stokes_from_images(optics.to_float(images[:, y : y + rows]), np.radians(angles_deg))[0]
@@ -162,17 +165,14 @@ def baseline(module_name: str, s0_only: bool) -> Callable[..., tuple[Run, dict]]
         choose = chooser(reference)
         reports = {"progress": progress} if progress is not None and "progress" in inspect.signature(module.separate).parameters else {}
 
-        def run(images: np.ndarray, angles_deg: list[float],
-                reference_deg: float | np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        def run(images: np.ndarray, angles_deg: list[float], reference_deg: float | np.ndarray | None = None,
+                trial: bool = False) -> tuple[np.ndarray, np.ndarray]:
+            said = {} if trial else reports                           # trial separations report no progress
             if s0_only:
-                return module.separate(optics.to_float(images), list(angles_deg), **params, **reports)
-            shots, angles = present_at(images, angles_deg, choose(images, angles_deg, reference_deg, trial))
-            return module.separate(shots, angles, **params, **reports)
-
-        def trial(images: np.ndarray, angles_deg: list[float], reference_deg: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            """A silent run (the side decision's trial separations report no progress)."""
-            shots, angles = present_at(images, angles_deg, reference_deg)
-            return module.separate(shots, angles, **params)
+                return module.separate(optics.to_float(images), list(angles_deg), **params, **said)
+            chosen = choose(images, angles_deg, reference_deg, partial(run, trial=True))
+            shots, angles = present_at(images, angles_deg, chosen)
+            return module.separate(shots, angles, **params, **said)
 
         policy = "not used: S0 only" if s0_only else reference_policy(check_reference(reference))
         return run, {"parameters": params, "paper": module.__doc__.strip().splitlines()[0], "reference_policy": policy}

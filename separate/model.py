@@ -16,11 +16,17 @@ Brewster angle these are the layers themselves up to the small R_s·I∥ term; t
 I⊥, I∥ are half the scale of the transmission target. The "direct" variant is the same network
 fed the three shots alone, predicting R̂ and T̂ with no projection and no residual.
 
-With ``base="fresnel"`` (the physics-anchored network) the bases are instead the closed-form
-Fresnel inversion of I⊥, I∥ at an estimated angle of incidence θ (`fresnel_bases`: the
-layers themselves wherever one flat pane at θ explains the shots, the Schechner baseline's
-answer), and the network also sees B_T and θ as input channels, so it learns where to trust
-the inversion (ξ → 0) and where to correct it.
+With ``base="fresnel"`` (the physics-anchored network) the canonical network's answer is
+anchored to the closed-form Fresnel inversion of I⊥, I∥ at an estimated angle-of-incidence
+field θ(x, y) (`fresnel_bases`: the layers themselves wherever one pane at θ explains the shots,
+the Kong and Schechner baselines' answer): a small gate (`FresnelGate`, 4 dilated convolutions,
+receptive field 17 px) sees both answers, S0 and θ, and blends them per pixel,
+
+    T̂ = g·B_T + (1−g)·T̂_net,   R̂ = g·B_R + (1−g)·R̂_net,   g ∈ (0, 1),
+
+so where the inversion is right (θ well estimated, the mixture well conditioned) the network
+takes it, and elsewhere keeps its learned answer. The gate starts near g = 0
+(`with_fresnel_base`: the shipped network's answer) and is trained alone, the backbone frozen.
 
 Inputs of any exposure are scaled so that mean(S0) = 0.25 before the network and back after.
 `separate.networks.build_model` makes a network from its config.
@@ -77,7 +83,7 @@ def canonical_inputs(obs: torch.Tensor, angles: Sequence[float] = NOMINAL_ANGLES
 
 
 def fresnel_bases(i_perp: torch.Tensor, i_par: torch.Tensor, theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The Fresnel inversion of canonical images at angle of incidence θ, as residual bases.
+    """The Fresnel inversion of canonical images at angle of incidence θ.
 
     Args:
         i_perp, i_par: (B, C, H, W) canonical images (linear, ≥ 0 up to noise).
@@ -103,6 +109,38 @@ def theta_channel(theta: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
     if theta.ndim == 1:
         theta = theta.view(-1, 1, 1, 1)
     return (theta.to(like.dtype) / (np.pi / 2)).expand(b, 1, h, w)
+
+
+#: The Fresnel gate's starting logit.
+GATE_START = -4.0
+
+
+class FresnelGate(nn.Module):
+    """The per-pixel weight g of the Fresnel inversion in the physics-anchored network.
+
+    Four 3×3 convolutions (dilations 1, 2, 4, 1; receptive field 17 px) on the network's T̂ and
+    R̂, the inversion's B_T, S0 (all at the network's exposure gain) and θ/(π/2):
+    ``4·channels + 1`` channels in, one logit out. The last bias starts at `GATE_START`
+    (g ≈ 0.018: the network's own answer).
+    """
+
+    def __init__(self, channels: int = 3, width: int = 8):
+        super().__init__()
+        dilations = (1, 2, 4, 1)
+        sizes = [4 * channels + 1] + [width] * (len(dilations) - 1) + [1]
+        self.convs = nn.ModuleList(nn.Conv2d(a, b, 3, padding=d, dilation=d) for a, b, d in zip(sizes, sizes[1:], dilations))
+        with torch.no_grad():
+            self.convs[-1].weight.mul_(0.1)
+            self.convs[-1].bias.fill_(GATE_START)
+
+    def forward(self, t_net: torch.Tensor, r_net: torch.Tensor, base_t: torch.Tensor, s0: torch.Tensor,
+                theta: torch.Tensor) -> torch.Tensor:
+        """(B, C, H, W) tensors at the network's gain and θ (rad, (B,) or (B, 1, H, W)) → g (B, 1, H, W)."""
+        x = torch.cat([t_net, r_net, base_t, s0], dim=1)
+        x = torch.cat([x, theta_channel(theta, x)], dim=1)
+        for conv in self.convs[:-1]:
+            x = F.relu(conv(x))
+        return torch.sigmoid(self.convs[-1](x))
 
 
 class ResBlock(nn.Module):
@@ -149,8 +187,9 @@ class SeparationNet(nn.Module):
         variant: "canonical" (paper) or "direct" (no projection layer, no residual).
         channels: colour channels per shot.
         upsample: the decoder's up-sampling, "transposed" (the paper's) or "resize" (`ResizeUp`).
-        base: the residual bases of the canonical variant, "canonical" (2·I∥ and I⊥ − I∥) or
-            "fresnel" (`fresnel_bases` at an estimated θ, which ``forward`` then needs).
+        base: "canonical" (the residual bases 2·I∥ and I⊥ − I∥) or "fresnel" (the same network,
+            its answer blended with the Fresnel inversion at an estimated θ by a `FresnelGate`;
+            ``forward`` then needs θ).
     """
 
     def __init__(self, width: int = 16, variant: str = "canonical", channels: int = 3, upsample: str = "transposed",
@@ -163,7 +202,7 @@ class SeparationNet(nn.Module):
         if base not in BASES or (base == "fresnel" and variant != "canonical"):
             raise ValueError(f"expected base in {BASES} ('fresnel' only for the canonical variant), got {base!r}")
         self.variant, self.width, self.channels, self.upsample, self.base = variant, width, channels, upsample, base
-        n_in = channels * (5 if variant == "canonical" else 3) + (channels + 1 if base == "fresnel" else 0)
+        n_in = channels * (5 if variant == "canonical" else 3)
         n_out = 2 * channels + (2 if variant == "canonical" else 0)
         widths = [width, 2 * width, 4 * width, 8 * width]
         self.head = nn.Conv2d(n_in, width, 3, padding=1)
@@ -176,6 +215,8 @@ class SeparationNet(nn.Module):
             self.up = nn.ModuleList([ResizeUp(b, a) for a, b in pairs])
         self.dec = nn.ModuleList([nn.Sequential(ResBlock(c), ResBlock(c)) for c in widths[:-1]])
         self.tail = nn.Conv2d(width, n_out, 3, padding=1)
+        if base == "fresnel":
+            self.gate = FresnelGate(channels)
 
     def config(self) -> dict:
         config = {"width": self.width, "variant": self.variant, "channels": self.channels}
@@ -207,8 +248,8 @@ class SeparationNet(nn.Module):
             angles: polarizer angles (rad) of the N shots.
             scale: (B,) exposure scale; default mean(S0) per sample. Pass one global value
                 when separating tiles of one image.
-            theta: (B,) estimated angle of incidence (rad), for ``base="fresnel"`` only
-                (`separate.reference.estimate_incidence_deg`).
+            theta: (B,) or (B, 1, H, W) estimated angle of incidence (rad), for ``base="fresnel"``
+                only (`separate.reference.estimate_incidence_field`).
 
         Returns:
             (R̂, T̂), each (B, C, H, W), linear, in the units of ``obs``.
@@ -223,12 +264,7 @@ class SeparationNet(nn.Module):
         gain = (TARGET_MEAN / scale).view(-1, 1, 1, 1).to(obs.dtype)
         b, _, c, h, w = shots.shape
         parts = [shots.reshape(b, 3 * c, h, w)] + ([i_perp, i_par] if self.variant == "canonical" else [])
-        if self.base == "fresnel":
-            base_r, base_t = fresnel_bases(i_perp, i_par, theta.float())
-            parts.append(base_t)
         x = torch.cat(parts, dim=1) * gain
-        if self.base == "fresnel":
-            x = torch.cat([x, theta_channel(theta, x)], dim=1)
         pad_h, pad_w = (-h) % 8, (-w) % 8
         x = F.pad(x, (0, pad_w, 0, pad_h), mode="replicate")
         out = self.backbone(x)[..., :h, :w].float()
@@ -236,14 +272,20 @@ class SeparationNet(nn.Module):
             return out[:, :c] / gain, out[:, c : 2 * c] / gain
         t_res, r_res = out[:, :c], out[:, c : 2 * c]
         xi_par, xi_perp = torch.sigmoid(out[:, 2 * c : 2 * c + 1]), torch.sigmoid(out[:, 2 * c + 1 :])
+        r_hat = xi_perp * r_res + (1 - xi_perp) * (i_perp - i_par) * gain
+        t_hat = xi_par * t_res + (1 - xi_par) * 2.0 * i_par * gain
         if self.base == "fresnel":
-            base_t, base_r = base_t * gain, base_r * gain
-        else:
-            base_t = 2.0 * i_par * gain
-            base_r = (i_perp - i_par) * gain
-        r_hat = xi_perp * r_res + (1 - xi_perp) * base_r
-        t_hat = xi_par * t_res + (1 - xi_par) * base_t
+            with torch.autocast(obs.device.type, enabled=False):
+                r_hat, t_hat = self.anchor(r_hat, t_hat, i_perp * gain, i_par * gain, theta.float())
         return r_hat / gain, t_hat / gain
+
+    def anchor(self, r_hat: torch.Tensor, t_hat: torch.Tensor, i_perp: torch.Tensor, i_par: torch.Tensor,
+               theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The fresnel network's answer: R̂, T̂ blended with the Fresnel inversion of I⊥, I∥ at θ
+        by the gate (all (B, C, H, W) float32 in one exposure's units; θ rad (B,) or (B, 1, H, W))."""
+        base_r, base_t = fresnel_bases(i_perp, i_par, theta)
+        g = self.gate(t_hat, r_hat, base_t, base_r + base_t, theta)
+        return torch.lerp(r_hat, base_r, g), torch.lerp(t_hat, base_t, g)
 
     @staticmethod
     def loss(outputs: tuple[torch.Tensor, torch.Tensor], r: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
@@ -265,13 +307,20 @@ def with_resize_upsampling(model: SeparationNet) -> SeparationNet:
 
 
 def with_fresnel_base(model: SeparationNet) -> SeparationNet:
-    """A copy of a canonical-base network with ``base="fresnel"``, every weight kept and the
-    head's weights for the new input channels (B_T and θ) zero: the start for fine-tuning it."""
+    """A copy of a canonical-base network with ``base="fresnel"``: every weight kept, and a new
+    `FresnelGate` that starts near g = 0 (the network's own answer): the start for training the gate."""
     if model.variant != "canonical" or model.base != "canonical":
         raise ValueError(f"expected a canonical network with canonical bases, got {model.config()}")
     out = SeparationNet(model.width, model.variant, model.channels, model.upsample, base="fresnel")
-    state = model.state_dict()
-    head = torch.zeros_like(out.head.weight)
-    head[:, : state["head.weight"].shape[1]] = state["head.weight"]
-    out.load_state_dict({**state, "head.weight": head})
+    out.load_state_dict(model.state_dict(), strict=False)
     return out
+
+
+def without_gate(model: SeparationNet) -> SeparationNet:
+    """The canonical network inside a fresnel one (every weight but the gate's): the answer its
+    gate starts from; a canonical network comes back as it is."""
+    if model.base != "fresnel":
+        return model
+    out = SeparationNet(model.width, model.variant, model.channels, model.upsample)
+    out.load_state_dict({k: v for k, v in model.state_dict().items() if not k.startswith("gate.")})
+    return out.eval()

@@ -376,20 +376,94 @@ def estimate_incidence_deg(images: np.ndarray, angles_deg: Sequence[float], refe
     return float(np.degrees(incidence_by_information(i_perp, i_par, grid_deg)))
 
 
-def incidence_by_information(i_perp: np.ndarray, i_par: np.ndarray, grid_deg: np.ndarray) -> float:
-    """The angle of incidence (rad) over ``grid_deg`` (deg, ascending, ≥ 3) minimizing the mutual
-    information of the layers that canonical luminances I⊥, I∥ (h×w) invert to; Brewster's angle
-    if the minimum is on the grid's first or last point. At most ~256 px per side are used."""
-    grid_deg = np.asarray(grid_deg, dtype=np.float64)
-    if grid_deg.ndim != 1 or grid_deg.size < 3:
-        raise ValueError(f"expected a grid of at least 3 angles (deg), got {grid_deg.tolist()}")
+#: Long side (px) of the reduced image on which `estimate_incidence_field` runs, and its blocks per side.
+INCIDENCE_FIELD_SIDE = 256
+INCIDENCE_BLOCKS = 4
+#: Residual scale (deg) of the robust plane fit of the blocks' angles of incidence.
+INCIDENCE_FIT_SCALE_DEG = 6.0
+
+
+def estimate_incidence_field(images: np.ndarray, angles_deg: Sequence[float], reference: float | np.ndarray) -> np.ndarray:
+    """The angle of incidence per pixel (deg, h×w float32 at most `INCIDENCE_FIELD_SIDE` px on
+    the long side; `separate.presentation.field_at` brings it to full size).
+
+    The frame's canonical luminances at the reference are cut into `INCIDENCE_BLOCKS`² blocks; in
+    each, the angle whose Fresnel inversion leaves the layers the least mutual information
+    (`information_by_incidence`), weighted by how clearly it stands out; then a plane
+    θ = a + b·x + c·y fitted to them with Tukey's biweight (`INCIDENCE_FIT_SCALE_DEG`), held in
+    `INCIDENCE_RANGE_DEG`. A flat pane seen through a lens has θ turning smoothly across the frame
+    (by ~30° for a 60° field of view); a plane is the lowest order that says so, and a single
+    block's poor estimate (little texture, one layer dark) does not bend it.
+
+    Args:
+        images: (N, H, W, C) linear shots (float, or uint16 codes), N ≥ 3.
+        angles_deg: the N polarizer angles (deg).
+        reference: φ⊥ (deg), a number or an H×W field.
+    """
+    phi = check_stack(images, angles_deg)
+    lum, _ = _reduce_stack(images, np.zeros(images.shape[1:3], bool))
+    scale = min(1.0, INCIDENCE_FIELD_SIDE / max(lum.shape[1:]))
+    if scale < 1:
+        size = (max(1, round(lum.shape[2] * scale)), max(1, round(lum.shape[1] * scale)))
+        lum = np.stack([cv2.resize(shot, size, interpolation=cv2.INTER_AREA) for shot in lum])
+    reference = np.asarray(reference, np.float64)
+    if reference.ndim == 2:
+        reference = field_at(reference, lum.shape[1:])
+    stokes = optics.rotate_stokes(optics.stokes_from_images(lum, phi), np.radians(reference))
+    i_perp, i_par = optics.canonical_intensities(stokes, 0.0)
+    h, w = i_perp.shape
+    grid_deg = np.arange(INCIDENCE_RANGE_DEG[0], INCIDENCE_RANGE_DEG[1] + INCIDENCE_STEP_DEG / 2, INCIDENCE_STEP_DEG)
+    points = []
+    for by in range(INCIDENCE_BLOCKS):
+        for bx in range(INCIDENCE_BLOCKS):
+            rows = slice(by * h // INCIDENCE_BLOCKS, (by + 1) * h // INCIDENCE_BLOCKS)
+            cols = slice(bx * w // INCIDENCE_BLOCKS, (bx + 1) * w // INCIDENCE_BLOCKS)
+            if min(i_perp[rows, cols].shape) < 8:
+                continue
+            scores = information_by_incidence(i_perp[rows, cols], i_par[rows, cols], grid_deg)
+            best = int(np.argmin(scores))
+            clarity = float(np.median(scores) - scores[best]) / max(float(np.median(scores)), 1e-9)
+            if 0 < best < grid_deg.size - 1 and clarity > 0:
+                points.append(((bx + 0.5) / INCIDENCE_BLOCKS - 0.5, (by + 0.5) / INCIDENCE_BLOCKS - 0.5, grid_deg[best], clarity))
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    xs, ys = (xs + 0.5) / w - 0.5, (ys + 0.5) / h - 0.5
+    if len(points) < 3:
+        flat = np.degrees(incidence_by_information(i_perp, i_par, grid_deg))
+        return np.full((h, w), flat, np.float32)
+    x, y, theta, clarity = np.array(points).T
+    design = np.stack([np.ones_like(x), x, y], axis=1)
+    weights = clarity.copy()
+    for _ in range(10):
+        coef = np.linalg.lstsq(design * np.sqrt(weights)[:, None], theta * np.sqrt(weights), rcond=None)[0]
+        u = (theta - design @ coef) / INCIDENCE_FIT_SCALE_DEG
+        weights = clarity * np.where(np.abs(u) < 1, (1 - u**2) ** 2, 0.0)
+        if np.count_nonzero(weights) < 3:
+            coef = np.array([np.average(theta, weights=clarity), 0.0, 0.0])
+            break
+    plane = coef[0] + coef[1] * xs + coef[2] * ys
+    return np.clip(plane, *INCIDENCE_RANGE_DEG).astype(np.float32)
+
+
+def information_by_incidence(i_perp: np.ndarray, i_par: np.ndarray, grid_deg: np.ndarray) -> np.ndarray:
+    """The mutual information (nats) of the layers that canonical luminances I⊥, I∥ (h×w) invert
+    to at each angle of incidence of ``grid_deg`` (deg); at most ~256 px per side are used."""
     small = (slice(None, None, max(1, i_perp.shape[0] // 256)), slice(None, None, max(1, i_perp.shape[1] // 256)))
     i_perp, i_par = np.asarray(i_perp[small], np.float64), np.asarray(i_par[small], np.float64)
     scores = []
     for theta in np.radians(grid_deg):
         r, t = optics.mixture_inverse(i_perp, i_par, *optics.fresnel_reflectance(theta))
         scores.append(metrics.mutual_information(r, t))
-    best = int(np.argmin(scores))
+    return np.array(scores)
+
+
+def incidence_by_information(i_perp: np.ndarray, i_par: np.ndarray, grid_deg: np.ndarray) -> float:
+    """The angle of incidence (rad) over ``grid_deg`` (deg, ascending, ≥ 3) minimizing the mutual
+    information of the layers that canonical luminances I⊥, I∥ (h×w) invert to
+    (`information_by_incidence`); Brewster's angle if the minimum is on the grid's first or last point."""
+    grid_deg = np.asarray(grid_deg, dtype=np.float64)
+    if grid_deg.ndim != 1 or grid_deg.size < 3:
+        raise ValueError(f"expected a grid of at least 3 angles (deg), got {grid_deg.tolist()}")
+    best = int(np.argmin(information_by_incidence(i_perp, i_par, grid_deg)))
     if best in (0, grid_deg.size - 1):
         return optics.brewster_angle()
     return float(np.radians(grid_deg[best]))

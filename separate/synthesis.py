@@ -33,9 +33,11 @@ they were), on in training the physics-anchored network (``configs/cpu-fresnel.t
   field (`separate.reference.estimate_reference_field`, turned to φ⊥'s side in
   ANY_TRUE_SIDE), as `urd separate` does, instead of at one global reference; ``angles`` are
   then 0/45/90° in each pixel's own frame;
-* ``incidence_estimate``: each sample carries ``theta_est``, the angle of incidence estimated
-  from its own shots (`separate.reference.estimate_incidence_deg`), the physics-anchored
-  network's input.
+* ``incidence_estimate``: each sample carries ``theta_est``, a P×P angle-of-incidence map as
+  an estimator reads it (`perturbed_incidence`), the physics-anchored network's input. It is
+  drawn around the truth rather than estimated from the patch: `urd separate` estimates θ on
+  the whole frame (`separate.reference.estimate_incidence_field`), where it is far better
+  determined than on a 128² patch, and an estimate per patch would cost 100× the synthesis.
 
 Every step has a switch in `SynthesisConfig`; a generator seeded with the same seed yields
 the same patches.
@@ -52,7 +54,7 @@ import numpy as np
 
 from separate import optics
 from separate.optics import parabola_aoi, photo_to_linear
-from separate.reference import estimate_incidence_deg, inspect_stack
+from separate.reference import INCIDENCE_RANGE_DEG, inspect_stack
 from separate.presentation import field_at, present, present_field
 
 SHARED_NATURAL = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "natural"
@@ -70,9 +72,11 @@ SHOT_GAIN_LOG10 = (-4.0, -2.5)
 READ_VAR_LOG10 = (-7.0, -5.0)
 
 
-def draw_noise_levels(rng: np.random.Generator) -> tuple[float, float]:
-    """A sample's sensor noise levels (shot gain, read variance), log-uniform in the module's ranges."""
-    return 10 ** rng.uniform(*SHOT_GAIN_LOG10), 10 ** rng.uniform(*READ_VAR_LOG10)
+def draw_noise_levels(rng: np.random.Generator, shot_gain_log10: tuple[float, float] = SHOT_GAIN_LOG10,
+                      read_var_log10: tuple[float, float] = READ_VAR_LOG10) -> tuple[float, float]:
+    """A sample's sensor noise levels (shot gain, read variance), log-uniform in the given log10
+    ranges (default: the module's)."""
+    return 10 ** rng.uniform(*shot_gain_log10), 10 ** rng.uniform(*read_var_log10)
 
 
 def noise_std(x: np.ndarray, shot_gain: float, read_var: float) -> np.ndarray:
@@ -106,6 +110,8 @@ class SynthesisConfig:
     aoi_deg: tuple[float, float] = (10.0, 80.0)
     angle_noise_deg: float = 4.0
     noise: bool = True
+    shot_gain_log10: tuple[float, float] = SHOT_GAIN_LOG10
+    read_var_log10: tuple[float, float] = READ_VAR_LOG10
     n: float = optics.N_GLASS
     angles: AngleMode = AngleMode.CLASSIC
     angle_sets_deg: tuple[tuple[float, ...], ...] = ANGLE_SETS_DEG
@@ -118,6 +124,9 @@ class SynthesisConfig:
 
     def __post_init__(self):
         self.angles = AngleMode(self.angles)
+        self.shot_gain_log10, self.read_var_log10 = tuple(self.shot_gain_log10), tuple(self.read_var_log10)
+        if any(len(r) != 2 or r[0] > r[1] for r in (self.shot_gain_log10, self.read_var_log10)):
+            raise ValueError(f"expected noise ranges (lo, hi) with lo <= hi, got {self.shot_gain_log10} and {self.read_var_log10}")
         if not self.angle_sets_deg or any(len(a) < 3 for a in self.angle_sets_deg):
             raise ValueError(f"expected angle sets of at least 3 angles each, got {self.angle_sets_deg}")
 
@@ -233,6 +242,30 @@ def surface_maps(rng: np.random.Generator, cfg: SynthesisConfig) -> tuple[np.nda
     return np.minimum(theta, np.radians(85.0)).astype(np.float32), phi_perp
 
 
+#: Errors of an angle-of-incidence estimate (`perturbed_incidence`): the largest standard deviation
+#: of its global error and the largest smooth local error (deg); the chance of a failed estimate,
+#: and that chance where the pane is seen within `HEAD_ON_DEG` of head-on or there is no glass.
+INCIDENCE_ERROR_DEG = (5.0, 2.0)
+INCIDENCE_FAILURE = (0.1, 0.5)
+HEAD_ON_DEG = 30.0
+
+
+def perturbed_incidence(rng: np.random.Generator, theta: np.ndarray) -> np.ndarray:
+    """The angle of incidence (rad, P×P float32) as an estimate of the true map ``theta`` reads:
+    off by a global error ~ N(0, σ²), σ ~ U[0, 5°], and a smooth error within ±2°, held in
+    `separate.reference.INCIDENCE_RANGE_DEG`; or a failed estimate, one angle drawn over that
+    range, with probability 0.1 (0.5 within 30° of head-on, where three shots barely tell θ,
+    and without glass, θ = 0)."""
+    lo, hi = INCIDENCE_RANGE_DEG
+    theta_deg = np.degrees(theta.astype(np.float32))
+    failure = INCIDENCE_FAILURE[1] if theta_deg.mean() < HEAD_ON_DEG else INCIDENCE_FAILURE[0]
+    if rng.random() < failure:
+        return np.full(theta.shape, np.radians(rng.uniform(lo, hi)), np.float32)
+    offset = rng.normal(0.0, rng.uniform(0.0, INCIDENCE_ERROR_DEG[0]))
+    local = INCIDENCE_ERROR_DEG[1] * (2 * smooth_field(rng, theta.shape[0]) - 1)
+    return np.radians(np.clip(theta_deg + offset + local, lo, hi)).astype(np.float32)
+
+
 def true_side_deg(reference_deg: float, phi_perp_deg: float) -> float:
     """``reference_deg``, or it + 90° if it lies more than 45° from ``phi_perp_deg`` modulo
     180° (deg)."""
@@ -316,7 +349,7 @@ class Synthesizer:
         exposure = rng.uniform(0.1, 0.35) / max(float((r_obs + t_obs).mean()), 1e-6)
         obs, r_obs, t_obs = obs * exposure, r_obs * exposure, t_obs * exposure
         if cfg.noise:
-            shot_gain, read_var = draw_noise_levels(rng)
+            shot_gain, read_var = draw_noise_levels(rng, cfg.shot_gain_log10, cfg.read_var_log10)
             obs = obs + rng.normal(0.0, 1.0, obs.shape).astype(np.float32) * noise_std(obs, shot_gain, read_var)
         if (obs > 1.0).mean() > 0.01 or (r_obs + t_obs).mean() < 0.02 or t_obs.std() < 0.01:
             return None
@@ -342,9 +375,8 @@ class Synthesizer:
                 theta: np.ndarray, phi_perp: np.ndarray) -> dict[str, np.ndarray]:
         """A sample from its shots: in the ANY modes presented at the estimated reference (or
         reference field), turned to φ⊥'s side in ANY_TRUE_SIDE where the view has glass (θ > 0),
-        with the estimated angle of incidence where asked."""
+        with an estimate of the angle of incidence where asked."""
         cfg = self.cfg
-        reference = float(np.degrees(angles[0]))
         if cfg.angles is not AngleMode.CLASSIC:
             nominal_deg = np.degrees(nominal)
             inspection = inspect_stack(obs, nominal_deg)
@@ -353,10 +385,8 @@ class Synthesizer:
                 turn = true_side_deg(inspection.reference_deg, circular_mean_deg(phi_perp)) - inspection.reference_deg
             if cfg.reference_field:
                 obs, presented_deg = present_field(obs, nominal_deg, field_at(inspection.field, obs.shape[1:3]) + turn)
-                reference = 0.0
             else:
-                reference = inspection.reference_deg + turn
-                obs, presented_deg = present(obs, nominal_deg, reference)
+                obs, presented_deg = present(obs, nominal_deg, inspection.reference_deg + turn)
             obs, angles = np.maximum(obs, 0.0), np.radians(presented_deg).astype(np.float32)
         sample = {
             "obs": obs.astype(np.float32),
@@ -368,7 +398,7 @@ class Synthesizer:
             "shots": np.float32(len(nominal)),
         }
         if cfg.incidence_estimate:
-            sample["theta_est"] = np.float32(np.radians(estimate_incidence_deg(obs, np.degrees(angles), reference)))
+            sample["theta_est"] = perturbed_incidence(self.rng, theta)
         return sample
 
 

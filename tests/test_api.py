@@ -75,7 +75,8 @@ def test_maps_of_a_glass_scene_give_the_reference_field():
     maps = urd.polarization_maps(shots, angles)
     truth = np.degrees(glass.phi_perp)
     assert np.abs(optics.axis_gap_deg(maps["phi_perp"], truth)).mean() < 2.0
-    assert maps["theta"][0, 0] == pytest.approx(50.0, abs=4.0)
+    error = np.abs(maps["theta"] - np.degrees(glass.theta))            # θ turns across the pane, per pixel
+    assert np.median(error) < 4.0 and np.ptp(np.degrees(glass.theta)) > 10.0
 
 
 def test_separate_scene_exports_the_maps_hashed_with_units(ingested):

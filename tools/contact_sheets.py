@@ -1,6 +1,7 @@
 """Contact sheets of every real capture in ../shared/data/polarization, per method.
 
     python tools/contact_sheets.py [--out contact-sheets] [--size 512] [--methods none,network,schechner,kong]
+                                   [--weights FILE]
 
 One PNG per capture: a row per method with S0 | T̂ | R̂ | DoLP | AoLP (hue = AoLP over 0-180°,
 brightness = DoLP) and the presence map, all sRGB-encoded with one white point per capture
@@ -27,6 +28,7 @@ parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.R
 parser.add_argument("--out", type=Path, default=Path("contact-sheets"))
 parser.add_argument("--size", type=int, default=512, help="long side of the reduced captures (px)")
 parser.add_argument("--methods", default="none,network,schechner,kong")
+parser.add_argument("--weights", type=Path, help="the network's weights (default: shipped)")
 args = parser.parse_args()
 args.out.mkdir(parents=True, exist_ok=True)
 
@@ -56,7 +58,7 @@ for capture in samples.captures():
     dolp = np.clip(optics.dolp(stokes.mean(axis=-1)), 0, 1)
     rows = []
     for name in args.methods.split(","):
-        run, _ = get_method(name)
+        run, _ = get_method(name, **({"weights": args.weights} if name == "network" and args.weights else {}))
         started = time.time()
         r_hat, t_hat, inspection, used = separate_inspected(stack, angles, run, "auto")
         seconds = time.time() - started

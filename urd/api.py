@@ -13,6 +13,7 @@ whole script (``docs/examples/separate_scene.py``).
 
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
 from typing import NamedTuple, Sequence
 
@@ -69,5 +70,5 @@ def polarization_maps(images: np.ndarray, angles_deg: Sequence[float], reference
     from separate.reference import resolve_reference
 
     angles = [float(a) for a in angles_deg]
-    trial = get_method(method)[0] if reference in ("auto", "global") else None
+    trial = partial(get_method(method)[0], trial=True) if reference in ("auto", "global") else None
     return maps(images, angles, resolve_reference(images, angles, reference, trial)[1])

@@ -198,13 +198,14 @@ def separate_inspected(images: np.ndarray, angles: list[float], run, reference: 
     """Inspect the stack and choose the reference as every separation in urd does
     (`separate.reference.resolve_reference`: the estimated field for "auto", the estimated angle
     for "global", or the given angle; an assumed side settled by separating both sides with
-    ``run``, unless the method does not ``sees_polarization``), then run the method there.
+    ``run(..., trial=True)``, unless the method does not ``sees_polarization``), then run the method there.
 
     Returns:
         R̂, T̂, the inspection, and the reference used (deg: for "auto" the field on the reduced
         grid, else the angle).
     """
-    inspection, chosen = resolve_reference(images, angles, reference, run if sees_polarization else None)
+    trial = functools.partial(run, trial=True) if sees_polarization else None      # silent, a fresnel network ungated
+    inspection, chosen = resolve_reference(images, angles, reference, trial)
     r_hat, t_hat = run(images, angles, chosen)
     return r_hat, t_hat, inspection, inspection.field if reference == "auto" else inspection.reference_deg
 
