@@ -68,7 +68,7 @@ MIN_SPAN_DEG = 70.0
 #: in: a 2048 px tile's backbone 1.33 → 1.14 s (bf16, 2 threads; 256 → 512 rows within ±5%).
 STRIP_ROWS = 384
 MODULE_TILE = 1024  # px for networks run as modules (CEILNet, or torch without oneDNN): their memory per pixel is higher
-DEFAULT_WEIGHTS = WEIGHTS_DIR / "urd-canonical.pt"
+DEFAULT_WEIGHTS = WEIGHTS_DIR / "urd-anchored.pt"
 
 
 def load_model(path: Path | str | None = None) -> tuple[torch.nn.Module, dict]:
@@ -276,11 +276,39 @@ class FusedNet:
         r_hat = torch.lerp(base_r, out[:, c : 2 * c].float() / gain, xi[:, 1:])   # ξ⊥·R̃ + (1 − ξ⊥)·B_R
         t_hat = torch.lerp(base_t, out[:, :c].float() / gain, xi[:, :1])          # ξ∥·T̃ + (1 − ξ∥)·B_T
         if self.model.base == "fresnel":
-            i_par = base_t * (0.5 * gain)
-            with torch.no_grad():
-                r_hat, t_hat = self.model.anchor(r_hat * gain, t_hat * gain, base_r * gain + i_par, i_par, theta.float())
-            r_hat, t_hat = r_hat / gain, t_hat / gain
+            r_hat, t_hat = self._anchor(r_hat, t_hat, base_r, base_t, gain, theta.float())
         return r_hat, t_hat
+
+    def _gate(self, t_net: torch.Tensor, s0: torch.Tensor, d_bands: Sequence[torch.Tensor], theta: torch.Tensor) -> torch.Tensor:
+        """`FresnelGate.forward` through the fused convolutions, at ``dtype``: g (B, 3, H, W) float32."""
+        convs = self.model.gate.convs
+        x = self.model.gate.inputs(t_net, s0, d_bands, theta).to(self.dtype, memory_format=torch.channels_last)
+        x = self._run([(conv, "relu") for conv in convs[:-1]] + [(convs[-1], "none")], x)
+        return torch.sigmoid(x.float())
+
+    def _anchor(self, r_hat: torch.Tensor, t_hat: torch.Tensor, base_r: torch.Tensor, base_t: torch.Tensor,
+                gain: torch.Tensor, theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """`SeparationNet.anchor` on (B, C, H, W) float32 R̂, T̂ and the canonical bases, ``strip_rows``
+        rows at a time, each read with `ANCHOR_HALO` rows on either side (more than the gate and
+        the band blurs reach: the same result as the whole tile, with a strip's temporaries)."""
+        h = r_hat.shape[2]
+        theta = theta.view(-1, 1, 1, 1) if theta.ndim == 1 else theta
+        out_r, out_t = torch.empty_like(r_hat), torch.empty_like(t_hat)
+        for y0 in range(0, h, self.strip_rows):
+            y1 = min(h, y0 + self.strip_rows)
+            top, bottom = max(0, y0 - ANCHOR_HALO), min(h, y1 + ANCHOR_HALO)
+            rows = slice(top, bottom)
+            i_par = base_t[:, :, rows] * (0.5 * gain)
+            with torch.no_grad():
+                r, t = self.model.anchor(r_hat[:, :, rows] * gain, t_hat[:, :, rows] * gain, base_r[:, :, rows] * gain + i_par,
+                                         i_par, theta if theta.shape[2] == 1 else theta[:, :, rows], gate=self._gate)
+            out_r[:, :, y0:y1] = r[:, :, y0 - top : y1 - top] / gain
+            out_t[:, :, y0:y1] = t[:, :, y0 - top : y1 - top] / gain
+        return out_r, out_t
+
+
+#: Rows read beyond a strip by `FusedNet._anchor`: the gate reaches 8 px, the band blurs 12.
+ANCHOR_HALO = 32
 
 
 def runner(model: torch.nn.Module, precision: str | Precision = "auto") -> Callable:
@@ -387,7 +415,9 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
         theta_deg: the angle of incidence (deg) of a physics-anchored network (``base="fresnel"``),
             a number or a map of any size (resized to H×W, `separate.presentation.field_at`);
             estimated per pixel from the shots at the reference when None
-            (`separate.reference.estimate_incidence_field`). Ignored by other networks.
+            (`separate.reference.estimate_incidence`); where that estimate is not clear
+            (`separate.reference.Incidence.clear`) the network runs without its gate. Ignored by
+            other networks.
     """
     check_inputs(images, angles_deg)
     tile, overlap = check_tiling(tile, overlap)
@@ -399,18 +429,23 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
         raise ValueError(f"expected a reference map of shape {(h, w)}, got {np.shape(reference_deg)}")
     if reference_deg is not None and not np.isfinite(reference_deg).all():
         raise ValueError("expected a finite reference angle (deg), map or None, got non-finite values")
-    run = runner(model, precision)
     theta = None
     if getattr(model, "base", "canonical") == "fresnel":
+        from separate.model import without_gate
         from separate.presentation import field_at
-        from separate.reference import estimate_incidence_field
+        from separate.reference import estimate_incidence
 
         if theta_deg is None:
-            theta_deg = estimate_incidence_field(images, angles_deg, angles_deg[0] if reference_deg is None else reference_deg)
-        if not np.isfinite(theta_deg).all() or np.ndim(theta_deg) not in (0, 2):
+            incidence = estimate_incidence(images, angles_deg, angles_deg[0] if reference_deg is None else reference_deg)
+            theta_deg = incidence.field_deg if incidence.clear else None
+        if theta_deg is None:
+            model = without_gate(model)                   # no anchor to an angle of incidence the shots do not tell
+        elif not np.isfinite(theta_deg).all() or np.ndim(theta_deg) not in (0, 2):
             raise ValueError(f"expected a finite angle of incidence (deg) or a 2-D map of them, got shape {np.shape(theta_deg)}")
-        full = np.full((h, w), theta_deg, np.float32) if np.ndim(theta_deg) == 0 else field_at(theta_deg, (h, w))
-        theta = torch.from_numpy(np.radians(full))
+        else:
+            full = np.full((h, w), theta_deg, np.float32) if np.ndim(theta_deg) == 0 else field_at(theta_deg, (h, w))
+            theta = torch.from_numpy(np.radians(full))
+    run = runner(model, precision)
     mono = c == 1 or _equal_channels(images)
     angles = [float(a) for a in np.radians(angles_deg)]
     unit = optics.code_scale(images)

@@ -4,9 +4,10 @@ A canonical projection layer turns the polarization shots into I⊥ and I∥; th
 the two canonical images (15 channels for RGB) feed an encoder-decoder with skip connections:
 three down-sampling stages of two ResNet blocks each and a mirrored decoder that up-samples with
 transposed convolutions (kernel 2, stride 2: the paper's; ``urd-canonical-transposed.pt``), or,
-with ``upsample="resize"`` (the shipped ``urd-canonical.pt``), with a 1×1 convolution followed
-by bilinear ×2 interpolation (`ResizeUp`), which has no per-phase weights and so leaves no
-2/4/8-px grid texture (`tools/bench_texture.py`). The 8 output channels are residual images T̃, R̃ and weights ξ∥, ξ⊥:
+with ``upsample="resize"`` (``urd-canonical.pt``, the backbone of the shipped ``urd-anchored.pt``),
+with a 1×1 convolution followed by bilinear ×2 interpolation (`ResizeUp`), which has no per-phase
+weights and so leaves no 2/4/8-px grid texture (`tools/bench_texture.py`). The 8 output channels
+are residual images T̃, R̃ and weights ξ∥, ξ⊥:
 
     R̂ = ξ⊥·R̃ + (1−ξ⊥)·B_R,   T̂ = ξ∥·T̃ + (1−ξ∥)·B_T.
 
@@ -19,14 +20,17 @@ fed the three shots alone, predicting R̂ and T̂ with no projection and no resi
 With ``base="fresnel"`` (the physics-anchored network) the canonical network's answer is
 anchored to the closed-form Fresnel inversion of I⊥, I∥ at an estimated angle-of-incidence
 field θ(x, y) (`fresnel_bases`: the layers themselves wherever one pane at θ explains the shots,
-the Kong and Schechner baselines' answer): a small gate (`FresnelGate`, 4 dilated convolutions,
-receptive field 17 px) sees both answers, S0 and θ, and blends them per pixel,
+the Kong and Schechner baselines' answer). Their difference D = B_T − T̂_net is split into three
+frequency bands (`bands`: fine detail below `BAND_SIGMAS_PX`[0], middle, and coarse tone above
+`BAND_SIGMAS_PX`[1]), and a small gate (`FresnelGate`) weighs each band per pixel:
 
-    T̂ = g·B_T + (1−g)·T̂_net,   R̂ = g·B_R + (1−g)·R̂_net,   g ∈ (0, 1),
+    T̂ = T̂_net + Σ_k g_k·D_k,   R̂ = R̂_net + Σ_k g_k·(B_R − R̂_net)_k,   g_k ∈ (0, 1),
 
-so where the inversion is right (θ well estimated, the mixture well conditioned) the network
-takes it, and elsewhere keeps its learned answer. The gate starts near g = 0
-(`with_fresnel_base`: the shipped network's answer) and is trained alone, the backbone frozen.
+both clipped below at 0 (bands weighed apart can overshoot where the two answers differ). All
+gates at 1 give the inversion, all at 0 the network. Where the shots are noisy the inversion is
+right in the coarse band only (noise averages out there) and the network keeps the detail;
+where they are clean and θ is right it is right in every band. The gate starts near 0
+(`with_fresnel_base`: the network's own answer) and is trained alone, the backbone frozen.
 
 Inputs of any exposure are scaled so that mean(S0) = 0.25 before the network and back after.
 `separate.networks.build_model` makes a network from its config.
@@ -34,8 +38,10 @@ Inputs of any exposure are scaled so that mean(S0) = 0.25 before the network and
 
 from __future__ import annotations
 
+import math
 from typing import Sequence
 
+import cv2
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -111,36 +117,69 @@ def theta_channel(theta: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
     return (theta.to(like.dtype) / (np.pi / 2)).expand(b, 1, h, w)
 
 
-#: The Fresnel gate's starting logit.
+#: The Fresnel gate's starting logit, and the Gaussian blurs (px) that split a difference into bands.
 GATE_START = -4.0
+BAND_SIGMAS_PX = (1.0, 4.0)
+
+
+def gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
+    """A separable Gaussian blur (σ px, radius ⌈3σ⌉, edges mirrored without repeating the edge
+    pixel) of a (B, C, H, W) tensor. Where no gradient is needed on the CPU it runs through
+    OpenCV's (same taps, same edges; ~30× faster than torch's grouped convolution)."""
+    radius = math.ceil(3 * sigma)
+    if x.device.type == "cpu" and not (torch.is_grad_enabled() and x.requires_grad):
+        out = torch.empty_like(x, memory_format=torch.channels_last)
+        for i in range(x.shape[0]):
+            hwc = np.ascontiguousarray(x[i].permute(1, 2, 0).numpy())
+            blurred = cv2.GaussianBlur(hwc, (2 * radius + 1, 2 * radius + 1), sigma, borderType=cv2.BORDER_REFLECT_101)
+            out[i] = torch.from_numpy(blurred.reshape(hwc.shape)).permute(2, 0, 1)
+        return out
+    taps = torch.exp(-0.5 * (torch.arange(-radius, radius + 1, dtype=x.dtype) / sigma) ** 2)
+    taps = (taps / taps.sum()).to(x.device)
+    c = x.shape[1]
+    x = F.conv2d(F.pad(x, (radius, radius, 0, 0), mode="reflect"), taps.view(1, 1, 1, -1).expand(c, 1, 1, -1), groups=c)
+    return F.conv2d(F.pad(x, (0, 0, radius, radius), mode="reflect"), taps.view(1, 1, -1, 1).expand(c, 1, -1, 1), groups=c)
+
+
+def bands(x: torch.Tensor) -> list[torch.Tensor]:
+    """(B, C, H, W) → three (B, C, H, W) bands summing to it: x − blur₁(x), blur₁(x) − blur₂(x)
+    and blur₂(x), the blurs of `BAND_SIGMAS_PX` (fine detail, middle, coarse tone)."""
+    blurred = [gaussian_blur(x, sigma) for sigma in BAND_SIGMAS_PX]
+    return [x - blurred[0], blurred[0] - blurred[1], blurred[1]]
 
 
 class FresnelGate(nn.Module):
-    """The per-pixel weight g of the Fresnel inversion in the physics-anchored network.
+    """The per-pixel, per-band weights g of the Fresnel inversion in the physics-anchored network.
 
-    Four 3×3 convolutions (dilations 1, 2, 4, 1; receptive field 17 px) on the network's T̂ and
-    R̂, the inversion's B_T, S0 (all at the network's exposure gain) and θ/(π/2):
-    ``4·channels + 1`` channels in, one logit out. The last bias starts at `GATE_START`
-    (g ≈ 0.018: the network's own answer).
+    Four 3×3 convolutions (dilations 1, 2, 4, 1; receptive field 17 px) on the network's T̂,
+    S0, the three bands of D = B_T − T̂ (all at the network's exposure gain) and θ/(π/2):
+    ``5·channels + 1`` channels in, one logit per band out. The last biases start at
+    `GATE_START` (g ≈ 0.018: the network's own answer).
     """
 
-    def __init__(self, channels: int = 3, width: int = 8):
+    def __init__(self, channels: int = 3, width: int = 16):
         super().__init__()
         dilations = (1, 2, 4, 1)
-        sizes = [4 * channels + 1] + [width] * (len(dilations) - 1) + [1]
+        sizes = [5 * channels + 1] + [width] * (len(dilations) - 1) + [len(BAND_SIGMAS_PX) + 1]
         self.convs = nn.ModuleList(nn.Conv2d(a, b, 3, padding=d, dilation=d) for a, b, d in zip(sizes, sizes[1:], dilations))
         with torch.no_grad():
             self.convs[-1].weight.mul_(0.1)
             self.convs[-1].bias.fill_(GATE_START)
 
-    def forward(self, t_net: torch.Tensor, r_net: torch.Tensor, base_t: torch.Tensor, s0: torch.Tensor,
+    def forward(self, t_net: torch.Tensor, s0: torch.Tensor, d_bands: Sequence[torch.Tensor],
                 theta: torch.Tensor) -> torch.Tensor:
-        """(B, C, H, W) tensors at the network's gain and θ (rad, (B,) or (B, 1, H, W)) → g (B, 1, H, W)."""
-        x = torch.cat([t_net, r_net, base_t, s0], dim=1)
-        x = torch.cat([x, theta_channel(theta, x)], dim=1)
+        """(B, C, H, W) tensors at the network's gain (T̂, S0, the bands of D) and θ (rad, (B,) or
+        (B, 1, H, W)) → g (B, 3, H, W), one weight per band."""
+        x = self.inputs(t_net, s0, d_bands, theta)
         for conv in self.convs[:-1]:
             x = F.relu(conv(x))
         return torch.sigmoid(self.convs[-1](x))
+
+    @staticmethod
+    def inputs(t_net: torch.Tensor, s0: torch.Tensor, d_bands: Sequence[torch.Tensor], theta: torch.Tensor) -> torch.Tensor:
+        """The gate's input channels: T̂, S0, the bands of D and θ/(π/2), (B, 5·C + 1, H, W)."""
+        x = torch.cat([t_net, s0, *d_bands], dim=1)
+        return torch.cat([x, theta_channel(theta, x)], dim=1)
 
 
 class ResBlock(nn.Module):
@@ -280,12 +319,20 @@ class SeparationNet(nn.Module):
         return r_hat / gain, t_hat / gain
 
     def anchor(self, r_hat: torch.Tensor, t_hat: torch.Tensor, i_perp: torch.Tensor, i_par: torch.Tensor,
-               theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """The fresnel network's answer: R̂, T̂ blended with the Fresnel inversion of I⊥, I∥ at θ
-        by the gate (all (B, C, H, W) float32 in one exposure's units; θ rad (B,) or (B, 1, H, W))."""
+               theta: torch.Tensor, gate: "FresnelGate | None" = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The fresnel network's answer: each band of the Fresnel inversion's difference from R̂, T̂
+        added with the gate's weight, negative light clipped to 0 (all (B, C, H, W) float32 in one
+        exposure's units; θ rad (B,) or (B, 1, H, W)). ``gate``: another implementation of
+        ``self.gate`` (`separate.infer.FusedNet`'s)."""
         base_r, base_t = fresnel_bases(i_perp, i_par, theta)
-        g = self.gate(t_hat, r_hat, base_t, base_r + base_t, theta)
-        return torch.lerp(r_hat, base_r, g), torch.lerp(t_hat, base_t, g)
+        c = t_hat.shape[1]
+        split = bands(torch.cat([base_t - t_hat, base_r - r_hat], dim=1))      # one pass over both layers
+        d_t, d_r = [band[:, :c] for band in split], [band[:, c:] for band in split]
+        g = (gate or self.gate)(t_hat, base_r + base_t, d_t, theta)
+        for k in range(len(d_t)):
+            t_hat = t_hat + g[:, k : k + 1] * d_t[k]
+            r_hat = r_hat + g[:, k : k + 1] * d_r[k]
+        return r_hat.clamp_min(0.0), t_hat.clamp_min(0.0)          # bands weighed apart can overshoot below 0
 
     @staticmethod
     def loss(outputs: tuple[torch.Tensor, torch.Tensor], r: torch.Tensor, t: torch.Tensor) -> torch.Tensor:

@@ -72,7 +72,7 @@ def test_fused_network_matches_the_module(variant, strip_rows):
     if variant == "direct":
         model = SeparationNet(width=8, variant="direct").eval()
     else:
-        model = load_model(None if variant == "resize" else "urd-canonical-transposed")[0]
+        model = load_model("urd-canonical" if variant == "resize" else "urd-canonical-transposed")[0]
         assert isinstance(model.up[0], ResizeUp) == (variant == "resize")
     obs = torch.rand(1, 4, 3, 61, 83)
     angles = list(np.radians([10, 55, 100, 145]))
@@ -96,17 +96,20 @@ def test_shipped_weights_load_by_name():
         load_model("urd-canonical-nonexistent")
 
 
+@pytest.mark.parametrize("weights", ["urd-canonical", "urd-anchored"])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
-def test_strips_give_the_whole_tile_bit_for_bit(dtype):
-    # FusedNet's strips (_chain) read each strip with the rows its convolutions reach: the result
-    # must not differ by a single bit from one strip covering the tile, for a batch of two
+def test_strips_give_the_whole_tile_bit_for_bit(dtype, weights):
+    # FusedNet's strips (_chain, and _anchor for the gate and its band blurs) read each strip with
+    # the rows its operations reach: the result must not differ by a single bit from one strip
+    # covering the tile, for a batch of two
     torch.manual_seed(1)
-    model = load_model()[0]
+    model = load_model(weights)[0]
     obs = torch.rand(2, 3, 3, 93, 70)
     angles, scale = list(np.radians([0, 45, 90])), torch.tensor([0.3, 0.5])
+    theta = {"theta": torch.linspace(0.6, 1.2, 93)[None, None, :, None].expand(2, 1, 93, 70)} if weights == "urd-anchored" else {}
     with torch.inference_mode():
-        whole = FusedNet(model, dtype, strip_rows=1024)(obs, angles, scale)
-        strips = FusedNet(model, dtype, strip_rows=24)(obs, angles, scale)      # 4, 4, 3 and 2 strips per level
+        whole = FusedNet(model, dtype, strip_rows=1024)(obs, angles, scale, **theta)
+        strips = FusedNet(model, dtype, strip_rows=24)(obs, angles, scale, **theta)      # 4, 4, 3 and 2 strips per level
     for a, b in zip(whole, strips):
         assert torch.equal(a, b)
 

@@ -266,7 +266,7 @@ def test_negative_pixels_are_clipped_to_zero():
 
 
 def test_monochrome_shots_give_grey_layers_for_one_or_three_equal_channels():
-    model, _ = load_model()
+    model, _ = load_model("urd-canonical")             # the module is called alone below: no θ for a gate
     rng = np.random.default_rng(1)
     r, t = rng.random((2, 48, 64)).astype(np.float32)
     grey = np.stack([0.3 * r * (1 + 0.8 * np.cos(2 * (phi - 0.2))) + 0.5 * t for phi in NOMINAL_ANGLES])[..., None].astype(np.float32)
@@ -316,14 +316,15 @@ def test_urd_separate_on_a_simulated_scene_beats_no_separation(tmp_path):
 
 @pytest.mark.slow
 def test_training_continues_from_the_shipped_weights(tmp_path):
-    upsample = load_model()[1]["config"].get("upsample", "transposed")          # the shipped decoder
+    canonical = WEIGHTS_DIR / "urd-canonical.pt"                               # the shipped network's backbone
+    upsample = load_model(canonical)[1]["config"].get("upsample", "transposed")
     cfg = TrainConfig(width=16, patch=32, batch=4, micro_batch=4, steps=1, val_samples=8, val_every=1, threads=1,
                       upsample=upsample)
     scratch = train(cfg, tmp_path / "scratch")
-    tuned = train(cfg, tmp_path / "tuned", init=DEFAULT_WEIGHTS)
+    tuned = train(cfg, tmp_path / "tuned", init=canonical)
     assert tuned["psnr_t"] > scratch["psnr_t"] + 3
     origin = torch.load(tmp_path / "tuned" / "last.pt", weights_only=True)["init"]
-    assert origin["sha256"] == hashlib.sha256(DEFAULT_WEIGHTS.read_bytes()).hexdigest()
+    assert origin["sha256"] == hashlib.sha256(canonical.read_bytes()).hexdigest()
     assert torch.load(tmp_path / "scratch" / "last.pt", weights_only=True)["init"] is None
     log = [json.loads(line) for line in (tmp_path / "tuned" / "log.jsonl").read_text().splitlines()]
     assert log[0]["step"] == 0 and log[0]["patches_seen"] == 0 and log[0]["psnr_t"] > scratch["psnr_t"] + 3   # the starting weights, validated
@@ -334,14 +335,14 @@ def test_training_continues_from_the_shipped_weights(tmp_path):
 
     export = [sys.executable, "tools/export_weights.py", tmp_path / "tuned" / "last.pt", tmp_path / "w.pt"]
     root = Path(__file__).resolve().parents[1]
-    out = subprocess.run([*export, "--parent", DEFAULT_WEIGHTS.with_suffix(".json")], capture_output=True, text=True, cwd=root)
+    out = subprocess.run([*export, "--parent", canonical.with_suffix(".json")], capture_output=True, text=True, cwd=root)
     assert out.returncode == 0, out.stderr
     card = json.loads((tmp_path / "w.json").read_text())
     first = (tmp_path / "w.pt").read_bytes()
-    again = subprocess.run([*export, "--parent", DEFAULT_WEIGHTS.with_suffix(".json")], capture_output=True, text=True, cwd=root)
+    again = subprocess.run([*export, "--parent", canonical.with_suffix(".json")], capture_output=True, text=True, cwd=root)
     assert again.returncode == 0 and (tmp_path / "w.pt").read_bytes() == first     # the same weights: the file kept
     assert json.loads((tmp_path / "w.json").read_text())["sha256"] == card["sha256"] == hashlib.sha256(first).hexdigest()
-    shipped = json.loads(DEFAULT_WEIGHTS.with_suffix(".json").read_text())
+    shipped = json.loads(canonical.with_suffix(".json").read_text())
     assert len(card["stages"]) == len(shipped.get("stages", [None])) + 1
     assert card["total"]["steps"] == shipped.get("total", shipped["training"])["steps"] + 1
     wrong = subprocess.run([*export, "--parent", root / "separate/weights/ceilnet.json"], capture_output=True, text=True, cwd=root)

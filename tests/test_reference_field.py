@@ -102,7 +102,7 @@ def test_perturbed_incidence_stays_in_range_near_the_truth_or_fails_outright():
     assert ((draws >= 10.0 - 1e-4) & (draws <= 80.0 + 1e-4)).all()
     errors = np.abs(draws - 50.0).max(axis=(1, 2))
     near = (errors < 20.0).mean()
-    assert 0.8 < near < 0.97                                      # ~10% failed estimates
+    assert 0.9 < near < 0.99                                      # ~5% failed estimates
     assert np.ptp(draws[0]) > 0.0                                 # a smooth local error on top of the global one
 
 
@@ -118,13 +118,20 @@ def test_a_fresnel_network_starts_near_its_canonical_answer_and_runs_fused_and_a
         r_ref, t_ref = model(obs, scale=torch.tensor([0.3]), theta=theta)
         r_can, t_can = canonical(obs, scale=torch.tensor([0.3]))
         _, base_t = fresnel_bases(*canonical_pair(obs), theta)
-    # the gate starts near g = 0.018: within 3% of the way from the network's answer to the inversion's
+    # the gate starts near g = 0.018: within 3% of the way from the network's answer (negatives clipped) to the inversion's
+    t_can = t_can.clamp_min(0.0)
     assert (t_ref - t_can).abs().max() <= 0.03 * (base_t - t_can).abs().max()
     assert (t_ref - t_can).abs().max() > 0
     if FusedNet.available():
         r_fused, t_fused = FusedNet(model)(obs.clone(), model_angles(), torch.tensor([0.3]), theta=theta)
         torch.testing.assert_close(t_fused.contiguous(), t_ref, atol=1e-4, rtol=1e-4)
         torch.testing.assert_close(r_fused.contiguous(), r_ref, atol=1e-4, rtol=1e-4)
+        with torch.no_grad():                                       # an open gate, anchored in strips of 16 rows
+            model.gate.convs[-1].bias.fill_(2.0)
+            r_open, t_open = model(obs, scale=torch.tensor([0.3]), theta=theta)
+        r_strips, t_strips = FusedNet(model, strip_rows=16)(obs.clone(), model_angles(), torch.tensor([0.3]), theta=theta)
+        torch.testing.assert_close(t_strips.contiguous(), t_open, atol=1e-4, rtol=1e-4)
+        torch.testing.assert_close(r_strips.contiguous(), r_open, atol=1e-4, rtol=1e-4)
 
 
 def test_an_open_gate_gives_the_fresnel_inversion():
@@ -134,6 +141,23 @@ def test_an_open_gate_gives_the_fresnel_inversion():
     obs, angles, _, r_obs, t_obs = wide_view(h=64, w=96, turn_deg=0.0, theta_deg=40.0)
     r_hat, t_hat = separate_stack(model, obs, angles, tile=4096, overlap=0, precision="fp32", reference_deg=57.0, theta_deg=40.0)
     assert metrics.psnr(t_hat, t_obs) > 38 and metrics.psnr(r_hat, r_obs) > 38
+
+
+def test_the_bands_of_a_difference_sum_to_it_and_split_it_by_frequency():
+    from separate.model import bands, gaussian_blur
+    torch.manual_seed(0)
+    x = torch.rand(1, 3, 48, 64)
+    parts = bands(x)
+    torch.testing.assert_close(sum(parts), x, atol=1e-6, rtol=0)
+    torch.testing.assert_close(gaussian_blur(torch.full((1, 1, 20, 30), 0.7), 2.0), torch.full((1, 1, 20, 30), 0.7))
+    traced = x.clone().requires_grad_()                          # torch's convolutions (training) and OpenCV's agree
+    torch.testing.assert_close(gaussian_blur(traced, 4.0).detach(), gaussian_blur(x, 4.0), atol=1e-6, rtol=0)
+    checker = (torch.arange(64)[None, :] + torch.arange(48)[:, None]) % 2 * 1.0          # the finest detail there is
+    fine, middle, coarse = bands(checker[None, None].expand(1, 3, 48, 64).contiguous() - 0.5)
+    assert fine.abs().mean() > 0.4 and coarse.abs().mean() < 0.01
+    ramp = torch.linspace(0, 1, 64)[None, None, None].expand(1, 3, 48, 64).contiguous()    # the coarsest
+    fine, middle, coarse = bands(ramp)
+    assert (coarse - ramp)[..., 12:-12].abs().max() < 1e-3 and fine[..., 12:-12].abs().max() < 1e-3
 
 
 def canonical_pair(obs):
@@ -147,7 +171,7 @@ def model_angles():
 
 
 def test_the_shipped_network_takes_a_field_tile_by_tile_like_the_presented_stack():
-    model, _ = load_model(None)
+    model, _ = load_model("urd-canonical")              # the shipped network's backbone (the gate adds its own θ estimate)
     obs, angles, phi_true, _, _ = wide_view(h=200, w=272)
     field = field_at(estimate_reference_field(obs, angles), obs.shape[1:3])
     _, t_field = separate_stack(model, obs, angles, tile=4096, overlap=0, precision="fp32", reference_deg=field)

@@ -2,7 +2,8 @@
 methods on scenes rendered by urd's virtual camera, where the physical model of the closed-form
 inversions holds.
 
-Two sets, each a table of T̂ and R̂ PSNR (dB, linear values, peak 1, mean over scenes):
+Two sets, each a table of T̂ and R̂ PSNR (dB, linear values, peak 1, mean over scenes), and a
+table of the angle-of-incidence estimate against the truth on the first set:
 
 1. **angles of incidence**: one flat pane (`acquire.virtual_camera.make_glass_scene`, not
    curved) at θ = `THETAS_DEG`, φ⊥ turning 6° down the frame, for ``pairs`` photo pairs
@@ -11,6 +12,11 @@ Two sets, each a table of T̂ and R̂ PSNR (dB, linear values, peak 1, mean over
 2. **wide view**: the same panes at θ = 50° with φ⊥ turning by `WIDE_TURN_DEG` across the
    frame (a wide-angle lens in front of a shop window); each polarization method with the
    per-pixel reference field ("auto") and with one global reference ("global").
+
+θ estimate: the median over pixels of |θ̂ − θ| (deg), for the per-pixel field
+(`separate.reference.estimate_incidence_field`, what the network uses) and for one number per
+view (`separate.reference.estimate_incidence_deg`); θ turns across these panes by the
+perspective (e.g. 31–61° at a nominal 50°).
 
 Seeded (`SEED`); every method sees the same shots. It lives above `acquire` and `separate`
 because it renders with the one and scores the other.
@@ -25,6 +31,8 @@ import numpy as np
 from acquire.virtual_camera import GlassScene, VirtualCamera, make_glass_scene
 from separate import metrics
 from separate.methods import get_method
+from separate.presentation import field_at
+from separate.reference import estimate_incidence_deg, estimate_incidence_field, estimate_reference_field
 from separate.synthesis import SHARED_NATURAL
 from urd.core.progress import Progress
 
@@ -86,6 +94,17 @@ def _score(runs: dict, scenes: list) -> dict[str, tuple[float, float]]:
     return out
 
 
+def _incidence_errors(pane: GlassScene, shots: np.ndarray, angles: list[float]) -> tuple[float, float, float, float]:
+    """Median |θ̂ − θ| (deg) of the per-pixel field and of the one-number estimate, and the true
+    θ range (deg) of a pane."""
+    truth = np.degrees(pane.theta)
+    reference = estimate_reference_field(shots, angles)
+    field = field_at(estimate_incidence_field(shots, angles, reference), truth.shape)
+    one = estimate_incidence_deg(shots, angles, reference)
+    return (float(np.median(np.abs(field - truth))), float(np.median(np.abs(one - truth))),
+            float(truth.min()), float(truth.max()))
+
+
 def run_virtual_bench(methods: tuple[str, ...] = DEFAULT_METHODS, weights: Path | None = None,
                       size: tuple[int, int] = (768, 512), pairs: int = 4, progress: Progress | None = None) -> str:
     """Run both sets (module docstring) and return them as Markdown tables.
@@ -104,16 +123,22 @@ def run_virtual_bench(methods: tuple[str, ...] = DEFAULT_METHODS, weights: Path 
              "T̂ / R̂ PSNR (dB) by angle of incidence θ:", "",
              "| θ | " + " | ".join(runs) + " |", "|---|" + "---|" * len(runs)]
     totals: dict[str, list[float]] = {label: [] for label in runs}
+    incidence = []
     for k, theta in enumerate(THETAS_DEG):
         if progress:
             progress(k, len(THETAS_DEG) + 1, "bench --virtual")
-        scenes = [shoot(make_glass_scene(width, height, r, t, curved=False, theta_center_deg=theta,
-                                         phi_perp_deg=30.0 + 20 * j), seed=SEED + j) for j, (r, t) in enumerate(photos)]
+        panes = [make_glass_scene(width, height, r, t, curved=False, theta_center_deg=theta, phi_perp_deg=30.0 + 20 * j)
+                 for j, (r, t) in enumerate(photos)]
+        scenes = [shoot(pane, seed=SEED + j) for j, pane in enumerate(panes)]
+        incidence.append((theta, *np.mean([_incidence_errors(pane, scene[0], scene[1]) for pane, scene in zip(panes, scenes)], axis=0)))
         row = _score(runs, scenes)
         for label, (t_psnr, _) in row.items():
             totals[label].append(t_psnr)
         lines.append(f"| {theta:.0f}° | " + " | ".join(f"{t:.2f} / {r:.2f}" for t, r in row.values()) + " |")
     lines.append("| mean T̂ | " + " | ".join(f"{np.mean(v):.2f}" for v in totals.values()) + " |")
+    lines += ["", "Angle-of-incidence estimate: median |θ̂ − θ| over the pixels (deg), mean over scenes:", "",
+              "| θ | true range | per-pixel field | one per view |", "|---|---|---|---|"]
+    lines += [f"| {theta:.0f}° | {lo:.0f}–{hi:.0f}° | {field:.1f} | {one:.1f} |" for theta, field, one, lo, hi in incidence]
     if progress:
         progress(len(THETAS_DEG), len(THETAS_DEG) + 1, "bench --virtual")
     wide_runs = _runs(tuple(m for m in methods if m in POLARIZATION_METHODS), ("auto", "global"), weights)
