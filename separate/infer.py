@@ -440,8 +440,10 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
             theta_deg = incidence.field_deg if incidence.clear else None
         if theta_deg is None:
             model = without_gate(model)                   # no anchor to an angle of incidence the shots do not tell
-        elif not np.isfinite(theta_deg).all() or np.ndim(theta_deg) not in (0, 2):
-            raise ValueError(f"expected a finite angle of incidence (deg) or a 2-D map of them, got shape {np.shape(theta_deg)}")
+        elif np.ndim(theta_deg) not in (0, 2) or not np.isfinite(theta_deg).all() or not (
+                (np.asarray(theta_deg) > 0).all() and (np.asarray(theta_deg) < 90).all()):
+            raise ValueError(f"expected an angle of incidence in (0, 90) deg, or a 2-D map of them, got "
+                             f"{theta_deg if np.ndim(theta_deg) == 0 else f'a map of shape {np.shape(theta_deg)}'}")
         else:
             full = np.full((h, w), theta_deg, np.float32) if np.ndim(theta_deg) == 0 else field_at(theta_deg, (h, w))
             theta = torch.from_numpy(np.radians(full))

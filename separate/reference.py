@@ -454,22 +454,33 @@ def estimate_incidence(images: np.ndarray, angles_deg: Sequence[float], referenc
                 points.append(((bx + 0.5) / INCIDENCE_BLOCKS - 0.5, (by + 0.5) / INCIDENCE_BLOCKS - 0.5, grid_deg[best], clarity))
     ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
     xs, ys = (xs + 0.5) / w - 0.5, (ys + 0.5) / h - 0.5
-    overall = float(np.median(clarities)) if clarities else 0.0
-    if len(points) < 3:
+    if len(points) < 3:                      # too few blocks tell an angle: one number, not trusted
         flat = np.degrees(incidence_by_information(i_perp, i_par, grid_deg))
-        return Incidence(np.full((h, w), flat, np.float32), overall)
+        return Incidence(np.full((h, w), flat, np.float32), 0.0)
     x, y, theta, clarity = np.array(points).T
-    design = np.stack([np.ones_like(x), x, y], axis=1)
     weights = clarity.copy()
     for _ in range(10):
-        coef = np.linalg.lstsq(design * np.sqrt(weights)[:, None], theta * np.sqrt(weights), rcond=None)[0]
-        u = (theta - design @ coef) / INCIDENCE_FIT_SCALE_DEG
+        coef = _plane_fit(x, y, theta, weights)
+        u = (theta - coef[0] - coef[1] * x - coef[2] * y) / INCIDENCE_FIT_SCALE_DEG
         weights = clarity * np.where(np.abs(u) < 1, (1 - u**2) ** 2, 0.0)
         if np.count_nonzero(weights) < 3:
             coef = np.array([np.average(theta, weights=clarity), 0.0, 0.0])
             break
     plane = coef[0] + coef[1] * xs + coef[2] * ys
-    return Incidence(np.clip(plane, *INCIDENCE_RANGE_DEG).astype(np.float32), overall)
+    return Incidence(np.clip(plane, *INCIDENCE_RANGE_DEG).astype(np.float32), float(np.median(clarities)))
+
+
+def _plane_fit(x: np.ndarray, y: np.ndarray, theta: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Weighted least-squares (a, b, c) of θ = a + b·x + c·y; a slope the weighted points do not
+    pin down (all in one column, or one row) is 0 rather than the minimum-norm answer's guess."""
+    used = weights > 0
+    columns = [np.ones_like(x)] + [v if np.ptp(v[used]) > 0 else np.zeros_like(v) for v in (x, y)] if used.any() \
+        else [np.ones_like(x), np.zeros_like(x), np.zeros_like(y)]
+    keep = [k for k, col in enumerate(columns) if col.any()]
+    design = np.stack([columns[k] for k in keep], axis=1) * np.sqrt(weights)[:, None]
+    coef = np.zeros(3)
+    coef[keep] = np.linalg.lstsq(design, theta * np.sqrt(weights), rcond=None)[0]
+    return coef
 
 
 def information_by_incidence(i_perp: np.ndarray, i_par: np.ndarray, grid_deg: np.ndarray) -> np.ndarray:

@@ -22,7 +22,7 @@ From two natural photos, in linear light (inverse gamma 2.2):
 6. exposure, shot and read noise, and rejection of flat, dark or saturated patches.
 
 Further switches, off by default (the paper's pipeline and the benchmark's data stay as
-they were), on in training the physics-anchored network (``configs/cpu-fresnel.toml``):
+they were), on in training the physics-anchored network's gate (``configs/cpu-gate.toml``):
 
 * ``phi_field_prob``: φ⊥ turning linearly across the patch by up to ``phi_field_max_deg`` (a
   wide view through a flat pane, or a curved one);
@@ -120,6 +120,8 @@ class SynthesisConfig:
     no_glass_prob: float = 0.0
     no_glass_dolp_max: float = 0.4
     incidence_estimate: bool = False
+    incidence_error_deg: tuple[float, float] = (3.0, 1.5)
+    incidence_failure: tuple[float, float] = (0.05, 0.3)
     reference_field: bool = False
 
     def __post_init__(self):
@@ -242,28 +244,24 @@ def surface_maps(rng: np.random.Generator, cfg: SynthesisConfig) -> tuple[np.nda
     return np.minimum(theta, np.radians(85.0)).astype(np.float32), phi_perp
 
 
-#: Errors of an angle-of-incidence estimate (`perturbed_incidence`): the largest standard deviation
-#: of its global error and the largest smooth local error (deg); the chance of a failed estimate,
-#: and that chance where the pane is seen within `HEAD_ON_DEG` of head-on or there is no glass.
-INCIDENCE_ERROR_DEG = (3.0, 1.5)
-INCIDENCE_FAILURE = (0.05, 0.3)
+#: Within this angle of incidence (deg) of head-on, or without glass, an estimate fails more often.
 HEAD_ON_DEG = 30.0
 
 
-def perturbed_incidence(rng: np.random.Generator, theta: np.ndarray) -> np.ndarray:
+def perturbed_incidence(rng: np.random.Generator, theta: np.ndarray, error_deg: tuple[float, float] = (3.0, 1.5),
+                        failure: tuple[float, float] = (0.05, 0.3)) -> np.ndarray:
     """The angle of incidence (rad, P×P float32) as an estimate of the true map ``theta`` reads:
-    off by a global error ~ N(0, σ²), σ ~ U[0, 3°], and a smooth error within ±1.5°, held in
-    `separate.reference.INCIDENCE_RANGE_DEG`; or a failed estimate, one angle drawn over that
-    range, with probability 0.05 (0.3 within 30° of head-on, where three shots barely tell θ,
-    and without glass, θ = 0). `separate.reference.estimate_incidence_field` is off by a median
+    off by a global error ~ N(0, σ²), σ ~ U[0, ``error_deg[0]``], and a smooth error within
+    ±``error_deg[1]`` (deg), held in `separate.reference.INCIDENCE_RANGE_DEG`; or a failed estimate,
+    one angle drawn over that range, with probability ``failure[0]`` (``failure[1]`` within
+    `HEAD_ON_DEG` of head-on, where three shots barely tell θ, and without glass, θ = 0). `separate.reference.estimate_incidence_field` is off by a median
     1–2° from θ = 35° up on the virtual camera's panes, 4–6° at 20° (`urd bench --virtual`)."""
     lo, hi = INCIDENCE_RANGE_DEG
     theta_deg = np.degrees(theta.astype(np.float32))
-    failure = INCIDENCE_FAILURE[1] if theta_deg.mean() < HEAD_ON_DEG else INCIDENCE_FAILURE[0]
-    if rng.random() < failure:
+    if rng.random() < (failure[1] if theta_deg.mean() < HEAD_ON_DEG else failure[0]):
         return np.full(theta.shape, np.radians(rng.uniform(lo, hi)), np.float32)
-    offset = rng.normal(0.0, rng.uniform(0.0, INCIDENCE_ERROR_DEG[0]))
-    local = INCIDENCE_ERROR_DEG[1] * (2 * smooth_field(rng, theta.shape[0]) - 1)
+    offset = rng.normal(0.0, rng.uniform(0.0, error_deg[0]))
+    local = error_deg[1] * (2 * smooth_field(rng, theta.shape[0]) - 1)
     return np.radians(np.clip(theta_deg + offset + local, lo, hi)).astype(np.float32)
 
 
@@ -399,7 +397,7 @@ class Synthesizer:
             "shots": np.float32(len(nominal)),
         }
         if cfg.incidence_estimate:
-            sample["theta_est"] = perturbed_incidence(self.rng, theta)
+            sample["theta_est"] = perturbed_incidence(self.rng, theta, cfg.incidence_error_deg, cfg.incidence_failure)
         return sample
 
 

@@ -47,11 +47,13 @@ class TrainConfig:
     of the training and validation data (`separate.synthesis.AngleMode`): "classic" (the
     paper's φ0 + 0/45/90° near φ⊥, the shipped weights' first three stages), "any" (random
     angle sets, shots presented at the estimated reference, as `urd separate` does) or
-    "any-true-side" (as "any", the reference on φ⊥'s side). ``base`` is the canonical
-    network's residual bases (`separate.model.BASES`; "fresnel" is the physics-anchored network,
-    whose samples then carry their estimated angle of incidence). ``phi_field_prob``,
-    ``no_glass_prob`` and ``reference_field`` are the synthesis switches of the same names
-    (`separate.synthesis.SynthesisConfig`).
+    "any-true-side" (as "any", the reference on φ⊥'s side). ``base`` is "canonical" or
+    "fresnel" (`separate.model.BASES`: the physics-anchored network, whose samples then carry an
+    estimate of their angle of incidence); ``trainable`` is "all" or "gate" (the fresnel
+    network's gate alone, the rest frozen). ``phi_field_prob``, ``no_glass_prob``,
+    ``reference_field``, the sensor-noise ranges ``shot_gain_log10`` and ``read_var_log10`` and
+    the gate's θ-estimate errors ``incidence_error_deg`` and ``incidence_failure`` are the
+    synthesis settings of the same names (`separate.synthesis.SynthesisConfig`).
     """
 
     variant: str = "canonical"
@@ -80,9 +82,12 @@ class TrainConfig:
     trainable: str = "all"
     shot_gain_log10: tuple[float, float] = SHOT_GAIN_LOG10
     read_var_log10: tuple[float, float] = READ_VAR_LOG10
+    incidence_error_deg: tuple[float, float] = (3.0, 1.5)
+    incidence_failure: tuple[float, float] = (0.05, 0.3)
 
     def __post_init__(self):
-        self.shot_gain_log10, self.read_var_log10 = tuple(self.shot_gain_log10), tuple(self.read_var_log10)
+        for name in ("shot_gain_log10", "read_var_log10", "incidence_error_deg", "incidence_failure"):
+            setattr(self, name, tuple(getattr(self, name)))
 
     @classmethod
     def from_toml(cls, path: Path) -> "TrainConfig":
@@ -126,7 +131,8 @@ def synthesis_config(cfg: TrainConfig, pipeline: str | None = None) -> Synthesis
     base = SynthesisConfig.ablation(pipeline or cfg.pipeline, cfg.patch, cfg.angles)
     return dataclasses.replace(base, phi_field_prob=cfg.phi_field_prob, no_glass_prob=cfg.no_glass_prob,
                                reference_field=cfg.reference_field, incidence_estimate=cfg.base == "fresnel",
-                               shot_gain_log10=cfg.shot_gain_log10, read_var_log10=cfg.read_var_log10)
+                               shot_gain_log10=cfg.shot_gain_log10, read_var_log10=cfg.read_var_log10,
+                               incidence_error_deg=cfg.incidence_error_deg, incidence_failure=cfg.incidence_failure)
 
 
 def validation_set(cfg: TrainConfig) -> dict[str, np.ndarray]:
@@ -255,7 +261,7 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
         stored = {"channels": 3, **state.get("model_config", {})}
         if not resumed and model.config().get("base") == "fresnel" and "base" not in stored \
                 and stored.get("variant", "canonical") == "canonical":
-            start = build_model(stored)                     # a canonical-base start: its head grows zero inputs
+            start = build_model(stored)                     # a canonical-base start: its weights and a new, closed gate
             start.load_state_dict({k: v.float() for k, v in state["model"].items()})
             converted = with_fresnel_base(start)
             state = {**state, "model": converted.state_dict()}

@@ -160,6 +160,42 @@ def test_the_bands_of_a_difference_sum_to_it_and_split_it_by_frequency():
     assert (coarse - ramp)[..., 12:-12].abs().max() < 1e-3 and fine[..., 12:-12].abs().max() < 1e-3
 
 
+def test_an_unclear_angle_of_incidence_runs_the_network_without_its_gate():
+    from separate.reference import estimate_incidence
+    anchored, canonical = load_model("urd-anchored")[0], load_model("urd-canonical")[0]
+    noise = np.random.default_rng(5).uniform(0.1, 0.3, (3, 96, 128, 3)).astype(np.float32)   # no pane to tell θ
+    assert not estimate_incidence(noise, [0.0, 45.0, 90.0], 0.0).clear
+    r_a, t_a = separate_stack(anchored, noise, [0.0, 45.0, 90.0], precision="fp32")
+    r_c, t_c = separate_stack(canonical, noise, [0.0, 45.0, 90.0], precision="fp32")
+    np.testing.assert_array_equal(t_a, t_c)
+    np.testing.assert_array_equal(r_a, r_c)
+    obs, angles, _, _, _ = wide_view(h=64, w=96, turn_deg=0.0, theta_deg=50.0)
+    for bad in (0.0, 90.0, -5.0, np.full((4, 4, 2), 50.0)):
+        with pytest.raises(ValueError, match="expected an angle of incidence in"):
+            separate_stack(anchored, obs, angles, precision="fp32", theta_deg=bad)
+    _, t_map = separate_stack(anchored, obs, angles, precision="fp32", theta_deg=np.full((8, 12), 50.0))
+    _, t_one = separate_stack(anchored, obs, angles, precision="fp32", theta_deg=50.0)
+    np.testing.assert_allclose(t_map, t_one, atol=1e-6)                  # a small map is resized to the image
+
+
+def test_the_side_trials_of_the_anchored_network_run_its_backbone():
+    obs, angles, _, _, _ = wide_view(h=64, w=96, turn_deg=0.0, theta_deg=50.0)
+    trial = get_method("network")[0](obs, angles, 30.0, trial=True)
+    backbone = get_method("network", weights="urd-canonical")[0](obs, angles, 30.0)
+    gated = get_method("network")[0](obs, angles, 30.0)
+    np.testing.assert_array_equal(trial[1], backbone[1])
+    assert np.abs(gated[1] - backbone[1]).max() > 1e-3                   # the gate does change the answer
+
+
+def test_a_plane_fit_to_one_row_of_blocks_has_no_made_up_tilt():
+    from separate.reference import _plane_fit
+    x, y = np.array([-0.375, -0.125, 0.125, 0.375]), np.full(4, -0.375)
+    coef = _plane_fit(x, y, 50.0 + 10.0 * x, np.ones(4))
+    np.testing.assert_allclose(coef, [50.0, 10.0, 0.0], atol=1e-9)
+    coef = _plane_fit(np.array([0.1, 0.2, 0.3, 0.4]), np.array([0.0, 0.5, -0.5, 0.2]), np.array([40.0, 45.0, 35.0, 42.0]), np.ones(4))
+    assert abs(coef[2] - 10.0) < 1e-9 and abs(coef[1]) < 1e-9
+
+
 def canonical_pair(obs):
     from separate.model import canonical_inputs
     return canonical_inputs(obs)[1:]
