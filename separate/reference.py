@@ -364,16 +364,27 @@ def estimate_incidence_deg(images: np.ndarray, angles_deg: Sequence[float], refe
         grid_deg: the angles searched (deg, ascending, ≥ 3); default `INCIDENCE_RANGE_DEG` in
             steps of `INCIDENCE_STEP_DEG`.
     """
-    phi = check_stack(images, angles_deg)
     if grid_deg is None:
         grid_deg = np.arange(INCIDENCE_RANGE_DEG[0], INCIDENCE_RANGE_DEG[1] + INCIDENCE_STEP_DEG / 2, INCIDENCE_STEP_DEG)
+    i_perp, i_par = _canonical_luminances(images, angles_deg, reference, MAX_SIDE)
+    return float(np.degrees(incidence_by_information(i_perp, i_par, grid_deg)))
+
+
+def _canonical_luminances(images: np.ndarray, angles_deg: Sequence[float], reference: float | np.ndarray,
+                          side: int) -> tuple[np.ndarray, np.ndarray]:
+    """I⊥, I∥ (h×w float64) of the stack's luminance at the reference (deg, a number or an H×W
+    field), area-averaged to at most ``side`` px on the long side (≤ `MAX_SIDE`)."""
+    phi = check_stack(images, angles_deg)
     lum, _ = _reduce_stack(images, np.zeros(images.shape[1:3], bool))
+    scale = min(1.0, side / max(lum.shape[1:]))
+    if scale < 1:
+        size = (max(1, round(lum.shape[2] * scale)), max(1, round(lum.shape[1] * scale)))
+        lum = np.stack([cv2.resize(shot, size, interpolation=cv2.INTER_AREA) for shot in lum])
     reference = np.asarray(reference, np.float64)
     if reference.ndim == 2:
         reference = field_at(reference, lum.shape[1:])
     stokes = optics.rotate_stokes(optics.stokes_from_images(lum, phi), np.radians(reference))
-    i_perp, i_par = optics.canonical_intensities(stokes, 0.0)
-    return float(np.degrees(incidence_by_information(i_perp, i_par, grid_deg)))
+    return optics.canonical_intensities(stokes, 0.0)
 
 
 #: Long side (px) of the reduced image on which `estimate_incidence_field` runs, and its blocks per side.
@@ -426,17 +437,7 @@ def estimate_incidence(images: np.ndarray, angles_deg: Sequence[float], referenc
         angles_deg: the N polarizer angles (deg).
         reference: φ⊥ (deg), a number or an H×W field.
     """
-    phi = check_stack(images, angles_deg)
-    lum, _ = _reduce_stack(images, np.zeros(images.shape[1:3], bool))
-    scale = min(1.0, INCIDENCE_FIELD_SIDE / max(lum.shape[1:]))
-    if scale < 1:
-        size = (max(1, round(lum.shape[2] * scale)), max(1, round(lum.shape[1] * scale)))
-        lum = np.stack([cv2.resize(shot, size, interpolation=cv2.INTER_AREA) for shot in lum])
-    reference = np.asarray(reference, np.float64)
-    if reference.ndim == 2:
-        reference = field_at(reference, lum.shape[1:])
-    stokes = optics.rotate_stokes(optics.stokes_from_images(lum, phi), np.radians(reference))
-    i_perp, i_par = optics.canonical_intensities(stokes, 0.0)
+    i_perp, i_par = _canonical_luminances(images, angles_deg, reference, INCIDENCE_FIELD_SIDE)
     h, w = i_perp.shape
     grid_deg = np.arange(INCIDENCE_RANGE_DEG[0], INCIDENCE_RANGE_DEG[1] + INCIDENCE_STEP_DEG / 2, INCIDENCE_STEP_DEG)
     points, clarities = [], []
