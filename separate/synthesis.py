@@ -135,11 +135,13 @@ class SynthesisConfig:
     @classmethod
     def ablation(cls, name: str, patch: int = 128, angles: AngleMode | str = AngleMode.CLASSIC) -> "SynthesisConfig":
         """The paper's ablation settings: 'DR', 'DR+NRD' or 'DR+NRD+LCG' (the full pipeline),
-        with the given angle mode."""
+        with the given angle mode; and 'DR+LCG', the full pipeline without non-rigid deformation
+        (shots registered as `urd ingest` registers them: the Fresnel gate's last stage)."""
         settings = {
             "DR": dict(nrd_prob=0.0, curvature=False),
             "DR+NRD": dict(curvature=False),
             "DR+NRD+LCG": {},
+            "DR+LCG": dict(nrd_prob=0.0),
         }
         if name not in settings:
             raise ValueError(f"expected one of {sorted(settings)}, got {name!r}")

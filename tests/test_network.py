@@ -86,9 +86,9 @@ def tan2_quadratic_fit(theta: np.ndarray, phi_perp: float) -> tuple[float, float
     return float(np.abs(design @ coef - tan2).max() / tan2.max()), float(np.linalg.norm(hessian @ s_dir) / np.linalg.norm(hessian))
 
 
-@pytest.mark.parametrize("name", ["DR", "DR+NRD", "DR+NRD+LCG"])
+@pytest.mark.parametrize("name", ["DR", "DR+NRD", "DR+NRD+LCG", "DR+LCG"])
 def test_ablation_switches(name):
-    deforms, lcg = name != "DR", name.endswith("LCG")
+    deforms, lcg = "NRD" in name, name.endswith("LCG")
     cfg = SynthesisConfig.ablation(name, patch=32)
     assert (cfg.nrd_prob > 0) == deforms and cfg.curvature == lcg
     batch = Synthesizer(POOL, dataclasses.replace(cfg, noise=False), seed=0).batch(12)
