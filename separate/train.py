@@ -6,7 +6,8 @@ setting). A run folder holds ``config.toml`` as used, ``last.pt`` (resumed autom
 first, as step 0, so fine-tuning never leaves a best.pt worse than where it started), and
 ``log.jsonl``. Works on CPU and CUDA; with
 ``torchrun --nproc_per_node K`` it runs DistributedDataParallel (gloo on CPU, nccl on CUDA),
-each rank drawing its own synthetic stream.
+each rank drawing its own synthetic stream, synthesized in the rank's process or, with
+``workers`` > 0, in that many data-loader processes (a GPU's many-core host).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import time
 import tomllib
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 import torch.distributed as dist
@@ -53,7 +55,10 @@ class TrainConfig:
     network's gate alone, the rest frozen). ``phi_field_prob``, ``no_glass_prob``,
     ``reference_field``, the sensor-noise ranges ``shot_gain_log10`` and ``read_var_log10`` and
     the gate's θ-estimate errors ``incidence_error_deg`` and ``incidence_failure`` are the
-    synthesis settings of the same names (`separate.synthesis.SynthesisConfig`).
+    synthesis settings of the same names (`separate.synthesis.SynthesisConfig`). ``workers``
+    synthesis processes per rank feed the network (0: the rank synthesizes between steps);
+    ``schedule_minutes`` > 0 lets the learning rate's cosine end after that much training time
+    where that comes before ``steps`` (`lr_at`).
     """
 
     variant: str = "canonical"
@@ -84,6 +89,8 @@ class TrainConfig:
     read_var_log10: tuple[float, float] = READ_VAR_LOG10
     incidence_error_deg: tuple[float, float] = (3.0, 1.5)
     incidence_failure: tuple[float, float] = (0.05, 0.3)
+    workers: int = 0
+    schedule_minutes: float = 0.0
 
     def __post_init__(self):
         for name in ("shot_gain_log10", "read_var_log10", "incidence_error_deg", "incidence_failure"):
@@ -190,14 +197,50 @@ def model_config(cfg: TrainConfig) -> dict:
     return config if cfg.base == "canonical" else {**config, "base": cfg.base}
 
 
-def lr_at(cfg: TrainConfig, step: int) -> float:
-    """Cosine decay from lr to lr_min over ``steps``, after a 200-step warm-up."""
+def lr_at(cfg: TrainConfig, step: int, wall_s: float = 0.0) -> float:
+    """Cosine decay from lr to lr_min after a 200-step warm-up, over ``steps`` or, where it
+    comes first, ``schedule_minutes`` of training time ``wall_s`` (s)."""
     warm = min(1.0, (step + 1) / 200)
-    return cfg.lr_min + (cfg.lr - cfg.lr_min) * warm * 0.5 * (1 + math.cos(math.pi * min(step, cfg.steps) / cfg.steps))
+    progress = step / cfg.steps
+    if cfg.schedule_minutes > 0:
+        progress = max(progress, wall_s / (cfg.schedule_minutes * 60))
+    return cfg.lr_min + (cfg.lr - cfg.lr_min) * warm * 0.5 * (1 + math.cos(math.pi * min(progress, 1.0)))
+
+
+class SynthesisStream(torch.utils.data.IterableDataset):
+    """Endless micro-batches of ``size`` samples from a `Synthesizer` over the ``split`` image
+    pool, seeded ``seed`` (data-loader worker k: ``seed`` + 1_000_003·k, single-threaded)."""
+
+    def __init__(self, split: str, cfg: SynthesisConfig, seed: int, size: int):
+        self.split, self.cfg, self.seed, self.size = split, cfg, seed, size
+
+    def __iter__(self):
+        worker = torch.utils.data.get_worker_info()
+        if worker is not None:
+            cv2.setNumThreads(1)
+            torch.set_num_threads(1)
+        synth = Synthesizer(default_pool(self.split), self.cfg, seed=self.seed + 1_000_003 * (worker.id if worker else 0))
+        while True:
+            yield synth.batch(self.size)
+
+
+def _unchanged(batch: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """A data loader's collate step that keeps a synthesizer batch as it is."""
+    return batch
+
+
+def synthesis_batches(cfg: TrainConfig, seed: int, size: int):
+    """The iterator of a rank's training micro-batches (`SynthesisStream`, in ``cfg.workers``
+    processes, spawned: a fork of a process whose thread pools have run can hang)."""
+    stream = SynthesisStream("train", synthesis_config(cfg), seed, size)
+    if cfg.workers == 0:
+        return iter(stream)
+    return iter(torch.utils.data.DataLoader(stream, batch_size=None, num_workers=cfg.workers, collate_fn=_unchanged,
+                                            prefetch_factor=4, persistent_workers=True, multiprocessing_context="spawn"))
 
 
 # Settings a resumed run may change: how long, how often, how fast; not what it learns from.
-RESUMABLE_CHANGES = {"steps", "max_minutes", "threads", "precision", "val_every", "ckpt_every"}
+RESUMABLE_CHANGES = {"steps", "max_minutes", "threads", "precision", "val_every", "ckpt_every", "workers"}
 
 
 def run_lock(run_dir: Path) -> contextlib.AbstractContextManager:
@@ -281,10 +324,10 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
     if rank == 0:
         (run_dir / "config.toml").write_text(cfg.to_toml())
     ddp = torch.nn.parallel.DistributedDataParallel(model) if distributed else model
-    synth = Synthesizer(default_pool("train"), synthesis_config(cfg), seed=cfg.seed * 1000 + rank + 7919 * step)
-    val = validation_set(cfg) if rank == 0 else None
     per_rank = cfg.batch // world
     micro = max(1, min(cfg.micro_batch, per_rank))
+    batches = synthesis_batches(cfg, cfg.seed * 1000 + rank + 7919 * step, micro)
+    val = validation_set(cfg) if rank == 0 else None
     use_bf16 = resolve(cfg.precision, device) is Precision.BF16
     record: dict = {}
     log = open(run_dir / "log.jsonl", "a") if rank == 0 else None
@@ -298,11 +341,11 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
             progress(record)
     while step < cfg.steps:
         for group in optim.param_groups:
-            group["lr"] = lr_at(cfg, step)
+            group["lr"] = lr_at(cfg, step, elapsed_before + time.time() - started)
         optim.zero_grad(set_to_none=True)
         loss_sum = 0.0
         for _ in range(0, per_rank, micro):
-            batch = synth.batch(micro)
+            batch = next(batches)
             obs, r, t = to_tensors(batch, device)
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16):
                 outputs = ddp(obs, **network_inputs(batch, device))
@@ -319,7 +362,7 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
             dist.all_reduce(flag, op=dist.ReduceOp.MAX)
             out_of_time = bool(flag.item())
         if rank == 0:
-            record = {"step": step, "loss": loss_sum, "lr": lr_at(cfg, step), "wall_s": round(wall, 1),
+            record = {"step": step, "loss": loss_sum, "lr": lr_at(cfg, step, wall), "wall_s": round(wall, 1),
                       "patches_seen": step * cfg.batch}
             if step % cfg.val_every == 0 or step == cfg.steps or out_of_time:
                 record.update(evaluate(model, val, device))

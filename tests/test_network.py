@@ -17,8 +17,8 @@ from rig import capture_virtual
 from separate import optics
 from separate.infer import DEFAULT_WEIGHTS, WEIGHTS_DIR, load_model, match_histograms, separate_stack, tile_spans
 from separate.model import NOMINAL_ANGLES, SeparationNet, canonical_inputs
-from separate.synthesis import AngleMode, SynthesisConfig, Synthesizer, load_image_pool, true_side_deg
-from separate.train import TrainConfig, run_lock, train
+from separate.synthesis import AngleMode, SynthesisConfig, Synthesizer, default_pool, load_image_pool, true_side_deg
+from separate.train import SynthesisStream, TrainConfig, lr_at, run_lock, synthesis_config, train
 from urd.core.dataset import Dataset
 from urd.core.errors import TrainingError, WeightsError
 from urd.ingest import IngestOptions, ingest_scene
@@ -201,6 +201,26 @@ def test_a_run_folder_is_trained_by_one_process_and_resumed_only_with_its_settin
     with pytest.raises(TrainingError, match=r"other settings \(lr 0.005 → 0.001, seed 0 → 1\)"):
         train(dataclasses.replace(cfg, steps=2, seed=1, lr=1e-3), tmp_path / "run")
     assert train(dataclasses.replace(cfg, steps=2, threads=2), tmp_path / "run")["step"] == 2   # longer: allowed
+
+
+def test_synthesis_workers_feed_training_and_the_in_process_stream_is_the_seeded_synthesizer(tmp_path):
+    cfg = TrainConfig(width=4, patch=32, batch=4, micro_batch=2, steps=3, val_samples=2, val_every=3,
+                      precision="fp32", threads=1, workers=2)
+    records = []
+    assert train(cfg, tmp_path / "run", progress=records.append)["step"] == 3
+    assert [r["step"] for r in records] == [1, 2, 3] and np.isfinite(records[-1]["psnr_t"])
+    stream = next(iter(SynthesisStream("train", synthesis_config(cfg), seed=11, size=2)))
+    direct = Synthesizer(default_pool("train"), synthesis_config(cfg), seed=11).batch(2)
+    assert all(np.array_equal(stream[k], direct[k]) for k in direct)
+
+
+def test_learning_rate_follows_steps_or_training_time_whichever_is_further():
+    cfg = TrainConfig(lr=1e-3, lr_min=1e-5, steps=1000)
+    assert lr_at(cfg, 600, wall_s=1e9) == lr_at(cfg, 600)                 # no time schedule: time is ignored
+    timed = dataclasses.replace(cfg, schedule_minutes=10.0)
+    assert lr_at(timed, 600, wall_s=0.0) == lr_at(cfg, 600)                # steps further along than time
+    assert lr_at(timed, 300, wall_s=300.0) == pytest.approx(lr_at(cfg, 500))  # half the minutes: mid-cosine
+    assert lr_at(timed, 300, wall_s=601.0) == pytest.approx(1e-5)          # time is up: lr_min
 
 
 @pytest.mark.slow
