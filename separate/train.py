@@ -56,9 +56,11 @@ class TrainConfig:
     ``reference_field``, the sensor-noise ranges ``shot_gain_log10`` and ``read_var_log10`` and
     the gate's θ-estimate errors ``incidence_error_deg`` and ``incidence_failure`` are the
     synthesis settings of the same names (`separate.synthesis.SynthesisConfig`). ``workers``
-    synthesis processes per rank feed the network (0: the rank synthesizes between steps);
-    ``schedule_minutes`` > 0 lets the learning rate's cosine end after that much training time
-    where that comes before ``steps`` (`lr_at`).
+    synthesis processes per rank feed the network (0: the rank synthesizes between steps; 0 and
+    1 draw the same samples, K > 1 interleaves K seeded streams); ``schedule_minutes`` > 0 lets the
+    learning rate's cosine end after that much training time where that comes before ``steps``
+    (`lr_at`): the run's wall time, earlier sessions of a resumed run, set-up and validation
+    included, so the weights then depend on the machine's speed.
     """
 
     variant: str = "canonical"
@@ -229,17 +231,26 @@ def _unchanged(batch: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return batch
 
 
+@contextlib.contextmanager
 def synthesis_batches(cfg: TrainConfig, seed: int, size: int):
-    """The iterator of a rank's training micro-batches (`SynthesisStream`, in ``cfg.workers``
-    processes, spawned: a fork of a process whose thread pools have run can hang)."""
+    """The iterator of a rank's training micro-batches (`SynthesisStream`), as a context: in
+    ``cfg.workers`` spawned processes (a fork of a process whose thread pools have run can hang),
+    ended on leaving it. Spawning needs a script's ``if __name__ == "__main__":`` guard."""
     stream = SynthesisStream("train", synthesis_config(cfg), seed, size)
     if cfg.workers == 0:
-        return iter(stream)
-    return iter(torch.utils.data.DataLoader(stream, batch_size=None, num_workers=cfg.workers, collate_fn=_unchanged,
-                                            prefetch_factor=4, persistent_workers=True, multiprocessing_context="spawn"))
+        yield iter(stream)
+        return
+    batches = iter(torch.utils.data.DataLoader(stream, batch_size=None, num_workers=cfg.workers, collate_fn=_unchanged,
+                                               prefetch_factor=4, persistent_workers=True, timeout=300,
+                                               multiprocessing_context="spawn"))
+    try:
+        yield batches
+    finally:
+        batches._shutdown_workers()         # now, also while a traceback still holds the iterator
 
 
-# Settings a resumed run may change: how long, how often, how fast; not what it learns from.
+# Settings a resumed run may change: how long, how often, how fast; not what it learns from
+# (`workers` changes the order of the synthetic samples, not their distribution).
 RESUMABLE_CHANGES = {"steps", "max_minutes", "threads", "precision", "val_every", "ckpt_every", "workers"}
 
 
@@ -326,58 +337,59 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
     ddp = torch.nn.parallel.DistributedDataParallel(model) if distributed else model
     per_rank = cfg.batch // world
     micro = max(1, min(cfg.micro_batch, per_rank))
-    batches = synthesis_batches(cfg, cfg.seed * 1000 + rank + 7919 * step, micro)
-    val = validation_set(cfg) if rank == 0 else None
-    use_bf16 = resolve(cfg.precision, device) is Precision.BF16
-    record: dict = {}
-    log = open(run_dir / "log.jsonl", "a") if rank == 0 else None
-    if rank == 0 and init is not None and not resumed:          # the starting weights compete for best.pt
-        record = {"step": 0, "lr": lr_at(cfg, 0), "wall_s": 0.0, "patches_seen": 0, **evaluate(model, val, device)}
-        best = record["psnr_t"]
-        save_checkpoint(run_dir / "best.pt", model, None, 0, cfg, {"best_psnr_t": best, "val": record, "wall_s": 0.0, "init": origin})
-        log.write(json.dumps(record) + "\n")
-        log.flush()
-        if progress is not None:
-            progress(record)
-    while step < cfg.steps:
-        for group in optim.param_groups:
-            group["lr"] = lr_at(cfg, step, elapsed_before + time.time() - started)
-        optim.zero_grad(set_to_none=True)
-        loss_sum = 0.0
-        for _ in range(0, per_rank, micro):
-            batch = next(batches)
-            obs, r, t = to_tensors(batch, device)
-            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16):
-                outputs = ddp(obs, **network_inputs(batch, device))
-            loss = model.loss(outputs, r, t) * micro / per_rank
-            loss.backward()
-            loss_sum += loss.item()
-        torch.nn.utils.clip_grad_norm_([p for p in model.parameters() if p.requires_grad], 1.0)
-        optim.step()
-        step += 1
-        wall = elapsed_before + time.time() - started
-        out_of_time = cfg.max_minutes > 0 and (time.time() - started) > cfg.max_minutes * 60
-        if distributed:
-            flag = torch.tensor([float(out_of_time)])
-            dist.all_reduce(flag, op=dist.ReduceOp.MAX)
-            out_of_time = bool(flag.item())
-        if rank == 0:
-            record = {"step": step, "loss": loss_sum, "lr": lr_at(cfg, step, wall), "wall_s": round(wall, 1),
-                      "patches_seen": step * cfg.batch}
-            if step % cfg.val_every == 0 or step == cfg.steps or out_of_time:
-                record.update(evaluate(model, val, device))
-                if record["psnr_t"] > best:
-                    best = record["psnr_t"]
-                    save_checkpoint(run_dir / "best.pt", model, None, step, cfg, {"best_psnr_t": best, "val": record, "wall_s": wall, "init": origin})
-            if step % cfg.ckpt_every == 0 or step == cfg.steps or out_of_time or "psnr_t" in record:
-                save_checkpoint(last, model, optim, step, cfg, {"best_psnr_t": best, "wall_s": wall, "init": origin})
-            if step % 10 == 0 or "psnr_t" in record:
-                log.write(json.dumps(record) + "\n")
-                log.flush()
+    with synthesis_batches(cfg, cfg.seed * 1000 + rank + 7919 * step, micro) as batches:
+        val = validation_set(cfg) if rank == 0 else None
+        use_bf16 = resolve(cfg.precision, device) is Precision.BF16
+        record: dict = {}
+        log = open(run_dir / "log.jsonl", "a") if rank == 0 else None
+        if rank == 0 and init is not None and not resumed:          # the starting weights compete for best.pt
+            record = {"step": 0, "lr": lr_at(cfg, 0), "wall_s": 0.0, "patches_seen": 0, **evaluate(model, val, device)}
+            best = record["psnr_t"]
+            save_checkpoint(run_dir / "best.pt", model, None, 0, cfg, {"best_psnr_t": best, "val": record, "wall_s": 0.0, "init": origin})
+            log.write(json.dumps(record) + "\n")
+            log.flush()
             if progress is not None:
                 progress(record)
-        if out_of_time:
-            break
+        wall = elapsed_before                               # training time (s), the same on every rank
+        while step < cfg.steps:
+            for group in optim.param_groups:
+                group["lr"] = lr_at(cfg, step, wall)
+            optim.zero_grad(set_to_none=True)
+            loss_sum = 0.0
+            for _ in range(0, per_rank, micro):
+                batch = next(batches)
+                obs, r, t = to_tensors(batch, device)
+                with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16):
+                    outputs = ddp(obs, **network_inputs(batch, device))
+                loss = model.loss(outputs, r, t) * micro / per_rank
+                loss.backward()
+                loss_sum += loss.item()
+            torch.nn.utils.clip_grad_norm_([p for p in model.parameters() if p.requires_grad], 1.0)
+            optim.step()
+            step += 1
+            wall = elapsed_before + time.time() - started
+            out_of_time = cfg.max_minutes > 0 and (time.time() - started) > cfg.max_minutes * 60
+            if distributed:                                 # every rank stops, and schedules its learning rate, alike
+                shared = torch.tensor([float(out_of_time), wall], dtype=torch.float64, device=device)
+                dist.all_reduce(shared, op=dist.ReduceOp.MAX)
+                out_of_time, wall = bool(shared[0].item()), shared[1].item()
+            if rank == 0:
+                record = {"step": step, "loss": loss_sum, "lr": lr_at(cfg, step, wall), "wall_s": round(wall, 1),
+                          "patches_seen": step * cfg.batch}
+                if step % cfg.val_every == 0 or step == cfg.steps or out_of_time:
+                    record.update(evaluate(model, val, device))
+                    if record["psnr_t"] > best:
+                        best = record["psnr_t"]
+                        save_checkpoint(run_dir / "best.pt", model, None, step, cfg, {"best_psnr_t": best, "val": record, "wall_s": wall, "init": origin})
+                if step % cfg.ckpt_every == 0 or step == cfg.steps or out_of_time or "psnr_t" in record:
+                    save_checkpoint(last, model, optim, step, cfg, {"best_psnr_t": best, "wall_s": wall, "init": origin})
+                if step % 10 == 0 or "psnr_t" in record:
+                    log.write(json.dumps(record) + "\n")
+                    log.flush()
+                if progress is not None:
+                    progress(record)
+            if out_of_time:
+                break
     if distributed:
         dist.barrier()                                  # no rank leaves while another still talks to it
         dist.destroy_process_group()

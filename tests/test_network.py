@@ -18,7 +18,7 @@ from separate import optics
 from separate.infer import DEFAULT_WEIGHTS, WEIGHTS_DIR, load_model, match_histograms, separate_stack, tile_spans
 from separate.model import NOMINAL_ANGLES, SeparationNet, canonical_inputs
 from separate.synthesis import AngleMode, SynthesisConfig, Synthesizer, default_pool, load_image_pool, true_side_deg
-from separate.train import SynthesisStream, TrainConfig, lr_at, run_lock, synthesis_config, train
+from separate.train import TrainConfig, lr_at, run_lock, synthesis_batches, synthesis_config, train
 from urd.core.dataset import Dataset
 from urd.core.errors import TrainingError, WeightsError
 from urd.ingest import IngestOptions, ingest_scene
@@ -203,15 +203,23 @@ def test_a_run_folder_is_trained_by_one_process_and_resumed_only_with_its_settin
     assert train(dataclasses.replace(cfg, steps=2, threads=2), tmp_path / "run")["step"] == 2   # longer: allowed
 
 
-def test_synthesis_workers_feed_training_and_the_in_process_stream_is_the_seeded_synthesizer(tmp_path):
+def test_synthesis_workers_draw_seeded_streams_and_end_with_the_run(tmp_path):
+    import multiprocessing
+
     cfg = TrainConfig(width=4, patch=32, batch=4, micro_batch=2, steps=3, val_samples=2, val_every=3,
                       precision="fp32", threads=1, workers=2)
+    pool, synthesis = default_pool("train"), synthesis_config(cfg)
+    with synthesis_batches(cfg, seed=11, size=2) as batches:
+        drawn = [next(batches) for _ in range(2)]
+    assert not multiprocessing.active_children()
+    expected = [Synthesizer(pool, synthesis, seed=seed).batch(2) for seed in (11, 11 + 1_000_003)]   # worker k: seed + 1_000_003 k
+    assert all(np.array_equal(d[k], e[k]) for d, e in zip(drawn, expected) for k in e)
+    with synthesis_batches(dataclasses.replace(cfg, workers=0), seed=11, size=2) as batches:
+        assert np.array_equal(next(batches)["obs"], expected[0]["obs"])
     records = []
     assert train(cfg, tmp_path / "run", progress=records.append)["step"] == 3
     assert [r["step"] for r in records] == [1, 2, 3] and np.isfinite(records[-1]["psnr_t"])
-    stream = next(iter(SynthesisStream("train", synthesis_config(cfg), seed=11, size=2)))
-    direct = Synthesizer(default_pool("train"), synthesis_config(cfg), seed=11).batch(2)
-    assert all(np.array_equal(stream[k], direct[k]) for k in direct)
+    assert not multiprocessing.active_children()
 
 
 def test_learning_rate_follows_steps_or_training_time_whichever_is_further():
@@ -221,6 +229,19 @@ def test_learning_rate_follows_steps_or_training_time_whichever_is_further():
     assert lr_at(timed, 600, wall_s=0.0) == lr_at(cfg, 600)                # steps further along than time
     assert lr_at(timed, 300, wall_s=300.0) == pytest.approx(lr_at(cfg, 500))  # half the minutes: mid-cosine
     assert lr_at(timed, 300, wall_s=601.0) == pytest.approx(1e-5)          # time is up: lr_min
+
+
+def test_a_training_time_schedule_reaches_lr_min_in_a_fresh_and_a_resumed_run(tmp_path):
+    cfg = TrainConfig(width=4, patch=32, batch=2, micro_batch=2, steps=3, val_samples=2, val_every=3, lr=1e-2,
+                      lr_min=1e-5, precision="fp32", threads=1, schedule_minutes=1e-9)
+    records = []
+    train(cfg, tmp_path, progress=records.append)
+    train(dataclasses.replace(cfg, steps=5), tmp_path, progress=records.append)
+    assert [r["step"] for r in records] == [1, 2, 3, 4, 5]
+    assert all(r["lr"] == pytest.approx(1e-5) for r in records)
+    untimed = []
+    train(dataclasses.replace(cfg, schedule_minutes=0.0), tmp_path / "untimed", progress=untimed.append)
+    assert untimed[0]["lr"] > 5e-5                                        # by steps alone: warming up, 8.5e-5
 
 
 @pytest.mark.slow
