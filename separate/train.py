@@ -337,19 +337,19 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
     ddp = torch.nn.parallel.DistributedDataParallel(model) if distributed else model
     per_rank = cfg.batch // world
     micro = max(1, min(cfg.micro_batch, per_rank))
+    val = validation_set(cfg) if rank == 0 else None
+    use_bf16 = resolve(cfg.precision, device) is Precision.BF16
+    record: dict = {}
+    log = open(run_dir / "log.jsonl", "a") if rank == 0 else None
+    if rank == 0 and init is not None and not resumed:          # the starting weights compete for best.pt
+        record = {"step": 0, "lr": lr_at(cfg, 0), "wall_s": 0.0, "patches_seen": 0, **evaluate(model, val, device)}
+        best = record["psnr_t"]
+        save_checkpoint(run_dir / "best.pt", model, None, 0, cfg, {"best_psnr_t": best, "val": record, "wall_s": 0.0, "init": origin})
+        log.write(json.dumps(record) + "\n")
+        log.flush()
+        if progress is not None:
+            progress(record)
     with synthesis_batches(cfg, cfg.seed * 1000 + rank + 7919 * step, micro) as batches:
-        val = validation_set(cfg) if rank == 0 else None
-        use_bf16 = resolve(cfg.precision, device) is Precision.BF16
-        record: dict = {}
-        log = open(run_dir / "log.jsonl", "a") if rank == 0 else None
-        if rank == 0 and init is not None and not resumed:          # the starting weights compete for best.pt
-            record = {"step": 0, "lr": lr_at(cfg, 0), "wall_s": 0.0, "patches_seen": 0, **evaluate(model, val, device)}
-            best = record["psnr_t"]
-            save_checkpoint(run_dir / "best.pt", model, None, 0, cfg, {"best_psnr_t": best, "val": record, "wall_s": 0.0, "init": origin})
-            log.write(json.dumps(record) + "\n")
-            log.flush()
-            if progress is not None:
-                progress(record)
         wall = elapsed_before                               # training time (s), the same on every rank
         while step < cfg.steps:
             for group in optim.param_groups:
