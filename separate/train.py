@@ -367,8 +367,9 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
             torch.nn.utils.clip_grad_norm_([p for p in model.parameters() if p.requires_grad], 1.0)
             optim.step()
             step += 1
-            wall = elapsed_before + time.time() - started
-            out_of_time = cfg.max_minutes > 0 and (time.time() - started) > cfg.max_minutes * 60
+            session = time.time() - started
+            wall = elapsed_before + session
+            out_of_time = cfg.max_minutes > 0 and session > cfg.max_minutes * 60
             if distributed:                                 # every rank stops, and schedules its learning rate, alike
                 shared = torch.tensor([float(out_of_time), wall], dtype=torch.float64, device=device)
                 dist.all_reduce(shared, op=dist.ReduceOp.MAX)
