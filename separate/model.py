@@ -88,12 +88,18 @@ def canonical_inputs(obs: torch.Tensor, angles: Sequence[float] = NOMINAL_ANGLES
     return shots, i_perp, i_par
 
 
+#: Angles of incidence (deg) below this are read as it by `fresnel_bases`: nearer head-on R_s − R_p
+#: vanishes in float32 and the inversion divides 0 by 0 (NaN at 0.002°).
+MIN_INCIDENCE_DEG = 1.0
+
+
 def fresnel_bases(i_perp: torch.Tensor, i_par: torch.Tensor, theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The Fresnel inversion of canonical images at angle of incidence θ.
 
     Args:
         i_perp, i_par: (B, C, H, W) canonical images (linear, ≥ 0 up to noise).
-        theta: (B,) or (B, 1, H, W) angle of incidence (rad), in (0, π/2).
+        theta: (B,) or (B, 1, H, W) angle of incidence (rad), in (0, π/2); read as at least
+            `MIN_INCIDENCE_DEG`.
 
     Returns:
         (B_R, B_T), each (B, C, H, W): T_obs of `separate.optics.mixture_inverse` clipped to
@@ -101,7 +107,7 @@ def fresnel_bases(i_perp: torch.Tensor, i_par: torch.Tensor, theta: torch.Tensor
     """
     if theta.ndim == 1:
         theta = theta.view(-1, 1, 1, 1)
-    r_s, r_p = optics.fresnel_reflectance(theta.to(i_perp.dtype))
+    r_s, r_p = optics.fresnel_reflectance(theta.to(i_perp.dtype).clamp_min(math.radians(MIN_INCIDENCE_DEG)))
     s0 = (i_perp + i_par).clamp_min(0.0)
     _, t_obs = optics.mixture_inverse(i_perp, i_par, r_s, r_p)
     base_t = torch.minimum(t_obs.clamp_min(0.0), s0)

@@ -427,8 +427,8 @@ def estimate_incidence(images: np.ndarray, angles_deg: Sequence[float], referenc
     The frame's canonical luminances at the reference are cut into `INCIDENCE_BLOCKS`² blocks; in
     each, the angle whose Fresnel inversion leaves the layers the least mutual information
     (`information_by_incidence`), weighted by how clearly it stands out; then a plane
-    θ = a + b·x + c·y fitted to them with Tukey's biweight (`INCIDENCE_FIT_SCALE_DEG`), held in
-    `INCIDENCE_RANGE_DEG`. A flat pane seen through a lens has θ turning smoothly across the frame
+    θ = a + b·x + c·y fitted to them with Tukey's biweight from their weighted median
+    (`robust_plane`), held in `INCIDENCE_RANGE_DEG`. A flat pane seen through a lens has θ turning smoothly across the frame
     (by ~30° for a 60° field of view); a plane is the lowest order that says so, and a single
     block's poor estimate (little texture, one layer dark) does not bend it.
 
@@ -458,17 +458,29 @@ def estimate_incidence(images: np.ndarray, angles_deg: Sequence[float], referenc
     if len(points) < 3:                      # too few blocks tell an angle: one number, not trusted
         flat = np.degrees(incidence_by_information(i_perp, i_par, grid_deg))
         return Incidence(np.full((h, w), flat, np.float32), 0.0)
-    x, y, theta, clarity = np.array(points).T
-    weights = clarity.copy()
+    coef = robust_plane(*np.array(points).T)
+    plane = coef[0] + coef[1] * xs + coef[2] * ys
+    return Incidence(np.clip(plane, *INCIDENCE_RANGE_DEG).astype(np.float32), float(np.median(clarities)))
+
+
+def robust_plane(x: np.ndarray, y: np.ndarray, theta: np.ndarray, clarity: np.ndarray) -> np.ndarray:
+    """The plane θ = a + b·x + c·y (coefficients (a, b, c), deg) through block estimates at
+    positions x, y (frame units) weighted by their ``clarity``, by Tukey's biweight
+    (`INCIDENCE_FIT_SCALE_DEG`) started from the clarity-weighted median of θ: a start of least
+    squares is pulled by clear outliers (blocks where the shots' texture fakes a minimum) and the
+    biweight then keeps the points near that wrong plane. If fewer than 3 blocks lie within the
+    scale of the median, the median, flat."""
+    order = np.argsort(theta)
+    cumulative = np.cumsum(clarity[order])
+    median = float(theta[order][np.searchsorted(cumulative, cumulative[-1] / 2)])
+    coef = np.array([median, 0.0, 0.0])
     for _ in range(10):
-        coef = _plane_fit(x, y, theta, weights)
         u = (theta - coef[0] - coef[1] * x - coef[2] * y) / INCIDENCE_FIT_SCALE_DEG
         weights = clarity * np.where(np.abs(u) < 1, (1 - u**2) ** 2, 0.0)
         if np.count_nonzero(weights) < 3:
-            coef = np.array([np.average(theta, weights=clarity), 0.0, 0.0])
-            break
-    plane = coef[0] + coef[1] * xs + coef[2] * ys
-    return Incidence(np.clip(plane, *INCIDENCE_RANGE_DEG).astype(np.float32), float(np.median(clarities)))
+            return np.array([median, 0.0, 0.0])
+        coef = _plane_fit(x, y, theta, weights)
+    return coef
 
 
 def _plane_fit(x: np.ndarray, y: np.ndarray, theta: np.ndarray, weights: np.ndarray) -> np.ndarray:
