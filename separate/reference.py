@@ -427,10 +427,11 @@ def estimate_incidence(images: np.ndarray, angles_deg: Sequence[float], referenc
     The frame's canonical luminances at the reference are cut into `INCIDENCE_BLOCKS`² blocks; in
     each, the angle whose Fresnel inversion leaves the layers the least mutual information
     (`information_by_incidence`), weighted by how clearly it stands out; then a plane
-    θ = a + b·x + c·y fitted to them with Tukey's biweight from their weighted median
-    (`robust_plane`), held in `INCIDENCE_RANGE_DEG`. A flat pane seen through a lens has θ turning smoothly across the frame
-    (by ~30° for a 60° field of view); a plane is the lowest order that says so, and a single
-    block's poor estimate (little texture, one layer dark) does not bend it.
+    θ = a + b·x + c·y fitted to them with Tukey's biweight from two starts
+    (`robust_plane`), held in `INCIDENCE_RANGE_DEG`. A flat pane seen through a lens has θ
+    turning smoothly across the frame (by ~30° for a 60° field of view); a plane is the lowest
+    order that says so, and a single block's poor estimate (little texture, one layer dark) does
+    not bend it.
 
     Args:
         images: (N, H, W, C) linear shots (float, or uint16 codes), N ≥ 3.
@@ -466,21 +467,32 @@ def estimate_incidence(images: np.ndarray, angles_deg: Sequence[float], referenc
 def robust_plane(x: np.ndarray, y: np.ndarray, theta: np.ndarray, clarity: np.ndarray) -> np.ndarray:
     """The plane θ = a + b·x + c·y (coefficients (a, b, c), deg) through block estimates at
     positions x, y (frame units) weighted by their ``clarity``, by Tukey's biweight
-    (`INCIDENCE_FIT_SCALE_DEG`) started from the clarity-weighted median of θ: a start of least
-    squares is pulled by clear outliers (blocks where the shots' texture fakes a minimum) and the
-    biweight then keeps the points near that wrong plane. If fewer than 3 blocks lie within the
-    scale of the median, the median, flat."""
+    (`INCIDENCE_FIT_SCALE_DEG`). The biweight has local minima, so it starts twice: from the
+    clarity-weighted least-squares plane, which follows a steep slope (θ turns by ~35° across a
+    wide view of a pane) but is pulled by clear outliers (blocks where the texture fakes a
+    minimum), and from the clarity-weighted median, flat, which they do not pull; the fit with
+    the lower biweight loss wins. Where neither keeps 3 blocks within the scale, the median, flat."""
     order = np.argsort(theta)
     cumulative = np.cumsum(clarity[order])
-    median = float(theta[order][np.searchsorted(cumulative, cumulative[-1] / 2)])
-    coef = np.array([median, 0.0, 0.0])
+    median = np.array([float(theta[order][np.searchsorted(cumulative, cumulative[-1] / 2)]), 0.0, 0.0])
+    fits = [fit for fit in (_biweight(x, y, theta, clarity, start) for start in (_plane_fit(x, y, theta, clarity), median))
+            if fit is not None]
+    return min(fits, key=lambda fit: fit[1])[0] if fits else median
+
+
+def _biweight(x: np.ndarray, y: np.ndarray, theta: np.ndarray, clarity: np.ndarray,
+              start: np.ndarray) -> tuple[np.ndarray, float] | None:
+    """Tukey's biweight plane (`robust_plane`) iterated from ``start`` and its loss
+    Σ clarity·ρ(residual / `INCIDENCE_FIT_SCALE_DEG`); None where fewer than 3 blocks keep a weight."""
+    coef = start
     for _ in range(10):
         u = (theta - coef[0] - coef[1] * x - coef[2] * y) / INCIDENCE_FIT_SCALE_DEG
         weights = clarity * np.where(np.abs(u) < 1, (1 - u**2) ** 2, 0.0)
         if np.count_nonzero(weights) < 3:
-            return np.array([median, 0.0, 0.0])
+            return None
         coef = _plane_fit(x, y, theta, weights)
-    return coef
+    u = (theta - coef[0] - coef[1] * x - coef[2] * y) / INCIDENCE_FIT_SCALE_DEG
+    return coef, float(np.sum(clarity * np.where(np.abs(u) < 1, 1 - (1 - u**2) ** 3, 1.0)))
 
 
 def _plane_fit(x: np.ndarray, y: np.ndarray, theta: np.ndarray, weights: np.ndarray) -> np.ndarray:

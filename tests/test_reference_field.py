@@ -120,6 +120,17 @@ def test_the_incidence_plane_follows_the_majority_of_blocks_not_clear_outliers()
     assert np.abs(a + b * x[inliers] + c * y[inliers] - theta[inliers]).max() < 4.0
 
 
+def test_the_incidence_plane_follows_a_steep_slope():
+    # θ turning by 30° across the 4×4 blocks (a wide view of a pane), ±2° of noise: a fit started
+    # from the flat median keeps the middle columns and a slope of ~10°; the least-squares start finds it
+    rng = np.random.default_rng(3)
+    blocks = np.arange(16)
+    x, y = (blocks % 4 + 0.5) / 4 - 0.5, (blocks // 4 + 0.5) / 4 - 0.5
+    theta, clarity = 45.0 + 40.0 * x + rng.normal(0.0, 2.0, 16), rng.uniform(0.2, 0.8, 16)
+    a, b, c = robust_plane(x, y, theta, clarity)
+    assert a == pytest.approx(45.0, abs=2.0) and b == pytest.approx(40.0, abs=4.0) and abs(c) < 4.0
+
+
 def test_too_few_agreeing_blocks_give_their_weighted_median():
     theta, clarity = np.array([20.0, 40.0, 60.0, 75.0]), np.array([0.2, 0.9, 0.3, 0.1])
     np.testing.assert_allclose(robust_plane(np.zeros(4), np.zeros(4), theta, clarity), [40.0, 0.0, 0.0])
