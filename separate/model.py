@@ -89,7 +89,7 @@ def canonical_inputs(obs: torch.Tensor, angles: Sequence[float] = NOMINAL_ANGLES
 
 
 #: Angles of incidence (deg) below this are read as it by `fresnel_bases`: nearer head-on R_s − R_p
-#: vanishes in float32 and the inversion divides 0 by 0 (NaN at 0.002°).
+#: is exactly 0 in float32 (below ~0.01°) and the inversion divides 0 by 0.
 MIN_INCIDENCE_DEG = 1.0
 
 

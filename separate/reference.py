@@ -465,13 +465,22 @@ def estimate_incidence(images: np.ndarray, angles_deg: Sequence[float], referenc
 
 
 def robust_plane(x: np.ndarray, y: np.ndarray, theta: np.ndarray, clarity: np.ndarray) -> np.ndarray:
-    """The plane θ = a + b·x + c·y (coefficients (a, b, c), deg) through block estimates at
-    positions x, y (frame units) weighted by their ``clarity``, by Tukey's biweight
+    """The plane θ = a + b·x + c·y through block estimates, by Tukey's biweight
     (`INCIDENCE_FIT_SCALE_DEG`). The biweight has local minima, so it starts twice: from the
-    clarity-weighted least-squares plane, which follows a steep slope (θ turns by ~35° across a
+    clarity-weighted least-squares plane, which follows a steep slope (θ turns by ~30° across a
     wide view of a pane) but is pulled by clear outliers (blocks where the texture fakes a
-    minimum), and from the clarity-weighted median, flat, which they do not pull; the fit with
-    the lower biweight loss wins. Where neither keeps 3 blocks within the scale, the median, flat."""
+    minimum), and from the clarity-weighted (lower) median, flat, which they do not pull; the fit
+    with the lower biweight loss wins. A start whose iterations ever keep fewer than 3 blocks
+    within the scale is dropped; where both are, the median, flat.
+
+    Args:
+        x, y: (n,) block centres, fractions of the frame from its centre (in [−0.5, 0.5]), n ≥ 1.
+        theta: (n,) the blocks' angles of incidence (deg).
+        clarity: (n,) their weights (> 0).
+
+    Returns:
+        (3,) the coefficients (a, b, c) (deg, deg per frame width / height).
+    """
     order = np.argsort(theta)
     cumulative = np.cumsum(clarity[order])
     median = np.array([float(theta[order][np.searchsorted(cumulative, cumulative[-1] / 2)]), 0.0, 0.0])
