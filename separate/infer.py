@@ -282,7 +282,7 @@ class FusedNet:
     def _gate(self, t_net: torch.Tensor, s0: torch.Tensor, d_bands: Sequence[torch.Tensor], theta: torch.Tensor) -> torch.Tensor:
         """`FresnelGate.forward` through the fused convolutions, at ``dtype``: g (B, 3, H, W) float32."""
         convs = self.model.gate.convs
-        x = self.model.gate.inputs(t_net, s0, d_bands, theta).to(self.dtype, memory_format=torch.channels_last)
+        x = self.model.gate.inputs(t_net, s0, d_bands, theta, self.dtype)
         x = self._run([(conv, "relu") for conv in convs[:-1]] + [(convs[-1], "none")], x)
         return torch.sigmoid(x.float())
 

@@ -182,10 +182,21 @@ class FresnelGate(nn.Module):
         return torch.sigmoid(self.convs[-1](x))
 
     @staticmethod
-    def inputs(t_net: torch.Tensor, s0: torch.Tensor, d_bands: Sequence[torch.Tensor], theta: torch.Tensor) -> torch.Tensor:
-        """The gate's input channels: T̂, S0, the bands of D and θ/(π/2), (B, 5·C + 1, H, W)."""
-        x = torch.cat([t_net, s0, *d_bands], dim=1)
-        return torch.cat([x, theta_channel(theta, x)], dim=1)
+    def inputs(t_net: torch.Tensor, s0: torch.Tensor, d_bands: Sequence[torch.Tensor], theta: torch.Tensor,
+               dtype: torch.dtype | None = None) -> torch.Tensor:
+        """The gate's input channels: T̂, S0, the bands of D and θ/(π/2), (B, 5·C + 1, H, W); with
+        ``dtype``, in that dtype and channels-last strides, written in one pass (the fused
+        convolutions' layout, `separate.infer.FusedNet`)."""
+        parts = [t_net, s0, *d_bands, theta_channel(theta, t_net)]
+        if dtype is None:
+            return torch.cat(parts, dim=1)
+        b, _, h, w = t_net.shape
+        out = torch.empty((b, sum(part.shape[1] for part in parts), h, w), dtype=dtype, memory_format=torch.channels_last)
+        start = 0
+        for part in parts:
+            out[:, start : start + part.shape[1]] = part
+            start += part.shape[1]
+        return out
 
 
 class ResBlock(nn.Module):

@@ -566,7 +566,7 @@ def train(
 def bench(
     ctx: typer.Context,
     quick: bool = typer.Option(False, "--quick", help="The paper's evaluation, reduced (< 10 min on 2 cores): tables, CSV and plots in docs/bench/quick, checked against docs/bench/expected-quick.json."),
-    full: bool = typer.Option(False, "--full", help="The paper's full evaluation (about 30 min on 2 cores): cross-validation, robustness, speed into docs/bench/full."),
+    full: bool = typer.Option(False, "--full", help="The paper's full evaluation (20-50 min on 2 cores): cross-validation, robustness, speed into docs/bench/full."),
     large: bool = typer.Option(False, "--24mp", help="With --full: also time the network and Schechner on a 24 MP scene."),
     images: Optional[Path] = typer.Option(None, help="With --quick/--full: also cross-validate on the photos of this folder (JPEG, PNG, 8/16-bit TIFF)."),
     out: Optional[Path] = typer.Option(None, help="With --quick/--full/--ablation: output folder (default docs/bench)."),
