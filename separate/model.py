@@ -187,11 +187,14 @@ class FresnelGate(nn.Module):
         """The gate's input channels: T̂, S0, the bands of D and θ/(π/2), (B, 5·C + 1, H, W); with
         ``dtype``, in that dtype and channels-last strides, written in one pass (the fused
         convolutions' layout, `separate.infer.FusedNet`)."""
-        parts = [t_net, s0, *d_bands, theta_channel(theta, t_net)]
+        parts = [t_net, s0, *d_bands]
         if dtype is None:
-            return torch.cat(parts, dim=1)
+            x = torch.cat(parts, dim=1)
+            return torch.cat([x, theta_channel(theta, x)], dim=1)
+        parts.append(theta_channel(theta, t_net))
         b, _, h, w = t_net.shape
-        out = torch.empty((b, sum(part.shape[1] for part in parts), h, w), dtype=dtype, memory_format=torch.channels_last)
+        out = torch.empty((b, sum(part.shape[1] for part in parts), h, w), dtype=dtype, device=t_net.device,
+                          memory_format=torch.channels_last)
         start = 0
         for part in parts:
             out[:, start : start + part.shape[1]] = part

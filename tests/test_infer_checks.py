@@ -9,7 +9,7 @@ import torch
 
 from separate.infer import (OVERLAP, STRIP_ROWS, TILE, FusedNet, load_model, runner, separate_stack, shipped_weights,
                             tile_spans)
-from separate.model import ResizeUp, SeparationNet
+from separate.model import FresnelGate, ResizeUp, SeparationNet
 from urd.core.errors import WeightsError
 
 SMALL = np.random.default_rng(0).random((3, 40, 48, 3)).astype(np.float32)
@@ -85,6 +85,23 @@ def test_fused_network_matches_the_module(variant, strip_rows):
         assert got.shape == want.shape and got.dtype == torch.float32
         torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
         assert (rounded - want).abs().max() < 0.03 * want.abs().max()   # bf16 rounding of the activations
+
+
+@pytest.mark.parametrize("batch,theta_shape", [(1, (1,)), (2, (2,)), (2, (2, 1, 9, 11))])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+def test_gate_inputs_written_in_one_pass_are_the_concatenation(batch, theta_shape, dtype):
+    # FusedNet asks for the gate's input in its own dtype and channels-last layout; it must be the
+    # concatenation (T̂, S0, the three bands, θ/(π/2)) converted, value for value.
+    gen = torch.Generator().manual_seed(batch)
+    t_net, s0, *d_bands = (torch.rand((batch, 3, 9, 11), generator=gen) for _ in range(5))
+    theta = torch.rand(theta_shape, generator=gen)
+    reference = FresnelGate.inputs(t_net, s0, d_bands, theta).to(dtype, memory_format=torch.channels_last)
+    one_pass = FresnelGate.inputs(t_net, s0, d_bands, theta, dtype)
+    assert one_pass.shape == (batch, 16, 9, 11) and one_pass.dtype == dtype
+    assert one_pass.is_contiguous(memory_format=torch.channels_last)
+    assert torch.equal(one_pass, reference)
+    expected = (theta.view(-1, 1, 1) if theta.ndim == 1 else theta[:, 0]) / (np.pi / 2)
+    assert torch.equal(one_pass[:, -1], expected.expand(batch, 9, 11).to(dtype))
 
 
 def test_shipped_weights_load_by_name():
