@@ -460,7 +460,7 @@ def estimate_incidence(images: np.ndarray, angles_deg: Sequence[float], referenc
         flat = np.degrees(incidence_by_information(i_perp, i_par, grid_deg))
         return Incidence(np.full((h, w), flat, np.float32), 0.0)
     coef = robust_plane(*np.array(points).T)
-    plane = coef[0] + coef[1] * xs + coef[2] * ys
+    plane = _plane(coef, xs, ys)
     return Incidence(np.clip(plane, *INCIDENCE_RANGE_DEG).astype(np.float32), float(np.median(clarities)))
 
 
@@ -495,13 +495,18 @@ def _biweight(x: np.ndarray, y: np.ndarray, theta: np.ndarray, clarity: np.ndarr
     Σ clarity·ρ(residual / `INCIDENCE_FIT_SCALE_DEG`); None where fewer than 3 blocks keep a weight."""
     coef = start
     for _ in range(10):
-        u = (theta - coef[0] - coef[1] * x - coef[2] * y) / INCIDENCE_FIT_SCALE_DEG
+        u = (theta - _plane(coef, x, y)) / INCIDENCE_FIT_SCALE_DEG
         weights = clarity * np.where(np.abs(u) < 1, (1 - u**2) ** 2, 0.0)
         if np.count_nonzero(weights) < 3:
             return None
         coef = _plane_fit(x, y, theta, weights)
-    u = (theta - coef[0] - coef[1] * x - coef[2] * y) / INCIDENCE_FIT_SCALE_DEG
+    u = (theta - _plane(coef, x, y)) / INCIDENCE_FIT_SCALE_DEG
     return coef, float(np.sum(clarity * np.where(np.abs(u) < 1, 1 - (1 - u**2) ** 3, 1.0)))
+
+
+def _plane(coef: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """θ = a + b·x + c·y (deg) of the coefficients (a, b, c) at positions x, y (frame fractions)."""
+    return coef[0] + coef[1] * x + coef[2] * y
 
 
 def _plane_fit(x: np.ndarray, y: np.ndarray, theta: np.ndarray, weights: np.ndarray) -> np.ndarray:
