@@ -85,10 +85,13 @@ def present_at(images: np.ndarray, angles_deg: list[float], reference: float | n
 
 
 def network(weights: Path | None = None, tile: int | None = None, precision: str = "auto", colour_match: bool = False,
-            progress=None, reference: Reference = "auto", uses_reference: bool = True) -> tuple[Run, dict]:
+            progress=None, reference: Reference = "auto", uses_reference: bool = True,
+            return_copies: bool = True) -> tuple[Run, dict]:
     """The paper's network (`separate.model`) with shipped or given weights, tiled
     (`separate.infer.separate_stack`, ``tile`` px, default `separate.infer.default_tile`); the
-    shots presented at the reference unless ``uses_reference`` is False (a network that sees only S0)."""
+    shots presented at the reference unless ``uses_reference`` is False (a network that sees only S0);
+    with ``return_copies`` the part of R̂ that copies T̂ moved back into T̂ (`separate.copies`)."""
+    from separate.copies import return_copies as returned
     from separate.infer import OVERLAP, default_tile, load_model, match_histograms, separate_stack
     from separate.model import SeparationNet, without_gate
     from separate.precision import resolve
@@ -108,6 +111,8 @@ def network(weights: Path | None = None, tile: int | None = None, precision: str
         chosen_deg = choose(images, angles_deg, reference_deg, partial(run, trial=True)) if uses_reference else None
         r_hat, t_hat = separate_stack(model, images, list(angles_deg), tile, OVERLAP, chosen, progress,
                                       reference_deg=chosen_deg)
+        if return_copies:
+            r_hat, t_hat = returned(r_hat, t_hat)
         if colour_match:
             darkest = int(np.argmin([shot.mean(dtype=np.float64) for shot in images]))
             t_hat = match_histograms(t_hat, optics.to_float(images[darkest]))
@@ -115,7 +120,8 @@ def network(weights: Path | None = None, tile: int | None = None, precision: str
 
     info = {"weights": {"file": Path(weights_info["file"]).name, "sha256": weights_info["sha256"],
                         "config": weights_info["config"]},
-            "parameters": {"tile": tile, "overlap": OVERLAP, "precision": chosen, "colour_match": colour_match},
+            "parameters": {"tile": tile, "overlap": OVERLAP, "precision": chosen, "colour_match": colour_match,
+                           "return_copies": return_copies},
             "reference_policy": reference_policy(check_reference(reference)) if uses_reference else "not used: S0 only"}
     return run, info
 
@@ -126,7 +132,7 @@ def ceilnet(weights: Path | None = None, reference: Reference = "auto", **option
     from separate.baselines import ceilnet as module
 
     check_reference(reference)
-    run, info = network(weights or module.WEIGHTS, uses_reference=False, **options)
+    run, info = network(weights or module.WEIGHTS, uses_reference=False, return_copies=False, **options)
     if info["weights"]["config"].get("variant") != "ceilnet":
         raise ValueError(f"weights {weights} hold a {info['weights']['config'].get('variant')} network, not CEILNet")
     return run, {**info, "paper": module.__doc__.strip().splitlines()[0]}

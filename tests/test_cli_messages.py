@@ -144,6 +144,15 @@ def test_argument_checks_come_before_the_existing_results_check(dataset):
     assert out.exit_code == 1 and "already has network results" in out.stderr and "precision" not in out.stderr
 
 
+def test_keep_copies_is_recorded_for_the_network_and_refused_for_a_baseline(dataset):
+    out = invoke("separate", "scene_01", "--dataset", dataset, "--method", "kong", "--keep-copies")
+    assert out.exit_code == 2 and "--keep-copies is for the network" in out.stderr
+    out = invoke("separate", "scene_01", "--dataset", dataset, "--method", "network", "--keep-copies", "--force")
+    assert out.exit_code == 0, out.output
+    result = Dataset.open(dataset).scene("scene_01").load(verify=False)["results"]["network"]
+    assert result["parameters"]["return_copies"] is False
+
+
 def test_no_precision_line_before_no_such_scene(dataset):
     out = invoke("separate", "scene_09", "--dataset", dataset, "--method", "network")
     assert out.exit_code == 1 and "no scene 'scene_09'" in out.stderr and "precision" not in out.stderr

@@ -398,6 +398,7 @@ def separate(
     tile: Optional[int] = typer.Option(None, help="Network tile size (px, at least 320: twice the 160 px overlap; default 2048 for the network, 1024 for ceilnet: separate.infer.default_tile); memory grows with it, not with the image.", show_default=False),
     precision: str = typer.Option("auto", help="Network arithmetic: auto (bf16 where the CPU or GPU runs it natively, else fp32), fp32 or bf16."),
     colour_match: bool = typer.Option(False, help="Match each colour channel's histogram of T to the darkest observation's (paper §3.4)."),
+    return_copies: bool = typer.Option(True, "--return-copies/--keep-copies", help="Network: move light that R shows as a local copy of T (the scene's own polarization: sky, no glass) back into T (separate/copies.py)."),
     param: Optional[list[str]] = typer.Option(None, "--param", help="A baseline's parameter as NAME=VALUE (repeat), e.g. --method kong --param smoothness=0.5; names and paper defaults in each baseline's docstring (separate/baselines/)."),
     force: bool = typer.Option(False, help="Replace existing results of this method (only once the new ones are complete)."),
     maps: bool = typer.Option(False, "--maps", help="Also write the polarization maps: S0, S1, S2, DoLP, AoLP, phi_perp, theta as float32 TIFF with units (results/METHOD/maps/)."),
@@ -446,6 +447,8 @@ def separate(
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from None
     transfer_rule = choice(Transfer, transfer, "--transfer")
+    if not return_copies and method != "network":
+        raise typer.BadParameter(f"--keep-copies is for the network; {method} does not return copies")
     if param and method in networks + ("none",):
         raise typer.BadParameter(f"--param is for the baselines; {method} takes its own options")
     params = parse_params(param or [])
@@ -454,7 +457,7 @@ def separate(
     if images and len(images) != len(angle_list):
         raise typer.BadParameter(f"expected one --images file per angle of --angles {angles}, got {len(images)} files")
     if all_scenes:
-        separate_dataset(dataset, method, weights, tile, chosen, colour_match, params, force, forced, maps, jobs)
+        separate_dataset(dataset, method, weights, tile, chosen, colour_match, return_copies, params, force, forced, maps, jobs)
         return
     target = None if images else run_guarded(resolve_scene, scene, dataset)
     if target is not None and not force:
@@ -465,7 +468,8 @@ def separate(
         bar(done, total, f"separate ({method})")
 
     if method in networks:
-        options = {"weights": weights, "tile": tile, "precision": chosen.value, "colour_match": colour_match, "progress": show}
+        options = {"weights": weights, "tile": tile, "precision": chosen.value, "colour_match": colour_match, "progress": show,
+                   **({"return_copies": return_copies} if method == "network" else {})}
         typer.echo(f"precision: {describe(chosen)}", err=True)
     else:
         options = {**params, "progress": show} if method in PROGRESS_BASELINES else params
@@ -488,13 +492,15 @@ def separate(
 
 
 def separate_dataset(dataset: Optional[Path], method: str, weights: Optional[Path], tile: Optional[int], chosen,
-                     colour_match: bool, params: dict, force: bool, reference, maps: bool, jobs: int) -> None:
+                     colour_match: bool, return_copies: bool, params: dict, force: bool, reference, maps: bool,
+                     jobs: int) -> None:
     """``urd separate --all``: every scene that needs it (`urd.batch.separate_all`), one line per
     scene; exit 1 when any failed."""
     from urd.batch import separate_all
 
     root = existing_dataset(dataset)
-    options = ({"weights": weights, "tile": tile, "precision": chosen.value, "colour_match": colour_match}
+    options = ({"weights": weights, "tile": tile, "precision": chosen.value, "colour_match": colour_match,
+                **({"return_copies": return_copies} if method == "network" else {})}
                if method in ("network", "ceilnet") else params)
     outcomes = run_guarded(separate_all, root, method, options, force, reference, maps, jobs, progress=TerminalProgress())
     for outcome in outcomes:
