@@ -8,17 +8,20 @@ no glass at all, a sensor's polarization crosstalk. `return_copies` moves that p
 
     ρ, a = corr(dR̂, dT̂), cov(dR̂, dT̂)⁺ / var(dT̂)    (per channel, Gaussian window of σ px)
     w = clip((ρ − ρ₀) / (ρ₁ − ρ₀), 0, 1)
-    m = min(w·a·T̂, R̂),   R̂ ← R̂ − m,   T̂ ← T̂ + m
+    m = clip(w·a·T̂, 0, R̂),   R̂ ← R̂ − m,   T̂ ← T̂ + m
 
-so R̂ + T̂ is unchanged. The statistics compare the layers' detail, dX = X − blur(X, `DETAIL`
+so R̂ + T̂ is unchanged (to float32 rounding). The statistics compare the layers' detail, dX = X − blur(X, `DETAIL`
 px): two different scenes often share their coarse layout (bright sky above, dark ground
 below), and correlated that way they would pass for copies. They are taken on the image reduced
-to at most `STATS_SIDE` px, where the window is σ = `SIGMA` px, and interpolated back: on a
-24 MP frame the window spans the same share of the view as on a 512 px one.
+to at most `STATS_SIDE` px, where the window is σ = `SIGMA` px, and interpolated back: on any
+frame from 512 px up the window spans the same share of the view (smaller frames are not
+enlarged). The variance floor is relative to the frame's mean brightness, so detail below
+~0.1% of it (deep shadows) is not compared.
 
-Chosen on bsds500/val (32 synthetic patches of 256², the shipped network): T̂ PSNR unchanged
-(+0.002 dB, worst patch −0.02 dB) with σ 48 px, detail σ 2 px, ρ₀ 0.5, ρ₁ 0.9;
-docs/limitations.md gives the real captures' R̂ shares with and without it. Specular sheen on glossy objects (fruit skins,
+Chosen on bsds500/val (32 synthetic patches of 256², the shipped network) among window sizes
+and thresholds: with σ 48 px, detail σ 2 px, ρ₀ 0.5, ρ₁ 0.9 no patch changed (T̂ PSNR +0.000 dB;
+bsds500-test and the bundled photos, 64 patches each: within 0.001 dB);
+docs/benchmarks.md gives the real captures' R̂ shares with and without it. Specular sheen on glossy objects (fruit skins,
 varnish) is not a copy in this sense: its brightness follows the surface's normals, not T̂, and
 stays in R̂.
 """
@@ -44,26 +47,30 @@ def copy_share(r_hat: np.ndarray, t_hat: np.ndarray, sigma: float = SIGMA,
     """The multiple w·a of T̂ that R̂ copies (module docstring), per pixel and channel.
 
     Args:
-        r_hat, t_hat: H×W×C linear layers, float32, of one image (any size; the statistics of
-            at most `STATS_SIDE` px).
+        r_hat, t_hat: H×W×C linear layers of one image, float (any size, C ≤ 4; the statistics
+            of at most `STATS_SIDE` px).
         sigma: the window's Gaussian σ, px on the statistics' grid.
         rho: (ρ₀, ρ₁), 0 ≤ ρ₀ < ρ₁ ≤ 1.
 
     Returns:
         H×W×C float32, ≥ 0.
     """
-    if r_hat.ndim != 3 or r_hat.shape != t_hat.shape:
-        raise ValueError(f"expected two H×W×C layers of one shape, got {r_hat.shape} and {t_hat.shape}")
+    if r_hat.ndim != 3 or r_hat.shape != t_hat.shape or r_hat.shape[2] > 4:
+        raise ValueError(f"expected two H×W×C layers of one shape, C ≤ 4, got {r_hat.shape} and {t_hat.shape}")
+    if r_hat.dtype.kind != "f" or t_hat.dtype.kind != "f":
+        raise ValueError(f"expected float layers, got {r_hat.dtype} and {t_hat.dtype}")
     if not 0.0 <= rho[0] < rho[1] <= 1.0 or sigma <= 0:
         raise ValueError(f"need sigma > 0 and 0 <= rho0 < rho1 <= 1, got sigma {sigma}, rho {rho}")
     h, w = r_hat.shape[:2]
     scale = min(1.0, STATS_SIDE / max(h, w))
     size = (max(1, round(w * scale)), max(1, round(h * scale)))
-    small_r, small_t = ((cv2.resize(x, size, interpolation=cv2.INTER_AREA) if scale < 1 else x).astype(np.float32)
-                        for x in (r_hat, t_hat))
+    small_r, small_t = (cv2.resize(x, size, interpolation=cv2.INTER_AREA) if scale < 1 else x.copy()
+                        for x in (r_hat.astype(np.float32, copy=False), t_hat.astype(np.float32, copy=False)))
     small_r, small_t = small_r.reshape(size[1], size[0], -1), small_t.reshape(size[1], size[0], -1)
-    unit = float((small_r + small_t).mean()) or 1.0
-    share = np.empty_like(small_t)
+    unit = float((small_r + small_t).mean())
+    share = np.zeros_like(small_t)
+    if not np.isfinite(unit) or unit <= 0:                  # a dark or broken frame: nothing to compare
+        return np.zeros((h, w, share.shape[2]), np.float32)
     for c in range(small_t.shape[2]):
         r, t = small_r[..., c] / unit, small_t[..., c] / unit
         r, t = r - _blur(r, DETAIL), t - _blur(t, DETAIL)
@@ -79,9 +86,9 @@ def copy_share(r_hat: np.ndarray, t_hat: np.ndarray, sigma: float = SIGMA,
 
 
 def return_copies(r_hat: np.ndarray, t_hat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """R̂, T̂ (H×W×C linear, float32) with the part of R̂ that copies T̂ moved into T̂ (module
-    docstring); R̂ + T̂ is unchanged. The inputs are not modified; where nothing copies T̂ they
-    are returned as they are."""
+    """R̂, T̂ (H×W×C linear, float; returned as float32) with the part of R̂ that copies T̂ moved
+    into T̂ (module docstring); R̂ + T̂ is unchanged. The inputs are not modified."""
+    r_hat, t_hat = np.asarray(r_hat, np.float32), np.asarray(t_hat, np.float32)
     moved = copy_share(r_hat, t_hat)
     if not moved.any():
         return r_hat, t_hat

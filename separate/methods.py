@@ -90,23 +90,24 @@ def network(weights: Path | None = None, tile: int | None = None, precision: str
     """The paper's network (`separate.model`) with shipped or given weights, tiled
     (`separate.infer.separate_stack`, ``tile`` px, default `separate.infer.default_tile`); the
     shots presented at the reference unless ``uses_reference`` is False (a network that sees only S0);
-    with ``return_copies`` the part of R̂ that copies T̂ moved back into T̂ (`separate.copies`)."""
+    with ``return_copies`` the part of R̂ that copies T̂ moved back into T̂ (`separate.copies`).
+    Its side decision's trial separations (``trial=True``) are Schechner's closed-form inversion:
+    on the assumed-side stacks of 600 bsds500/val patches the network's T̂ was 32.94 dB with them
+    against 31.78 with its own backbone's (bsds500-test: 33.89 against 33.38)."""
     from separate.copies import return_copies as returned
     from separate.infer import OVERLAP, default_tile, load_model, match_histograms, separate_stack
-    from separate.model import SeparationNet, without_gate
     from separate.precision import resolve
 
     model, weights_info = load_model(weights)
     tile = default_tile(model) if tile is None else tile
     chosen = resolve(precision).value
     choose = chooser(reference)
-    trial_model = without_gate(model) if isinstance(model, SeparationNet) else model
+    side_trial = METHODS["schechner"]()[0]
 
     def run(images: np.ndarray, angles_deg: list[float], reference_deg: float | np.ndarray | None = None,
             trial: bool = False) -> tuple[np.ndarray, np.ndarray]:
-        if trial:           # a fresnel network's gate would sway the decision with an inversion on the wrong side
-            return separate_stack(trial_model, images, list(angles_deg), tile, OVERLAP, chosen, None,
-                                  reference_deg=reference_deg)
+        if trial:
+            return side_trial(images, angles_deg, reference_deg, trial=True)
         # separate_stack presents the shots tile by tile (no second full-size stack)
         chosen_deg = choose(images, angles_deg, reference_deg, partial(run, trial=True)) if uses_reference else None
         r_hat, t_hat = separate_stack(model, images, list(angles_deg), tile, OVERLAP, chosen, progress,

@@ -146,7 +146,7 @@ def test_argument_checks_come_before_the_existing_results_check(dataset):
 
 def test_keep_copies_is_recorded_for_the_network_and_refused_for_a_baseline(dataset):
     out = invoke("separate", "scene_01", "--dataset", dataset, "--method", "kong", "--keep-copies")
-    assert out.exit_code == 2 and "--keep-copies is for the network" in out.stderr
+    assert out.exit_code == 2 and "--return-copies/--keep-copies is for the network" in out.stderr
     out = invoke("separate", "scene_01", "--dataset", dataset, "--method", "network", "--keep-copies", "--force")
     assert out.exit_code == 0, out.output
     result = Dataset.open(dataset).scene("scene_01").load(verify=False)["results"]["network"]

@@ -58,10 +58,20 @@ def test_the_sum_is_kept_the_layers_stay_non_negative_and_the_inputs_untouched()
     before = (r_hat.copy(), t_hat.copy())
     r_out, t_out = return_copies(r_hat, t_hat)
     np.testing.assert_allclose(r_out + t_out, r_hat + t_hat, atol=1e-6)
+    assert r_out.sum() < 0.8 * r_hat.sum()                 # half of R̂ copies T̂ here
     assert r_out.min() >= 0.0 and (t_out >= t_hat).all()
     np.testing.assert_array_equal(r_hat, before[0])
     np.testing.assert_array_equal(t_hat, before[1])
     assert r_out.dtype == np.float32 and r_out.shape == r_hat.shape
+
+
+def test_one_channel_and_float64_layers_come_back_as_float32_of_their_shape():
+    shape = (96, 700)
+    t_hat = texture(8, shape)[..., :1].astype(np.float64)
+    r_hat = 0.3 * t_hat
+    r_out, t_out = return_copies(r_hat, t_hat)
+    assert r_out.shape == t_out.shape == (96, 700, 1) and r_out.dtype == t_out.dtype == np.float32
+    assert r_out.sum() < 0.1 * r_hat.sum()
 
 
 def test_arguments_are_checked():
@@ -70,6 +80,10 @@ def test_arguments_are_checked():
         copy_share(image, image[..., :1])
     with pytest.raises(ValueError, match="H×W×C"):
         copy_share(image[..., 0], image[..., 0])
+    with pytest.raises(ValueError, match="float"):
+        copy_share(image.astype(np.uint16), image.astype(np.uint16))
+    with pytest.raises(ValueError, match="C ≤ 4"):
+        copy_share(np.ones((8, 8, 5), np.float32), np.ones((8, 8, 5), np.float32))
     with pytest.raises(ValueError, match="rho"):
         copy_share(image, image, rho=(0.9, 0.5))
     with pytest.raises(ValueError, match="sigma"):

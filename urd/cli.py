@@ -398,7 +398,7 @@ def separate(
     tile: Optional[int] = typer.Option(None, help="Network tile size (px, at least 320: twice the 160 px overlap; default 2048 for the network, 1024 for ceilnet: separate.infer.default_tile); memory grows with it, not with the image.", show_default=False),
     precision: str = typer.Option("auto", help="Network arithmetic: auto (bf16 where the CPU or GPU runs it natively, else fp32), fp32 or bf16."),
     colour_match: bool = typer.Option(False, help="Match each colour channel's histogram of T to the darkest observation's (paper §3.4)."),
-    return_copies: bool = typer.Option(True, "--return-copies/--keep-copies", help="Network: move light that R shows as a local copy of T (the scene's own polarization: sky, no glass) back into T (separate/copies.py)."),
+    return_copies: Optional[bool] = typer.Option(None, "--return-copies/--keep-copies", help="Network: move light that R shows as a local copy of T (the scene's own polarization: sky, no glass) back into T (separate/copies.py). Default: --return-copies.", show_default=False),
     param: Optional[list[str]] = typer.Option(None, "--param", help="A baseline's parameter as NAME=VALUE (repeat), e.g. --method kong --param smoothness=0.5; names and paper defaults in each baseline's docstring (separate/baselines/)."),
     force: bool = typer.Option(False, help="Replace existing results of this method (only once the new ones are complete)."),
     maps: bool = typer.Option(False, "--maps", help="Also write the polarization maps: S0, S1, S2, DoLP, AoLP, phi_perp, theta as float32 TIFF with units (results/METHOD/maps/)."),
@@ -447,8 +447,9 @@ def separate(
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from None
     transfer_rule = choice(Transfer, transfer, "--transfer")
-    if not return_copies and method != "network":
-        raise typer.BadParameter(f"--keep-copies is for the network; {method} does not return copies")
+    if return_copies is not None and method != "network":
+        raise typer.BadParameter(f"--return-copies/--keep-copies is for the network, not {method}")
+    return_copies = return_copies is not False
     if param and method in networks + ("none",):
         raise typer.BadParameter(f"--param is for the baselines; {method} takes its own options")
     params = parse_params(param or [])
