@@ -679,16 +679,18 @@ Trial = Callable[[np.ndarray, list[float], "float | np.ndarray"], tuple[np.ndarr
 
 def decide_side(images: np.ndarray, angles_deg: Sequence[float], inspection: "Inspection", trial: Trial,
                 use_field: bool = True) -> "Inspection":
-    """Settle an assumed side of φ⊥ by separating both (Schechner's criterion, on the method's
-    own output): where the side was only assumed (``Basis.TRANSMISSION``: weak polarization of
-    one orientation), ``trial`` separates the stack reduced to `TRIAL_SIDE` px at the reference
-    (the field with ``use_field``, else the one angle) and at it + 90°, and the side whose
-    layers share less mutual information wins. Other bases come back unchanged.
+    """Settle an assumed side of φ⊥ by separating both (Schechner's criterion, on a trial
+    separation: a method's own, or for the network Schechner's inversion): where the side was
+    only assumed (``Basis.TRANSMISSION``: weak polarization of one orientation), ``trial``
+    separates the stack reduced to `TRIAL_SIDE` px at the reference (the field with
+    ``use_field``, else the one angle) and at it + 90°, and the side whose layers share less
+    mutual information wins. Other bases come back unchanged.
 
-    Measured on 48 synthetic scenes × 3 angle sets (the benchmark's patches): the network's T̂ was
-    0.78 dB below the true φ⊥ with the assumed side, 0.40 dB with this decision (on the 21
-    assumed-side stacks: 27.1 → 29.7 dB, true side 32.0); deciding every stack this way was
-    worse (−1.1 dB), so the polarization's own evidence stays first where it is strong.
+    Measured with the network's backbone as the trial on 48 synthetic scenes × 3 angle sets (the
+    benchmark's patches): the network's T̂ was 0.78 dB below the true φ⊥ with the assumed side,
+    0.40 dB with this decision; deciding every stack this way was worse (−1.1 dB), so the
+    polarization's own evidence stays first where it is strong. Schechner's inversion as the
+    trial decides better still (`separate.methods.network`).
 
     Args:
         images: (N, H, W, C) linear shots (float, or uint16 codes).
