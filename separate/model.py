@@ -53,6 +53,7 @@ NOMINAL_ANGLES = tuple(np.radians(optics.PAPER_ANGLES_DEG))
 VARIANTS = ("canonical", "direct")
 UPSAMPLING = ("transposed", "resize")
 BASES = ("canonical", "fresnel")
+LOSSES = ("l2", "log-mse")
 TARGET_MEAN = 0.25
 
 
@@ -355,10 +356,23 @@ class SeparationNet(nn.Module):
         return r_hat.clamp_min(0.0), t_hat.clamp_min(0.0)          # bands weighed apart can overshoot below 0
 
     @staticmethod
-    def loss(outputs: tuple[torch.Tensor, torch.Tensor], r: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-        """The paper's ℓ2 loss on R̂ and T̂ (``outputs`` of ``forward``) against R and T."""
+    def loss(outputs: tuple[torch.Tensor, torch.Tensor], r: torch.Tensor, t: torch.Tensor,
+             kind: str = "l2") -> torch.Tensor:
+        """The training loss of R̂ and T̂ (``outputs`` of ``forward``) against R and T (B, C, H, W).
+
+        ``kind`` (`LOSSES`): "l2", the paper's mean squared error of each layer, summed; or
+        "log-mse", 10⁻³ × the batch mean of each sample's log(MSE + 10⁻⁶), summed over the
+        layers: the gradient of the mean PSNR, which weighs a dark or low-contrast sample as
+        much as a bright one where ℓ2 lets the brightest samples decide.
+        """
         r_hat, t_hat = outputs
-        return torch.mean((r_hat - r) ** 2) + torch.mean((t_hat - t) ** 2)
+        if kind == "l2":
+            return torch.mean((r_hat - r) ** 2) + torch.mean((t_hat - t) ** 2)
+        if kind != "log-mse":
+            raise ValueError(f"expected loss in {LOSSES}, got {kind!r}")
+        mse_r = ((r_hat - r) ** 2).float().mean(dim=(1, 2, 3))
+        mse_t = ((t_hat - t) ** 2).float().mean(dim=(1, 2, 3))
+        return 1e-3 * (torch.log(mse_r + 1e-6).mean() + torch.log(mse_t + 1e-6).mean())
 
 
 def with_resize_upsampling(model: SeparationNet) -> SeparationNet:

@@ -28,7 +28,7 @@ import torch
 import torch.distributed as dist
 
 from separate import metrics
-from separate.model import with_fresnel_base
+from separate.model import LOSSES, with_fresnel_base
 from separate.networks import build_model
 from separate.precision import Precision, resolve
 from separate.synthesis import READ_VAR_LOG10, SHOT_GAIN_LOG10, AngleMode, SynthesisConfig, Synthesizer, default_pool
@@ -60,7 +60,8 @@ class TrainConfig:
     1 draw the same samples, K > 1 interleaves K seeded streams); ``schedule_minutes`` > 0 lets the
     learning rate's cosine end after that much training time where that comes before ``steps``
     (`lr_at`): the run's wall time, earlier sessions of a resumed run, set-up and validation
-    included, so the weights then depend on the machine's speed.
+    included, so the weights then depend on the machine's speed. ``loss`` is the network's
+    training loss (`separate.model.LOSSES`: "l2", the paper's, or "log-mse"; CEILNet: "l2").
     """
 
     variant: str = "canonical"
@@ -93,6 +94,7 @@ class TrainConfig:
     incidence_failure: tuple[float, float] = (0.05, 0.3)
     workers: int = 0
     schedule_minutes: float = 0.0
+    loss: str = "l2"
 
     def __post_init__(self):
         for name in ("shot_gain_log10", "read_var_log10", "incidence_error_deg", "incidence_failure"):
@@ -109,6 +111,8 @@ class TrainConfig:
         modes = [m.value for m in AngleMode]
         if data.get("angles", "classic") not in modes:
             raise ValueError(f"{path}: expected angles in {modes}, got {data['angles']!r}")
+        if data.get("loss", "l2") not in LOSSES or (data.get("loss", "l2") != "l2" and data.get("variant") == "ceilnet"):
+            raise ValueError(f"{path}: expected loss in {LOSSES} ('l2' for ceilnet), got {data['loss']!r}")
         if data.get("trainable", "all") not in TRAINABLE or (data.get("trainable") == "gate" and data.get("base") != "fresnel"):
             raise ValueError(f"{path}: expected trainable in {TRAINABLE} ('gate' with base 'fresnel'), "
                              f"got {data.get('trainable')!r}")
@@ -361,7 +365,7 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
                 obs, r, t = to_tensors(batch, device)
                 with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16):
                     outputs = ddp(obs, **network_inputs(batch, device))
-                loss = model.loss(outputs, r, t) * micro / per_rank
+                loss = model.loss(outputs, r, t, cfg.loss) * micro / per_rank
                 loss.backward()
                 loss_sum += loss.item()
             torch.nn.utils.clip_grad_norm_([p for p in model.parameters() if p.requires_grad], 1.0)

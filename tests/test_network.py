@@ -172,6 +172,37 @@ def test_training_improves_the_validation_psnr(tmp_path):
     assert [r["psnr_t"] for r in logged] == psnr
 
 
+def test_log_mse_loss_is_the_mean_log_of_each_samples_error_and_weighs_samples_alike():
+    t = torch.zeros(2, 3, 4, 4)
+    r = torch.zeros(2, 3, 4, 4)
+    t_hat = t.clone()
+    t_hat[0] += 0.1                                   # sample 0: MSE 1e-2; sample 1: MSE 1e-4
+    t_hat[1] += 0.01
+    outputs = (r.clone(), t_hat)
+    expected = 1e-3 * ((np.log(1e-2 + 1e-6) + np.log(1e-4 + 1e-6)) / 2 + np.log(1e-6))
+    assert SeparationNet.loss(outputs, r, t, "log-mse").item() == pytest.approx(expected, rel=1e-5)
+    assert SeparationNet.loss(outputs, r, t).item() == pytest.approx((1e-2 + 1e-4) / 2, rel=1e-5)
+    t_hat.requires_grad_(True)
+    SeparationNet.loss((r, t_hat), r, t, "log-mse").backward()
+    per_sample = t_hat.grad.abs().sum(dim=(1, 2, 3))  # ∂ log(MSE) = ∂ MSE / MSE: the 10× smaller error pulls 10× harder
+    assert per_sample[1].item() == pytest.approx(10 * per_sample[0].item(), rel=0.02)
+    with pytest.raises(ValueError, match="expected loss in"):
+        SeparationNet.loss(outputs, r, t, "l1")
+
+
+def test_config_checks_the_loss_and_a_log_mse_run_trains(tmp_path):
+    for text, message in (('loss = "l1"\n', "expected loss in"), ('variant = "ceilnet"\nloss = "log-mse"\n', "'l2' for ceilnet")):
+        (tmp_path / "bad.toml").write_text(text)
+        with pytest.raises(ValueError, match=message):
+            TrainConfig.from_toml(tmp_path / "bad.toml")
+    cfg = TrainConfig(width=4, patch=32, batch=2, micro_batch=2, steps=2, val_samples=2, val_every=2,
+                      precision="fp32", threads=1, loss="log-mse")
+    records = []
+    train(cfg, tmp_path / "run", progress=records.append)
+    assert all(r["loss"] < 0 for r in records)         # 1e-3 × log of an MSE below 1
+    assert 'loss = "log-mse"' in (tmp_path / "run" / "config.toml").read_text()
+
+
 def test_train_seed_option_overrides_the_config(tmp_path, monkeypatch):
     from typer.testing import CliRunner
 

@@ -108,9 +108,11 @@ class CEILNet(nn.Module):
         return r_hat, t_hat
 
     @staticmethod
-    def loss(outputs: tuple[torch.Tensor, ...], r: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    def loss(outputs: tuple[torch.Tensor, ...], r: torch.Tensor, t: torch.Tensor, kind: str = "l2") -> torch.Tensor:
         """ℓ2 on T̂, on its horizontal and vertical gradients, and on the edge map Ê against
-        E(T); ``outputs`` from ``forward`` in training mode."""
+        E(T); ``outputs`` from ``forward`` in training mode. ``kind`` is "l2", CEILNet's only loss."""
+        if kind != "l2":
+            raise ValueError(f"CEILNet trains with its l2 loss only, got {kind!r}")
         _, t_hat, e_hat = outputs
         err = t_hat - t
         grad = torch.mean(err.diff(dim=-1) ** 2) + torch.mean(err.diff(dim=-2) ** 2)
