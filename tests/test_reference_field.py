@@ -202,6 +202,24 @@ def test_the_bands_of_a_difference_sum_to_it_and_split_it_by_frequency():
     assert (coarse - ramp)[..., 12:-12].abs().max() < 1e-3 and fine[..., 12:-12].abs().max() < 1e-3
 
 
+def test_a_broad_minimum_of_the_mutual_information_is_not_trusted(monkeypatch):
+    from separate import reference
+    obs, angles, _, _, _ = wide_view(turn_deg=0.0, theta_deg=72.0)
+    aligned = reference.estimate_incidence(obs, angles, 57.0)
+    assert aligned.clear and aligned.sharpness >= reference.INCIDENCE_SHARPNESS_MIN
+    assert np.median(aligned.field_deg) == pytest.approx(72.0, abs=2.0)
+    bowl = lambda i_perp, i_par, grid_deg: 1.0 + 2e-5 * (grid_deg - 60.0) ** 4      # flat-bottomed: a least value, no dip
+    monkeypatch.setattr(reference, "information_by_incidence", bowl)
+    broad = reference.estimate_incidence(obs, angles, 57.0)
+    grid = np.arange(10.0, 80.5, 2.0)
+    assert broad.sharpness == pytest.approx(2e-5 * 6**4 / np.median(bowl(None, None, grid)))
+    assert broad.clarity >= reference.INCIDENCE_CLARITY_MIN and not broad.clear
+    vee = lambda i_perp, i_par, grid_deg: 1.0 + 0.02 * np.abs(grid_deg - 72.0)       # the cancellation's dip
+    monkeypatch.setattr(reference, "information_by_incidence", vee)
+    sharp = reference.estimate_incidence(obs, angles, 57.0)
+    assert sharp.clear and np.median(sharp.field_deg) == pytest.approx(72.0, abs=0.5)
+
+
 def test_an_unclear_angle_of_incidence_runs_the_network_without_its_gate():
     from separate.reference import estimate_incidence
     anchored, canonical = load_model("urd-anchored")[0], load_model("urd-canonical")[0]
