@@ -465,11 +465,11 @@ def estimate_incidence(images: np.ndarray, angles_deg: Sequence[float], referenc
                 continue
             scores = information_by_incidence(i_perp[rows, cols], i_par[rows, cols], grid_deg)
             best = int(np.argmin(scores))
-            middle = max(float(np.median(scores)), 1e-9)
-            clarity = float(np.median(scores) - scores[best]) / middle
+            median = float(np.median(scores))
+            clarity = (median - float(scores[best])) / max(median, 1e-9)
             sides = (scores[max(best - span, 0)] + scores[min(best + span, grid_deg.size - 1)]) / 2
             clarities.append(clarity)
-            sharpnesses.append(float(sides - scores[best]) / middle)
+            sharpnesses.append(float(sides - scores[best]) / max(median, 1e-9))
             if 0 < best < grid_deg.size - 1 and clarity > 0:
                 points.append(((bx + 0.5) / INCIDENCE_BLOCKS - 0.5, (by + 0.5) / INCIDENCE_BLOCKS - 0.5, grid_deg[best], clarity))
     ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
