@@ -208,13 +208,19 @@ def test_a_broad_minimum_of_the_mutual_information_is_not_trusted(monkeypatch):
     aligned = reference.estimate_incidence(obs, angles, 57.0)
     assert aligned.clear and aligned.sharpness >= reference.INCIDENCE_SHARPNESS_MIN
     assert np.median(aligned.field_deg) == pytest.approx(72.0, abs=2.0)
-    bowl = lambda i_perp, i_par, grid_deg: 1.0 + 2e-5 * (grid_deg - 60.0) ** 4      # flat-bottomed: a least value, no dip
+
+    def bowl(i_perp, i_par, grid_deg):      # flat-bottomed: a least value, no dip
+        return 1.0 + 2e-5 * (grid_deg - 60.0) ** 4
+
     monkeypatch.setattr(reference, "information_by_incidence", bowl)
     broad = reference.estimate_incidence(obs, angles, 57.0)
     grid = np.arange(10.0, 80.5, 2.0)
     assert broad.sharpness == pytest.approx(2e-5 * 6**4 / np.median(bowl(None, None, grid)))
     assert broad.clarity >= reference.INCIDENCE_CLARITY_MIN and not broad.clear
-    vee = lambda i_perp, i_par, grid_deg: 1.0 + 0.02 * np.abs(grid_deg - 72.0)       # the cancellation's dip
+
+    def vee(i_perp, i_par, grid_deg):       # the cancellation's dip
+        return 1.0 + 0.02 * np.abs(grid_deg - 72.0)
+
     monkeypatch.setattr(reference, "information_by_incidence", vee)
     sharp = reference.estimate_incidence(obs, angles, 57.0)
     assert sharp.clear and np.median(sharp.field_deg) == pytest.approx(72.0, abs=0.5)
