@@ -45,7 +45,7 @@ import json
 import operator
 import sys
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
 import torch
@@ -55,6 +55,9 @@ from separate.model import TARGET_MEAN, ResBlock, ResizeUp, SeparationNet, canon
 from separate.networks import build_model
 from separate.precision import Precision, resolve
 from urd.core.errors import WeightsError
+
+if TYPE_CHECKING:
+    from separate.reference import Incidence
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 TILE = 2048     # px: a 6000 × 4000 image takes 4 × 3 tiles (1.19× its pixels); see the module docstring
@@ -392,7 +395,7 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
                    overlap: int = OVERLAP, precision: str = "auto",
                    progress: Callable[[int, int], None] | None = None,
                    reference_deg: float | np.ndarray | None = None,
-                   theta_deg: float | np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   theta_deg: float | np.ndarray | Incidence | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Separate an aligned stack into (R̂, T̂), each H×W×C float32 linear.
 
     Args:
@@ -413,11 +416,11 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
             An H×W map (deg, `separate.presentation.field_at`) presents each pixel at its own
             reference (`separate.presentation.present_field`), again tile by tile.
         theta_deg: the angle of incidence (deg) of a physics-anchored network (``base="fresnel"``),
-            a number or a map of any size (resized to H×W, `separate.presentation.field_at`);
-            estimated per pixel from the shots at the reference when None
-            (`separate.reference.estimate_incidence`); where that estimate is not clear
-            (`separate.reference.Incidence.clear`) the network runs without its gate. Ignored by
-            other networks.
+            a number or a map of any size (resized to H×W, `separate.presentation.field_at`), or
+            an estimate (`separate.reference.Incidence`); estimated per pixel from the shots at
+            the reference when None (`separate.reference.estimate_incidence`). Where an estimate
+            is not clear (`separate.reference.Incidence.clear`) the network runs without its
+            gate. Ignored by other networks.
     """
     check_inputs(images, angles_deg)
     tile, overlap = check_tiling(tile, overlap)
@@ -433,11 +436,12 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
     if getattr(model, "base", "canonical") == "fresnel":
         from separate.model import without_gate
         from separate.presentation import field_at
-        from separate.reference import estimate_incidence
+        from separate.reference import Incidence, estimate_incidence
 
         if theta_deg is None:
-            incidence = estimate_incidence(images, angles_deg, angles_deg[0] if reference_deg is None else reference_deg)
-            theta_deg = incidence.field_deg if incidence.clear else None
+            theta_deg = estimate_incidence(images, angles_deg, angles_deg[0] if reference_deg is None else reference_deg)
+        if isinstance(theta_deg, Incidence):
+            theta_deg = theta_deg.field_deg if theta_deg.clear else None
         if theta_deg is None:
             model = without_gate(model)                   # no anchor to an angle of incidence the shots do not tell
         elif np.ndim(theta_deg) not in (0, 2) or not np.isfinite(theta_deg).all() or not (

@@ -31,7 +31,7 @@ from typing import Callable
 import numpy as np
 
 from separate import optics
-from separate.reference import resolve_reference
+from separate.reference import estimate_incidence, resolve_reference
 from separate.presentation import present, present_field
 
 Run = Callable[..., tuple[np.ndarray, np.ndarray]]
@@ -86,11 +86,14 @@ def present_at(images: np.ndarray, angles_deg: list[float], reference: float | n
 
 def network(weights: Path | None = None, tile: int | None = None, precision: str = "auto", colour_match: bool = False,
             progress=None, reference: Reference = "auto", uses_reference: bool = True,
-            return_copies: bool = True) -> tuple[Run, dict]:
+            return_copies: bool = True, incidence_deg: float | None = None) -> tuple[Run, dict]:
     """The paper's network (`separate.model`) with shipped or given weights, tiled
     (`separate.infer.separate_stack`, ``tile`` px, default `separate.infer.default_tile`); the
     shots presented at the reference unless ``uses_reference`` is False (a network that sees only S0);
     with ``return_copies`` the part of R̂ that copies T̂ moved back into T̂ (`separate.copies`).
+    A physics-anchored network takes the angle of incidence ``incidence_deg`` (deg) where given,
+    else estimates it per pixel from each stack; the returned info's ``"incidence"`` records the
+    last run's (`separate.reference.Incidence.record`).
     Its side decision's trial separations (``trial=True``) are Schechner's closed-form inversion:
     on the assumed-side stacks of 600 bsds500/val patches the network's T̂ was 32.94 dB with them
     against 31.78 with its own backbone's (bsds500-test: 33.89 against 33.38)."""
@@ -99,6 +102,12 @@ def network(weights: Path | None = None, tile: int | None = None, precision: str
     from separate.precision import resolve
 
     model, weights_info = load_model(weights)
+    anchored = getattr(model, "base", "canonical") == "fresnel"
+    if incidence_deg is not None and not anchored:
+        raise ValueError(f"an angle of incidence is for a physics-anchored network (urd-anchored), not "
+                         f"{Path(weights_info['file']).name}")
+    if incidence_deg is not None and not 0 < incidence_deg < 90:
+        raise ValueError(f"expected an angle of incidence in (0, 90) deg, got {incidence_deg}")
     tile = default_tile(model) if tile is None else tile
     chosen = resolve(precision).value
     choose = chooser(reference)
@@ -110,8 +119,15 @@ def network(weights: Path | None = None, tile: int | None = None, precision: str
             return side_trial(images, angles_deg, reference_deg, trial=True)
         # separate_stack presents the shots tile by tile (no second full-size stack)
         chosen_deg = choose(images, angles_deg, reference_deg, partial(run, trial=True)) if uses_reference else None
+        incidence = incidence_deg
+        if anchored and incidence_deg is None:
+            incidence = estimate_incidence(images, angles_deg, angles_deg[0] if chosen_deg is None else chosen_deg)
+            info["incidence"] = incidence.record()
+        elif anchored:
+            info["incidence"] = {"median_deg": incidence_deg, "range_deg": [incidence_deg, incidence_deg],
+                                 "given": True, "gate": True}
         r_hat, t_hat = separate_stack(model, images, list(angles_deg), tile, OVERLAP, chosen, progress,
-                                      reference_deg=chosen_deg)
+                                      reference_deg=chosen_deg, theta_deg=incidence)
         if return_copies:
             r_hat, t_hat = returned(r_hat, t_hat)
         if colour_match:
@@ -122,7 +138,7 @@ def network(weights: Path | None = None, tile: int | None = None, precision: str
     info = {"weights": {"file": Path(weights_info["file"]).name, "sha256": weights_info["sha256"],
                         "config": weights_info["config"]},
             "parameters": {"tile": tile, "overlap": OVERLAP, "precision": chosen, "colour_match": colour_match,
-                           "return_copies": return_copies},
+                           "return_copies": return_copies, **({"incidence_deg": incidence_deg} if anchored else {})},
             "reference_policy": reference_policy(check_reference(reference)) if uses_reference else "not used: S0 only"}
     return run, info
 

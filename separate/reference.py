@@ -429,6 +429,13 @@ class Incidence:
         `INCIDENCE_SHARPNESS_MIN`)."""
         return self.clarity >= INCIDENCE_CLARITY_MIN and self.sharpness >= INCIDENCE_SHARPNESS_MIN
 
+    def record(self) -> dict:
+        """The estimate for a manifest: the field's median and range (deg), clarity, sharpness
+        and whether a physics-anchored network uses it (its Fresnel gate on)."""
+        return {"median_deg": round(float(np.median(self.field_deg)), 1),
+                "range_deg": [round(float(self.field_deg.min()), 1), round(float(self.field_deg.max()), 1)],
+                "clarity": round(self.clarity, 3), "sharpness": round(self.sharpness, 3), "gate": self.clear}
+
 
 def estimate_incidence_field(images: np.ndarray, angles_deg: Sequence[float], reference: float | np.ndarray) -> np.ndarray:
     """The angle of incidence per pixel (deg, h×w float32): `estimate_incidence`'s field."""

@@ -208,6 +208,33 @@ def test_the_demo_ends_with_the_previews_to_open_and_what_clipped_png_means(tmp_
     assert "clipped.png: no pixel is clipped in any shot (the mask is all black)" in out.stdout
 
 
+def test_separate_says_which_angle_of_incidence_the_network_used_and_takes_a_given_one(tmp_path):
+    import json
+
+    import cv2
+
+    out = invoke("demo", tmp_path / "demo", "--size", "384x256")
+    assert out.exit_code == 0, out.output
+    scene = tmp_path / "demo" / "scene_01"
+    truth = float(np.median(cv2.imread(str(scene / "truth" / "theta_deg.tiff"), cv2.IMREAD_UNCHANGED)))
+    record = json.loads((scene / "scene.json").read_text())["results"]["network"]["incidence"]
+    assert record["gate"] and record["median_deg"] == pytest.approx(truth, abs=4.0)
+    lo, hi = record["range_deg"]
+    assert f"angle of incidence {record['median_deg']:.0f} deg ({lo:.0f}-{hi:.0f} across the frame; estimated" in out.stdout
+    given = invoke("separate", scene, "--force", "--incidence", "47.5")
+    assert given.exit_code == 0, given.output
+    assert "angle of incidence 47.5 deg (given; the network's Fresnel gate on)" in given.stdout
+    entry = json.loads((scene / "scene.json").read_text())["results"]["network"]
+    assert entry["incidence"]["given"] and entry["parameters"]["incidence_deg"] == 47.5
+    ungated = invoke("separate", scene, "--force", "--weights", "urd-canonical", "--incidence", "40")
+    assert ungated.exit_code == 1 and "physics-anchored network" in ungated.stderr
+    assert json.loads((scene / "scene.json").read_text())["results"]["network"] == entry     # nothing replaced
+    for args, reason in ((("--incidence", "90"), "between 0 and 90"),
+                         (("--method", "schechner", "--incidence", "40"), "--param theta_deg=DEG")):
+        bad = invoke("separate", scene, "--force", *args)
+        assert bad.exit_code == 2 and reason in bad.stderr, bad.output
+
+
 def test_mosaic_ingest_names_the_frame_of_each_scene(tmp_path):
     frames = tmp_path / "frames"
     frames.mkdir()

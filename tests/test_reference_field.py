@@ -244,6 +244,27 @@ def test_an_unclear_angle_of_incidence_runs_the_network_without_its_gate():
     np.testing.assert_allclose(t_map, t_one, atol=1e-6)                  # a small map is resized to the image
 
 
+def test_the_network_records_whether_it_used_its_gate():
+    from urd.separation import describe_incidence
+
+    run, info = get_method("network", precision="fp32")
+    noise = np.random.default_rng(5).uniform(0.1, 0.3, (3, 96, 128, 3)).astype(np.float32)
+    run(noise, [0.0, 45.0, 90.0], 0.0)
+    record = info["incidence"]
+    assert not record["gate"] and set(record) == {"median_deg", "range_deg", "clarity", "sharpness", "gate"}
+    assert describe_incidence(record).startswith("angle of incidence not clear from the shots (clarity ")
+    obs, angles, _, _, _ = wide_view(turn_deg=0.0, theta_deg=72.0)
+    run(obs, angles, 57.0)
+    assert info["incidence"]["gate"] and info["incidence"]["median_deg"] == pytest.approx(72.0, abs=2.0)
+    run_given, _ = get_method("network", precision="fp32", incidence_deg=72.0, return_copies=False)
+    direct = separate_stack(load_model("urd-anchored")[0], obs, angles, precision="fp32", reference_deg=57.0,
+                            theta_deg=72.0)
+    np.testing.assert_array_equal(run_given(obs, angles, 57.0)[1], direct[1])
+    for weights, bad, reason in (("urd-anchored", 90.0, "in \\(0, 90\\) deg"), ("urd-canonical", 40.0, "physics-anchored")):
+        with pytest.raises(ValueError, match=reason):
+            get_method("network", weights=weights, incidence_deg=bad)
+
+
 def test_the_side_trials_of_the_network_are_schechners_inversion():
     obs, angles, _, _, _ = wide_view(h=64, w=96, turn_deg=0.0, theta_deg=50.0)
     trial = get_method("network")[0](obs, angles, 30.0, trial=True)

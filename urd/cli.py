@@ -399,6 +399,7 @@ def separate(
     precision: str = typer.Option("auto", help="Network arithmetic: auto (bf16 where the CPU or GPU runs it natively, else fp32), fp32 or bf16."),
     colour_match: bool = typer.Option(False, help="Match each colour channel's histogram of T to the darkest observation's (paper §3.4)."),
     return_copies: Optional[bool] = typer.Option(None, "--return-copies/--keep-copies", help="Network: move light that R shows as a local copy of T (the scene's own polarization: sky, no glass) back into T (separate/copies.py). Default: --return-copies.", show_default=False),
+    incidence: Optional[float] = typer.Option(None, "--incidence", help="Network: the angle of incidence on the glass (deg, between the camera's axis and the pane's normal) where you know it; the network's Fresnel gate uses it instead of the estimate from the shots. Schechner takes it as --param theta_deg=DEG.", show_default=False),
     param: Optional[list[str]] = typer.Option(None, "--param", help="A baseline's parameter as NAME=VALUE (repeat), e.g. --method kong --param smoothness=0.5; names and paper defaults in each baseline's docstring (separate/baselines/)."),
     force: bool = typer.Option(False, help="Replace existing results of this method (only once the new ones are complete)."),
     maps: bool = typer.Option(False, "--maps", help="Also write the polarization maps: S0, S1, S2, DoLP, AoLP, phi_perp, theta as float32 TIFF with units (results/METHOD/maps/)."),
@@ -421,7 +422,7 @@ def separate(
     from separate.precision import describe, resolve
     from urd.core.images import Transfer
     from urd.core.raw import RAW_SUFFIXES
-    from urd.separation import separate_images, separate_scene
+    from urd.separation import describe_incidence, separate_images, separate_scene
 
     if method not in METHODS:
         raise typer.BadParameter(f"unknown method {method!r}; expected one of {sorted(METHODS)}")
@@ -450,6 +451,11 @@ def separate(
     if return_copies is not None and method != "network":
         raise typer.BadParameter(f"--return-copies/--keep-copies is for the network, not {method}")
     return_copies = return_copies is not False
+    if incidence is not None and method != "network":
+        raise typer.BadParameter(f"--incidence is for the network, not {method}" + (
+            " (use --param theta_deg=DEG)" if method == "schechner" else ""))
+    if incidence is not None and not 0 < incidence < 90:
+        raise typer.BadParameter(f"expected --incidence between 0 and 90 deg, got {incidence:g}")
     if param and method in networks + ("none",):
         raise typer.BadParameter(f"--param is for the baselines; {method} takes its own options")
     params = parse_params(param or [])
@@ -458,7 +464,8 @@ def separate(
     if images and len(images) != len(angle_list):
         raise typer.BadParameter(f"expected one --images file per angle of --angles {angles}, got {len(images)} files")
     if all_scenes:
-        separate_dataset(dataset, method, weights, tile, chosen, colour_match, return_copies, params, force, forced, maps, jobs)
+        separate_dataset(dataset, method, weights, tile, chosen, colour_match, return_copies, incidence, params, force,
+                         forced, maps, jobs)
         return
     target = None if images else run_guarded(resolve_scene, scene, dataset)
     if target is not None and not force:
@@ -470,7 +477,7 @@ def separate(
 
     if method in networks:
         options = {"weights": weights, "tile": tile, "precision": chosen.value, "colour_match": colour_match, "progress": show,
-                   **({"return_copies": return_copies} if method == "network" else {})}
+                   **({"return_copies": return_copies, "incidence_deg": incidence} if method == "network" else {})}
         typer.echo(f"precision: {describe(chosen)}", err=True)
     else:
         options = {**params, "progress": show} if method in PROGRESS_BASELINES else params
@@ -486,6 +493,8 @@ def separate(
     kinds = {"auto": "estimated; per pixel, a field around it: reference_deg.tiff", "global": "estimated"}
     kind = kinds[forced] if isinstance(forced, str) else "given"
     typer.echo(f"reference angle {result.reference_deg:.1f} deg ({kind})")
+    if "incidence" in info:
+        typer.echo(describe_incidence(info["incidence"]))
     for path in result.files:
         typer.echo(f"wrote {Path(path).resolve()}")
     report_truth(result.truth_metrics)
@@ -493,15 +502,15 @@ def separate(
 
 
 def separate_dataset(dataset: Optional[Path], method: str, weights: Optional[Path], tile: Optional[int], chosen,
-                     colour_match: bool, return_copies: bool, params: dict, force: bool, reference, maps: bool,
-                     jobs: int) -> None:
+                     colour_match: bool, return_copies: bool, incidence: Optional[float], params: dict, force: bool,
+                     reference, maps: bool, jobs: int) -> None:
     """``urd separate --all``: every scene that needs it (`urd.batch.separate_all`), one line per
     scene; exit 1 when any failed."""
     from urd.batch import separate_all
 
     root = existing_dataset(dataset)
     options = ({"weights": weights, "tile": tile, "precision": chosen.value, "colour_match": colour_match,
-                **({"return_copies": return_copies} if method == "network" else {})}
+                **({"return_copies": return_copies, "incidence_deg": incidence} if method == "network" else {})}
                if method in ("network", "ceilnet") else params)
     outcomes = run_guarded(separate_all, root, method, options, force, reference, maps, jobs, progress=TerminalProgress())
     for outcome in outcomes:

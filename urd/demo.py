@@ -18,7 +18,7 @@ def run_demo(folder: Path, width: int, height: int, seed: int, precision: str = 
     from separate.methods import get_method
     from urd.core.align import Motion
     from urd.ingest import IngestOptions, ingest_scene
-    from urd.separation import separate_scene
+    from urd.separation import describe_incidence, separate_scene
 
     sim = SimSettings(offset_deg=0.0, jitter_deg=0.3, width=width, height=height, seed=seed)
     scene = capture_scene(folder, "sim", "virtual", [0.0, 45.0, 90.0], new=True, sim=sim,
@@ -34,4 +34,5 @@ def run_demo(folder: Path, width: int, height: int, seed: int, precision: str = 
     announce(f"    network precision: {info['parameters']['precision']}")
     result = separate_scene(scene, "network", run, info)
     announce(f"3/3 separated: {scene.results_dir('network').resolve()}")
+    announce(f"    {describe_incidence(info['incidence'])}")
     return result

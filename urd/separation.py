@@ -281,6 +281,19 @@ def separate_scene(scene: Scene, method: str, run, info: dict, force: bool = Fal
     return separation
 
 
+def describe_incidence(incidence: dict) -> str:
+    """A line on the angle-of-incidence estimate (`separate.reference.Incidence.record`) and
+    whether the physics-anchored network used it."""
+    lo, hi = incidence["range_deg"]
+    if incidence.get("given"):
+        return f"angle of incidence {incidence['median_deg']:g} deg (given; the network's Fresnel gate on)"
+    if incidence["gate"]:
+        return (f"angle of incidence {incidence['median_deg']:.0f} deg ({lo:.0f}-{hi:.0f} across the frame; "
+                "estimated, the network's Fresnel gate on)")
+    return (f"angle of incidence not clear from the shots (clarity {incidence['clarity']:.2f}, sharpness "
+            f"{incidence['sharpness']:.3f}): the network ran without its Fresnel gate")
+
+
 def _maps(images: np.ndarray, angles: list[float], used: float | np.ndarray) -> dict[str, np.ndarray]:
     from separate.maps import polarization_maps
 
