@@ -32,6 +32,14 @@ import serial
 
 from urd.core.errors import DeviceError, DeviceTimeoutError, ProtocolError
 
+try:
+    from termios import error as _TermiosError       # a pseudo-terminal whose other end closed
+except ImportError:                                  # no termios (Windows): pyserial raises SerialException
+    _TermiosError = OSError
+
+#: What a serial link raises when the device or its adapter goes away (unplugged, powered off).
+LINK_ERRORS = (serial.SerialException, OSError, _TermiosError)
+
 #: ELL14 status codes of ``GS`` replies → meaning. 0 is OK and 9 is busy; the rest are faults.
 STATUS: dict[int, str] = {
     1: "communication time-out",
@@ -126,7 +134,10 @@ class Ell14:
         return self
 
     def __exit__(self, *exc) -> None:
-        self.port.reset_input_buffer()
+        try:
+            self.port.reset_input_buffer()
+        except LINK_ERRORS:
+            pass                                     # the link is gone: nothing left to drain
 
     # -- transport ---------------------------------------------------------------------------
     def _read_reply(self, deadline: float) -> tuple[str, str]:
@@ -138,6 +149,7 @@ class Ell14:
                 raise DeviceTimeoutError(
                     f"ELL14 at address {self.address} did not answer within the time-out"
                     + (f" (partial reply {line!r})" if line else "")
+                    + ": is it powered and cabled, on this port, and at this address (--address)?"
                 )
             self.port.timeout = min(remaining, 0.1)
             line += self.port.read_until(b"\n")
@@ -153,8 +165,19 @@ class Ell14:
         """Send a command and return the first reply whose code is in ``expect``.
 
         A ``GS`` reply with code 9 (busy) keeps waiting; other non-zero ``GS`` codes raise
-        the error from `STATUS`. Lost and garbled replies are retried ``retries`` times.
+        the error from `STATUS`. Lost and garbled replies are retried ``retries`` times; a link
+        that fails (`LINK_ERRORS`) is a DeviceError.
         """
+        try:
+            return self._exchange(command, expect, timeout_s)
+        except DeviceError:                          # a time-out is an OSError too: it stays what it is
+            raise
+        except LINK_ERRORS as exc:
+            raise DeviceError(f"lost the connection to the ELL14 at address {self.address} ({exc}): "
+                              "is its cable or USB adapter still plugged in and the stage powered?") from exc
+
+    def _exchange(self, command: str, expect: tuple[str, ...], timeout_s: float) -> tuple[str, str]:
+        """`_transact` over a working link."""
         attempt = 0
         while True:
             self.port.reset_input_buffer()

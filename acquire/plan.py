@@ -21,7 +21,7 @@ from typing import Callable
 
 from acquire.camera import Camera
 from acquire.ell14 import Ell14
-from urd.core.dataset import Dataset, Scene
+from urd.core.dataset import SCENE_NAME, Dataset, Scene
 from urd.core.errors import CaptureInterrupted, DatasetError, DeviceError, ManifestError, UrdError
 from urd.core.files import atomic_path, sha256_file
 from urd.core.progress import Progress
@@ -249,6 +249,8 @@ def capture_scene(root: Path, stage: str, camera: str, angles_deg: list[float] |
     from acquire.rig import open_rig
     from calib.store import offset_for_stage
 
+    if scene_name is not None and not SCENE_NAME.match(scene_name):
+        raise DatasetError(f"expected a scene name like scene_01, got {scene_name!r}")
     with open_rig(stage, camera, address, sim) as rig:
         ds = Dataset.open_or_create(root)
         with ds.lock():
@@ -266,6 +268,9 @@ def capture_scene(root: Path, stage: str, camera: str, angles_deg: list[float] |
                 announce(line)
                 scene = new_capture_scene(ds, list(angles_deg or DEFAULT_ANGLES_DEG), offset_deg,
                                           0.5 if tolerance_deg is None else tolerance_deg, rig.info, scene_name)
+            elif scene.is_complete():
+                raise DatasetError(f"{scene.name} is complete ({len(scene.shots())} shots); capture another scene: "
+                                   "--new-scene, or --scene with a new name")
             else:
                 check_resumable(scene, rig.info, angles_deg, tolerance_deg, resume_command(ds.root, scene))
                 announce(f"mounting offset: {scene.capture_settings()[0]:.3f} deg, as {scene.name} recorded when it was started")

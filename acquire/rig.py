@@ -68,11 +68,20 @@ class Rig:
 
 
 def open_serial(port: str, timeout_s: float = 0.1) -> serial.Serial:
-    """Open a serial port at the ELL14's settings (9600 8N1); DeviceError if it cannot."""
+    """Open a serial port at the ELL14's settings (9600 8N1), exclusively: a second capture on
+    the same stage would turn it under the first one's shots. DeviceError, with what to check, if
+    it cannot."""
     try:
-        return serial.Serial(port, 9600, bytesize=8, parity="N", stopbits=1, timeout=timeout_s)
+        return serial.Serial(port, 9600, bytesize=8, parity="N", stopbits=1, timeout=timeout_s, exclusive=True)
     except (serial.SerialException, OSError, ValueError) as exc:
-        raise DeviceError(f"cannot open serial port {port}: {exc}") from exc
+        if "exclusively lock" in str(exc):
+            hint = "another program (another urd capture?) is using it; wait for it or stop it"
+        elif isinstance(exc, FileNotFoundError) or "No such file" in str(exc):
+            hint = ("is the stage connected and powered? Its USB adapter is usually /dev/ttyUSB0 "
+                    "(ls /dev/ttyUSB*); --stage sim runs the simulated stage")
+        else:
+            hint = "check the port name and that you may use it (on Linux, membership of the 'dialout' group)"
+        raise DeviceError(f"cannot open serial port {port}: {exc}; {hint}") from exc
 
 
 @contextlib.contextmanager

@@ -81,12 +81,29 @@ def test_resuming_with_another_camera_or_stage_is_refused_and_names_the_command_
 def test_a_plain_capture_resumes_the_scene_with_its_own_angles(tmp_path, monkeypatch):
     root = tmp_path / "ds"
     interrupted_scene(root, monkeypatch)
+    out = invoke("capture", root, *SIM, "--sim-size", "96x64", "--seed", "3", "--tolerance", "0.2")
+    assert out.exit_code == 1 and "tolerance 0.5 deg (asked for: 0.2)" in out.stderr
     out = invoke("capture", root, *SIM, "--sim-size", "96x64", "--seed", "3")
     assert out.exit_code == 0, out.output
     scene = Dataset.open(root).scene("scene_01")
     assert scene.status().state == "captured" and [s.angle_commanded_deg for s in scene.shots()] == [0, 60, 120]
-    out = invoke("capture", root, *SIM, "--sim-size", "96x64", "--seed", "3", "--scene", "scene_01", "--tolerance", "0.2")
-    assert out.exit_code == 1 and "tolerance 0.5 deg (asked for: 0.2)" in out.stderr
+    record = (scene.path / "scene.json").read_bytes()
+    out = invoke("capture", root, *SIM, "--sim-size", "96x64", "--seed", "3", "--scene", "scene_01")
+    assert out.exit_code == 1 and "scene_01 is complete (3 shots); capture another scene" in out.stderr
+    assert (scene.path / "scene.json").read_bytes() == record
+
+
+def test_a_dataset_is_never_made_inside_another(tmp_path):
+    root = tmp_path / "ds"
+    assert invoke("capture", root, *SIM, "--sim-size", "96x64").exit_code == 0
+    for inside in (root / "scene_01", root / "scene_01" / "raw", root / "elsewhere"):
+        out = invoke("capture", inside, *SIM, "--sim-size", "96x64")
+        assert out.exit_code == 1 and f"is inside the dataset {root.resolve()}" in out.stderr, out.output
+    assert not (root / "elsewhere").exists() and not (root / "scene_01" / "scene_01").exists()
+    assert Dataset.open(root).scene_names() == ["scene_01"]
+    out = invoke("capture", tmp_path / "other", *SIM, "--sim-size", "96x64", "--scene", "../evil")
+    assert out.exit_code == 1 and "expected a scene name like scene_01" in out.stderr
+    assert not (tmp_path / "other").exists()
 
 
 def test_a_real_rigs_resume_command_names_its_address_and_tolerance(tmp_path):

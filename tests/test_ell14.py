@@ -121,3 +121,27 @@ def test_simulator_vanishing_device_times_out():
             stage.move_to(45.0)
         sim.sim_revive()
         assert stage.move_to(45.0) == pytest.approx(45.0)
+
+
+def test_a_stage_port_is_opened_by_one_capture_at_a_time(tmp_path):
+    from acquire.rig import open_serial
+    from urd.core.errors import DeviceError
+
+    with SimulatedEll14() as sim, open_serial(sim.port_name) as first:
+        with pytest.raises(DeviceError, match="another program .* is using it"):
+            open_serial(sim.port_name)
+        assert first.is_open
+    with pytest.raises(DeviceError, match="is the stage connected and powered"):
+        open_serial(str(tmp_path / "ttyUSB9"))
+
+
+def test_a_stage_that_goes_away_mid_capture_is_a_device_error():
+    from urd.core.errors import DeviceError
+
+    sim = SimulatedEll14().__enter__()
+    with open_port(sim.port_name) as port:
+        with Ell14(port, timeout_s=0.2, retries=0) as stage:
+            stage.info()
+            sim.__exit__(None, None, None)          # the far end closes, as an unplugged USB adapter does
+            with pytest.raises(DeviceError, match="lost the connection to the ELL14 .* still plugged in"):
+                stage.move_to(45.0)

@@ -824,8 +824,14 @@ class Dataset:
 
     @classmethod
     def open_or_create(cls, root: Path, description: str = "") -> "Dataset":
-        """Open a dataset root, creating the folder and its manifest when new."""
+        """Open a dataset root, creating the folder and its manifest when new; a new one inside
+        another dataset (a scene folder, or any folder below a ``dataset.json``) is refused."""
         root = Path(root)
+        if not (root / DATASET_MANIFEST).exists():
+            enclosing = next((p for p in root.resolve().parents if (p / DATASET_MANIFEST).is_file()), None)
+            if enclosing is not None:
+                raise DatasetError(f"{root} is inside the dataset {enclosing}; a dataset cannot hold another: "
+                                   f"pass {enclosing} itself, or a folder outside it")
         try:
             root.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
