@@ -142,6 +142,13 @@ def _solve_angles(data: np.ndarray, nominal: np.ndarray, iterations: int = 100,
     return phi - np.mean(phi - nominal), it, (extra[0] if extra else None)
 
 
+#: Largest per-shot angle error (deg) `estimate_shot_errors` reports: a stage's encoder puts the
+#: polarizer within a fraction of a degree and the paper allows ±4°. Larger errors mean the images
+#: do not determine the angles (little polarized light against the noise, or misaligned shots):
+#: the fit then slides towards angles that all coincide, where any stack is explained.
+MAX_SHOT_ERROR_DEG = 10.0
+
+
 def estimate_shot_errors(stack: np.ndarray, nominal_deg: list[float], short_side: int = 32,
                          bootstrap: int = 20, seed: int = 0) -> ShotErrors:
     """Per-shot polarizer angle errors from an aligned stack.
@@ -182,5 +189,11 @@ def estimate_shot_errors(stack: np.ndarray, nominal_deg: list[float], short_side
         if idx.size >= 100:
             draws.append(_solve_angles(data[:, idx], nominal)[0])
     spread = np.degrees(np.std(draws, axis=0)) if draws else np.full(n, np.nan)
-    return ShotErrors(np.degrees(phi - nominal).tolist(), spread.tolist(), int(chosen.sum()), iterations,
+    errors = np.degrees(phi - nominal)
+    if np.abs(errors).max() > MAX_SHOT_ERROR_DEG or (n >= 5 and unobservable is not None):
+        raise CalibrationError(
+            f"the images do not determine the shots' angles: the fit moves them by up to "
+            f"{np.abs(errors).max():.0f} deg (at most {MAX_SHOT_ERROR_DEG:.0f} is plausible); the scene has too little polarized light against the noise, or its shots are not aligned. "
+            "Calibrate on a scene with glare from glass or a polarizer target, from a tripod")
+    return ShotErrors(errors.tolist(), spread.tolist(), int(chosen.sum()), iterations,
                       None if unobservable is None else unobservable.tolist())

@@ -109,11 +109,12 @@ def sweep_and_calibrate(root: Path, stage: str, camera: str, step_deg: float, ta
 
 
 def calibrate_shots(scene: Scene, apply: bool = True) -> ShotErrors:
-    """Estimate a scene's per-shot angle errors; with ``apply`` store them as calibrated angles."""
+    """Estimate a scene's per-shot angle errors; with ``apply`` store them and the calibrated
+    angles in its manifest, else leave the manifest as it is."""
     with scene.lock():
         stack, _ = scene.reload().load_stack()
         base = scene.uncalibrated_angles_deg()
         result = estimate_shot_errors(stack, base)
-        calibrated = [angle + error for angle, error in zip(base, result.errors_deg)] if apply else None
-        scene.set_shot_calibration(result.record(), calibrated)
+        if apply:
+            scene.set_shot_calibration(result.record(), [angle + error for angle, error in zip(base, result.errors_deg)])
     return result

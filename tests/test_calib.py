@@ -76,7 +76,11 @@ def test_per_shot_errors_on_the_virtual_rig_and_their_effect_on_the_stokes_fit(t
     angles = (0, 30, 60, 90, 120, 150)
     scene, cam = capture_virtual(ds, angles=angles, size=(768, 512), shake_px=4, shake_deg=0.5, seed=11, jitter_deg=2.0)
     ingest_scene(scene, IngestOptions())
+    before = (scene.path / "scene.json").read_bytes()
+    dry = calibrate_shots(scene, apply=False)
+    assert (scene.path / "scene.json").read_bytes() == before                 # --no-apply: the manifest as it was
     result = calibrate_shots(scene)
+    assert result.errors_deg == dry.errors_deg
     record = scene.load()
     true = np.array([shot_truth(scene.path / s["file"])["true_angle_deg"] for s in record["shots"]])
     true_err = true - np.array(angles)
@@ -94,6 +98,25 @@ def test_per_shot_errors_on_the_virtual_rig_and_their_effect_on_the_stokes_fit(t
     with capsys.disabled():
         print(f"\nS1,S2 RMS error vs truth: nominal angles {rows['nominal']:.5f}, calibrated {rows['calibrated']:.5f}")
     assert rows["calibrated"] < 0.7 * rows["nominal"]
+
+
+def test_angles_the_images_do_not_determine_are_refused_and_nothing_is_stored(tmp_path):
+    """The virtual camera's default scene at 384×256 is polarized too weakly for the noise: the
+    fit slid all six angles to one (105°) and stored them, and the scene could not be separated."""
+    from typer.testing import CliRunner
+
+    from urd.cli import app
+
+    root = str(tmp_path / "ds")
+    out = CliRunner().invoke(app, ["capture", root, "--stage", "sim", "--camera", "virtual", "--sim-size", "384x256",
+                                   "--sim-shake", "0", "--angles", "0,30,60,90,120,150"])
+    assert out.exit_code == 0, out.output
+    assert CliRunner().invoke(app, ["ingest", root]).exit_code == 0
+    manifest = tmp_path / "ds" / "scene_01" / "scene.json"
+    before = manifest.read_bytes()
+    out = CliRunner().invoke(app, ["calibrate", "shots", "scene_01", "--dataset", root])
+    assert out.exit_code == 1 and "do not determine the shots' angles: the fit moves them by up to" in out.stderr
+    assert manifest.read_bytes() == before
 
 
 def test_three_angles_cannot_be_calibrated(tmp_path):

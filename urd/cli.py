@@ -363,7 +363,7 @@ def calibrate_offset_cmd(
 def calibrate_shots_cmd(
     scene: str = typer.Argument(..., help="Scene name (scene_12) or folder; must be ingested."),
     dataset: Optional[Path] = typer.Option(None, help=DATASET_HELP, show_default=False),
-    apply: bool = typer.Option(True, help="Store the calibrated angles in the manifest (used by separation)."),
+    apply: bool = typer.Option(True, help="Store the calibrated angles in the manifest (used by separation); --no-apply only prints them and leaves the manifest as it is."),
 ) -> None:
     """Estimate each shot's polarizer angle error from the images (needs 4+ angles; 5+ for all errors).
 
