@@ -382,6 +382,11 @@ def test_urd_separate_on_a_simulated_scene_beats_no_separation(tmp_path):
     args = [a for f in files for a in ("--images", f)]
     out = urd("separate", *args, "--out", tmp_path / "files")
     assert out.returncode == 0 and (tmp_path / "files" / "T.tiff").is_file()
+    (tmp_path / "files" / "R.tiff").unlink()                                # a half-replaced folder must not happen
+    kept = {p.name: p.read_bytes() for p in (tmp_path / "files").iterdir()}
+    out = urd("separate", *args, "--method", "kong", "--out", tmp_path / "files")
+    assert out.returncode == 1 and "already holds results (T.tiff, T_preview.png" in out.stderr and "--force" in out.stderr
+    assert {p.name: p.read_bytes() for p in (tmp_path / "files").iterdir()} == kept
     out = urd("separate", *args[:4], "--out", tmp_path / "two")
     assert out.returncode == 2 and "expected one --images file per angle of --angles 0,45,90, got 2 files" in out.stderr
 

@@ -155,6 +155,11 @@ def write_mask(path: Path, mask: np.ndarray, overwrite: bool = False) -> None:
             raise DatasetError(f"cannot write {path}")
 
 
+#: The files `write_results` may write (besides ``maps/``).
+RESULT_NAMES = ("R.tiff", "T.tiff", "R_preview.png", "T_preview.png", "confidence.tiff", "clipped.png",
+                "reference_deg.tiff")
+
+
 def write_results(folder: Path, r_hat: np.ndarray, t_hat: np.ndarray, overwrite: bool,
                   confidence: np.ndarray | None = None, clipped: np.ndarray | None = None,
                   reference_field: np.ndarray | None = None) -> list[Path]:
@@ -318,6 +323,11 @@ def separate_images(paths: list[Path], angles_deg: list[float], out: Path, run, 
     with ``maps`` the polarization maps too (``out/maps/``)."""
     if len(paths) != len(angles_deg):
         raise ValueError(f"expected one angle per image ({len(paths)} images), got {len(angles_deg)} angles")
+    existing = sorted(p.name for p in Path(out).glob("*") if p.name in RESULT_NAMES or p.name == "maps") \
+        if Path(out).is_dir() and not force else []
+    if existing:
+        raise DatasetError(f"{out} already holds results ({', '.join(existing)}); pass --force to replace them, "
+                           "or another --out")
     loaded = [read_image(p, transfer) for p in paths]
     if len({im.shape for im in loaded}) > 1:
         raise ValueError(f"expected images of one size, got {[im.shape[:2] for im in loaded]}")
