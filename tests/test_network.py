@@ -385,7 +385,7 @@ def test_urd_separate_on_a_simulated_scene_beats_no_separation(tmp_path):
     (tmp_path / "files" / "R.tiff").unlink()                                # a half-replaced folder must not happen
     kept = {p.name: p.read_bytes() for p in (tmp_path / "files").iterdir()}
     out = urd("separate", *args, "--method", "kong", "--out", tmp_path / "files")
-    assert out.returncode == 1 and "already holds results (T.tiff, T_preview.png" in out.stderr and "--force" in out.stderr
+    assert out.returncode == 1 and "already holds results (R_preview.png, T.tiff, T_preview.png" in out.stderr and "--force" in out.stderr
     assert {p.name: p.read_bytes() for p in (tmp_path / "files").iterdir()} == kept
     out = urd("separate", *args[:4], "--out", tmp_path / "two")
     assert out.returncode == 2 and "expected one --images file per angle of --angles 0,45,90, got 2 files" in out.stderr
