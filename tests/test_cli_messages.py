@@ -186,6 +186,24 @@ def test_verify_does_not_tell_you_to_run_verify(tmp_path):
     assert "does not match the manifest" in out.stderr and "urd verify" not in out.stderr
 
 
+def test_verify_checks_the_calibration_and_report_lists_the_scenes_whatever_its_state(tmp_path):
+    root = tmp_path / "ds"
+    assert invoke("capture", root, *SIM, "--sim-size", "96x64").exit_code == 0
+    assert invoke("calibrate", "offset", root, *SIM, "--step", "30").exit_code == 0
+    out = invoke("verify", root)
+    assert out.exit_code == 0 and "calibration: ok" in out.stdout and "1 scene and the calibration intact" in out.stdout
+    shot = next((root / "calibration" / "sweep_01" / "raw").glob("*.dng"))
+    shot.write_bytes(shot.read_bytes()[::-1])
+    out = invoke("verify", root)
+    assert out.exit_code == 1 and "1 of 1 scene and the calibration has problems" in out.stderr
+    assert re.search(rf"^calibration: .*sweep_01/raw/{shot.name}.* does not match the manifest", out.stderr, re.M)
+    (root / "calibration.json").write_text("{not json")
+    out = invoke("verify", root)
+    assert out.exit_code == 1 and "calibration.json" in out.stderr
+    out = invoke("report", root)
+    assert out.exit_code == 0 and "polarizer offset unreadable (" in out.stdout and "scene_01" in out.stdout
+
+
 def test_scene_folders_made_from_a_raw_folder_follow_the_umask(tmp_path, dataset):
     raw = tmp_path / "raw"
     shutil.copytree(dataset / "scene_01" / "raw", raw)

@@ -185,8 +185,11 @@ def test_nested_fields_and_schema_versions_are_validated(tmp_path):
                                              "history": []})
     with pytest.raises(ManifestError, match=r"calibration.json: field 'offset_deg' has type str"):
         ds.calibration()
-    out = urd("report", ds.root)
-    assert out.returncode == 1 and "offset_deg" in out.stderr and "Unknown format" not in out.stderr
+    out = urd("report", ds.root)                         # the scenes are still listed, the calibration said unreadable
+    assert out.returncode == 0 and "polarizer offset unreadable (" in out.stdout and "offset_deg" in out.stdout
+    assert "scene_01: 3 shots" in out.stdout and "Unknown format" not in out.stdout + out.stderr
+    out = urd("verify", ds.root)
+    assert out.returncode == 1 and "calibration: " in out.stderr and "offset_deg" in out.stderr
 
 
 # 7. two writers: the second is told who holds the dataset

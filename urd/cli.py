@@ -330,7 +330,7 @@ def resolve_scene(scene: str, dataset: Optional[Path]):
 
 @calibrate_app.command("offset")
 def calibrate_offset_cmd(
-    dataset: Optional[Path] = typer.Argument(None, help="Dataset whose polarizer to calibrate (calibration.json is written there); " + DATASET_HELP, show_default=False),
+    dataset: Optional[Path] = typer.Argument(None, help="Dataset whose polarizer to calibrate, where calibration.json is written (default: the current folder if it holds dataset.json, else ./dataset).", show_default=False),
     stage: str = typer.Option(..., help="Serial port of the ELL14 stage, or 'sim'."),
     camera: str = typer.Option("gphoto2", help="Camera driver: gphoto2 or virtual."),
     step: float = typer.Option(10.0, min=1.0, max=45.0, help="Sweep step (deg) over 180 deg."),
@@ -706,9 +706,11 @@ def verify(dataset: Optional[Path] = typer.Argument(None, help=DATASET_HELP, sho
         bad += bool(issues)
         if not issues:
             typer.echo(f"{name}: ok")
+    scenes = len(problems) - ("calibration" in problems)
+    what = plural(scenes, "scene") + (" and the calibration" if "calibration" in problems else "")
     if bad:
-        fail(f"{bad} of {plural(len(problems), 'scene')} {'has' if bad == 1 else 'have'} problems")
-    typer.echo(f"{'all ' if len(problems) > 1 else ''}{plural(len(problems), 'scene')} intact")
+        fail(f"{bad} of {what} {'has' if bad == 1 else 'have'} problems")
+    typer.echo(f"{'all ' if scenes > 1 else ''}{what} intact")
 
 
 @app.command()

@@ -6,15 +6,19 @@ from __future__ import annotations
 from pathlib import Path
 
 from urd.core.dataset import Dataset
+from urd.core.errors import ManifestError
 from urd.core.progress import plural
 
 
 def report_text(root: Path) -> str:
     """One line per scene (state, angles, calibration, results); broken scenes say why."""
     ds = Dataset.open(root)
-    calibration = ds.calibration()
-    offset = (f"{calibration.offset_deg:.3f} ± {calibration.uncertainty_deg:.3f} deg" if calibration
-              else "not calibrated")
+    try:
+        calibration = ds.calibration()
+        offset = (f"{calibration.offset_deg:.3f} ± {calibration.uncertainty_deg:.3f} deg" if calibration
+                  else "not calibrated")
+    except (ManifestError, OSError) as exc:        # the scenes are still worth listing
+        offset = f"unreadable ({exc})"
     scenes = ds.scenes()
     lines = [f"dataset {ds.root.resolve()}: {plural(len(scenes), 'scene')}; polarizer offset {offset}"]
     for scene in scenes:
@@ -34,9 +38,13 @@ def _truth_lines(scene) -> list[str]:
 
 
 def verify(root: Path) -> dict[str, list[str]]:
-    """Problems per scene (missing or changed files, unreadable manifests); empty when intact."""
+    """Problems per scene (missing or changed files, unreadable manifests), and of the
+    calibration under the key "calibration" where the dataset has one; empty when intact."""
     ds = Dataset.open(root)
-    return {scene.name: scene.verify() for scene in ds.scenes()}
+    problems = {scene.name: scene.verify() for scene in ds.scenes()}
+    if ds.calibration_path.exists() or ds.sweeps():
+        problems["calibration"] = ds.verify_calibration()
+    return problems
 
 
 def _shrink(image, max_side: int):

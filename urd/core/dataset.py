@@ -881,10 +881,13 @@ class Dataset:
         """Finish or clean up what killed runs left (called on taking the lock): staged scenes
         never adopted are removed; each scene and calibration sweep is recovered (`Scene.recover`)."""
         self.remove_stale()
-        sweeps = sorted((self.root / "calibration").glob("sweep_*"))
-        for scene in self.scenes() + [Scene(path) for path in sweeps if path.is_dir()]:
+        for scene in self.scenes() + self.sweeps():
             with contextlib.suppress(UrdError, OSError):
                 scene.recover()
+
+    def sweeps(self) -> list[Scene]:
+        """The calibration sweeps (``calibration/sweep_NN``), oldest first."""
+        return [Scene(path) for path in sorted((self.root / "calibration").glob("sweep_*")) if path.is_dir()]
 
     def scene_names(self) -> list[str]:
         """Names of the scene folders present (readable or not), sorted by number."""
@@ -979,6 +982,18 @@ class Dataset:
         sweep = confined_path(self.root, record["sweep"], str(self.calibration_path)) if "sweep" in record else None
         return OffsetCalibration(float(record["offset_deg"]), float(record["uncertainty_deg"]), record.get("modulation"),
                                  float(record["target_angle_deg"]), record["time"], sweep, len(record["history"]))
+
+    def verify_calibration(self) -> list[str]:
+        """Problems of the calibration (an unreadable or invalid ``calibration.json``, missing or
+        changed files of its sweeps, each hashed in full); empty when intact or never measured."""
+        problems = []
+        try:
+            self.calibration()
+        except (ManifestError, OSError) as exc:
+            problems.append(str(exc))
+        for sweep in self.sweeps():
+            problems += sweep.verify()
+        return problems
 
     def offset_deg(self) -> float:
         """The polarizer's mounting offset (deg), 0 when not calibrated."""
