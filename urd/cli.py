@@ -386,6 +386,7 @@ def calibrate_shots_cmd(
 
 @app.command()
 def separate(
+    ctx: typer.Context,
     scene: Optional[str] = typer.Argument(None, help="Scene name (scene_12) in --dataset, or a scene folder. Omit with --images."),
     dataset: Optional[Path] = typer.Option(None, help=DATASET_HELP, show_default=False),
     method: str = typer.Option("network", help="network (the paper's, shipped weights); baselines: schechner, kong, farid (polarization), li-brown, arvanitopoulos, ceilnet (single image: they see S0 only); none (T = S0)."),
@@ -441,6 +442,13 @@ def separate(
     if images and scene is not None:
         raise typer.BadParameter(f"expected a scene name or --images, not both (got {scene!r} and --images)")
     networks = ("network", "ceilnet")
+    unused = [f"--{name.replace('_', '-')}" for name in ("weights", "tile", "precision", "colour_match") if given(ctx, name)]
+    if unused and method not in networks:
+        raise typer.BadParameter(f"{', '.join(unused)}: for the networks (network, ceilnet), not {method}")
+    unused = [f"--{name}" for name in ("angles", "out", "transfer") if given(ctx, name)]
+    if unused and not images:
+        raise typer.BadParameter(f"{', '.join(unused)}: for --images; a scene's angles come from its manifest and its "
+                                 "results go into the scene's results/METHOD/")
     try:
         chosen = resolve(precision)
         if tile is not None and method in networks:
