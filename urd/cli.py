@@ -309,7 +309,8 @@ def ingest(
     if not report.outcomes:
         typer.echo("nothing to ingest")
     if report.failed:
-        fail(f"{len(report.failed)} of {plural(len(report.outcomes), 'scene')} failed or were flagged")
+        failed = len(report.failed)
+        fail(f"{failed} of {plural(len(report.outcomes), 'scene')} {'failed or was' if failed == 1 else 'failed or were'} flagged")
 
 
 calibrate_app = typer.Typer(help="Measure the polarizer: mounting offset from a sweep, per-shot angle errors of a scene."
@@ -423,7 +424,7 @@ def separate(
     from separate.precision import describe, resolve
     from urd.core.images import Transfer
     from urd.core.raw import RAW_SUFFIXES
-    from urd.separation import describe_incidence, separate_images, separate_scene
+    from urd.separation import describe_incidence, sees_polarization_of, separate_images, separate_scene
 
     if method not in METHODS:
         raise typer.BadParameter(f"unknown method {method!r}; expected one of {sorted(METHODS)}")
@@ -492,7 +493,8 @@ def separate(
     run, info = run_guarded(get_method, method, **options)
     # separate.methods records a baseline's keywords as its parameters: the callback is not one
     if images:
-        result = run_guarded(separate_images, images, angle_list, out, run, transfer_rule, force, forced, maps)
+        result = run_guarded(separate_images, images, angle_list, out, run, transfer_rule, force, forced, maps,
+                             sees_polarization_of(info))
     else:
         result = run_guarded(separate_scene, target, method, run, info, force, forced, maps)
     bar.close()
@@ -500,7 +502,8 @@ def separate(
         warn(line)
     kinds = {"auto": "estimated; per pixel, a field around it: reference_deg.tiff", "global": "estimated"}
     kind = kinds[forced] if isinstance(forced, str) else "given"
-    typer.echo(f"reference angle {result.reference_deg:.1f} deg ({kind})")
+    if sees_polarization_of(info):
+        typer.echo(f"reference angle {result.reference_deg:.1f} deg ({kind})")
     if "incidence" in info:
         typer.echo(describe_incidence(info["incidence"]))
     for path in result.files:
@@ -525,8 +528,8 @@ def separate_dataset(dataset: Optional[Path], method: str, weights: Optional[Pat
         typer.echo(f"{outcome.scene}: {outcome.state}{': ' + outcome.detail if outcome.detail else ''}")
     failed = sum(o.state == "failed" for o in outcomes)
     done = sum(o.state == "separated" for o in outcomes)
-    typer.echo(f"{plural(done, 'scene')} separated with {method}, {failed} failed; results in each "
-               f"scene's results/{method}/ (look at them: urd report {root} --html report)")
+    typer.echo(f"{plural(done, 'scene')} separated with {method}, {failed} failed" + (
+        f"; results in each scene's results/{method}/ (look at them: urd report {root} --html report)" if done else ""))
     if failed:
         raise typer.Exit(1)
 

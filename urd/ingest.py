@@ -307,7 +307,8 @@ def ingest_group(ds: Dataset, files: list[Path], opts: IngestOptions, progress: 
                 if sha256_file(dst) != sha256_file(src):
                     raise DatasetError(f"{src}: copy does not match the source")
                 staged.add_shot(i, dst, angle, time=meta["time"], camera=meta)
-            process_scene(staged, opts, progress)
+            named = progress and (lambda done, total, _: progress(done, total, f"ingest {files[0].name}"))
+            process_scene(staged, opts, named)          # the staged scene has no name yet: its first file's
             ok, error = staged.ingest_outcome()
             scene = ds.adopt_scene(staged.path)
     except UrdError as exc:

@@ -238,7 +238,7 @@ def prepare_scene(scene: Scene, method: str, run, info: dict, reference: str | f
     scene.reload()
     scene.truth_files()                                    # damaged ground truth stops it before the work
     images, angles = scene.load_stack(codes=True)          # uint16: half the memory of float32
-    sees_polarization = not str(info.get("reference_policy", "")).startswith("not used")
+    sees_polarization = sees_polarization_of(info)
     r_hat, t_hat, inspection, used = separate_inspected(images, angles, run, reference, sees_polarization)
     polarization = _maps(images, angles, used) if maps else None
     del images                                            # the largest array: free it before writing
@@ -247,7 +247,8 @@ def prepare_scene(scene: Scene, method: str, run, info: dict, reference: str | f
     staging = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=scene.path))
     try:
         paths = write_results(staging, r_hat, t_hat, overwrite=False, confidence=inspection.presence_at(r_hat.shape[:2]),
-                              clipped=inspection.clipped, reference_field=_field_image(used, inspection))
+                              clipped=inspection.clipped,
+                              reference_field=_field_image(used, inspection) if sees_polarization else None)
         staged = {f"results/{method}/{p.name}": p for p in paths}
         if polarization is not None:
             staged |= {f"results/{method}/maps/{p.name}": p for p in write_maps(staging / "maps", polarization)}
@@ -255,7 +256,7 @@ def prepare_scene(scene: Scene, method: str, run, info: dict, reference: str | f
         shutil.rmtree(staging, ignore_errors=True)
         raise
     entry = {"angles_deg": angles, **info, "full_scale": FULL_SCALE, "reference_deg": round(reference_deg, 3),
-             "reference": _reference_kind(reference), "warnings": warnings, "truth_metrics": metrics_truth}
+             "reference": _reference_kind(reference) if sees_polarization else "not used", "warnings": warnings, "truth_metrics": metrics_truth}
     return Prepared(scene.path, method, staging, staged, entry, Separation([], reference_deg, warnings, metrics_truth))
 
 
@@ -299,6 +300,12 @@ def describe_incidence(incidence: dict) -> str:
             f"{incidence['sharpness']:.3f}): the network ran without its Fresnel gate")
 
 
+def sees_polarization_of(info: dict) -> bool:
+    """Whether a method (its info from `separate.methods.get_method`) uses the polarization, and
+    so a reference angle; the single-image methods see S0 only."""
+    return not str(info.get("reference_policy", "")).startswith("not used")
+
+
 def _maps(images: np.ndarray, angles: list[float], used: float | np.ndarray) -> dict[str, np.ndarray]:
     from separate.maps import polarization_maps
 
@@ -318,9 +325,11 @@ def _reference_kind(reference: str | float) -> str:
 
 
 def separate_images(paths: list[Path], angles_deg: list[float], out: Path, run, transfer: Transfer = Transfer.LINEAR,
-                    force: bool = False, reference: str | float = "auto", maps: bool = False) -> Separation:
+                    force: bool = False, reference: str | float = "auto", maps: bool = False,
+                    sees_polarization: bool = True) -> Separation:
     """Separate image files (one per angle) into ``out``; existing results only with ``force``;
-    with ``maps`` the polarization maps too (``out/maps/``)."""
+    with ``maps`` the polarization maps too (``out/maps/``); the reference used is written
+    (``reference_deg.tiff``) only for a method that ``sees_polarization``."""
     if len(paths) != len(angles_deg):
         raise ValueError(f"expected one angle per image ({len(paths)} images), got {len(angles_deg)} angles")
     existing = sorted(p.name for p in Path(out).glob("*") if p.name in RESULT_NAMES or p.name == "maps") \
@@ -333,11 +342,12 @@ def separate_images(paths: list[Path], angles_deg: list[float], out: Path, run, 
         raise ValueError(f"expected images of one size, got {[im.shape[:2] for im in loaded]}")
     stack = np.stack(loaded)
     del loaded
-    r_hat, t_hat, inspection, used = separate_inspected(stack, angles_deg, run, reference)
+    r_hat, t_hat, inspection, used = separate_inspected(stack, angles_deg, run, reference, sees_polarization)
     polarization = _maps(stack, angles_deg, used) if maps else None
     del stack
     paths = write_results(Path(out), r_hat, t_hat, overwrite=force, confidence=inspection.presence_at(r_hat.shape[:2]),
-                          clipped=inspection.clipped, reference_field=_field_image(used, inspection))
+                          clipped=inspection.clipped,
+                          reference_field=_field_image(used, inspection) if sees_polarization else None)
     if polarization is not None:
         paths += write_maps(Path(out) / "maps", polarization, overwrite=force)
     return Separation(paths, inspection.reference_deg, inspection.warnings)
