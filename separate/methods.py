@@ -143,6 +143,11 @@ def network(weights: Path | None = None, tile: int | None = None, precision: str
     return run, info
 
 
+def citation(module) -> str:
+    """A baseline's citation: the first paragraph of its module docstring, on one line."""
+    return " ".join(module.__doc__.strip().split("\n\n")[0].split())
+
+
 def ceilnet(weights: Path | None = None, reference: Reference = "auto", **options) -> tuple[Run, dict]:
     """The CEILNet baseline (`separate.baselines.ceilnet`), run like the network: tiled, with
     the same options, its weights hash in the manifest; it sees only S0."""
@@ -152,7 +157,7 @@ def ceilnet(weights: Path | None = None, reference: Reference = "auto", **option
     run, info = network(weights or module.WEIGHTS, uses_reference=False, return_copies=False, **options)
     if info["weights"]["config"].get("variant") != "ceilnet":
         raise ValueError(f"weights {weights} hold a {info['weights']['config'].get('variant')} network, not CEILNet")
-    return run, {**info, "paper": module.__doc__.strip().splitlines()[0]}
+    return run, {**info, "paper": citation(module)}
 
 
 def no_separation(reference: Reference = "auto") -> tuple[Run, dict]:
@@ -198,7 +203,7 @@ def baseline(module_name: str, s0_only: bool) -> Callable[..., tuple[Run, dict]]
             return module.separate(shots, angles, **params, **said)
 
         policy = "not used: S0 only" if s0_only else reference_policy(check_reference(reference))
-        return run, {"parameters": params, "paper": module.__doc__.strip().splitlines()[0], "reference_policy": policy}
+        return run, {"parameters": params, "paper": citation(module), "reference_policy": policy}
 
     return make
 
