@@ -80,7 +80,8 @@ def offset_for_stage(ds: Dataset, stage_info: dict) -> tuple[float, str]:
         raise CalibrationError(
             f"{ds.calibration_path.resolve()}: the mounting offset {calibration.offset_deg:.3f} deg was calibrated on "
             f"{describe_stage(owner)}, not on this stage ({describe_stage(this)}); calibrate this stage "
-            f"with 'urd calibrate offset {ds.root.resolve()}', or capture into another dataset")
+            f"with 'urd calibrate offset {ds.root.resolve()} --stage {stage_info.get('port') or 'PORT'}"
+            f"{' --camera virtual' if this['kind'] == 'ELL14 simulator' else ''}', or capture into another dataset")
     whose = describe_stage(owner) if owner is not None else "a stage it does not record"
     return calibration.offset_deg, (f"mounting offset: {calibration.offset_deg:.3f} ± {calibration.uncertainty_deg:.3f} deg "
                                     f"from {ds.calibration_path.resolve()} ({calibration.time}, on {whose})")

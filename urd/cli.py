@@ -13,6 +13,7 @@ import enum
 import json
 import math
 import os
+import re
 import sys
 from pathlib import Path
 from typing import Optional
@@ -60,6 +61,13 @@ def given(ctx: typer.Context, name: str) -> bool:
     """True when the option ``name`` was given (on the command line or by the environment), not
     left at its default."""
     return ctx.get_parameter_source(name).name != "DEFAULT"
+
+
+def check_address(value: str) -> str:
+    """An ELL14 address: one hex digit 0-F (upper case)."""
+    if not re.fullmatch(r"[0-9A-Fa-f]", value):
+        raise typer.BadParameter(f"expected one hex digit 0-F, got {value!r}")
+    return value.upper()
 
 
 def choice(kind: type[enum.Enum], value: str, option: str) -> enum.Enum:
@@ -199,7 +207,7 @@ def capture(
     scene: Optional[str] = typer.Option(None, help="Scene name; an existing incomplete scene is resumed. Default: resume the newest incomplete scene, else the next free scene_NN."),
     new_scene: bool = typer.Option(False, "--new-scene", help="Start a new scene even if an incomplete one exists."),
     tolerance: float = typer.Option(0.5, min=0.0, help="Largest accepted difference of read-back and commanded angle (deg)."),
-    address: str = typer.Option("0", help="ELL14 device address 0-F."),
+    address: str = typer.Option("0", help="ELL14 device address 0-F.", callback=check_address),
     sim_offset: float = typer.Option(0.0, help="[sim] polarizer mounting offset (deg)."),
     sim_jitter: float = typer.Option(0.0, min=0.0, help="[sim] per-move angle error the encoder does not see, std (deg)."),
     sim_faults: str = typer.Option("", help="[sim] fault probabilities per command, e.g. drop=0.05,garble=0.05,mech_timeout=0.02,miss=0.02,vanish=0.01."),
@@ -232,7 +240,7 @@ def capture(
 
 @app.command("sim-stage")
 def sim_stage(
-    address: str = typer.Option("0", help="Device address 0-F."),
+    address: str = typer.Option("0", help="Device address 0-F.", callback=check_address),
     offset: float = typer.Option(0.0, help="Polarizer mounting offset the encoder does not see (deg)."),
     jitter: float = typer.Option(0.0, min=0.0, help="Per-move angle error the encoder does not see, std (deg)."),
     faults: str = typer.Option("", help="Fault probabilities per command, e.g. drop=0.05,garble=0.05,mech_timeout=0.02,miss=0.02,vanish=0.01."),
@@ -336,7 +344,7 @@ def calibrate_offset_cmd(
     camera: str = typer.Option("gphoto2", help="Camera driver: gphoto2 or virtual."),
     step: float = typer.Option(10.0, min=1.0, max=45.0, help="Sweep step (deg) over 180 deg."),
     target_angle: float = typer.Option(0.0, help="Polarization angle of the target's light (deg, image plane, CCW from x)."),
-    address: str = typer.Option("0", help="ELL14 device address 0-F."),
+    address: str = typer.Option("0", help="ELL14 device address 0-F.", callback=check_address),
     sim_offset: float = typer.Option(0.0, help="[sim] true mounting offset of the simulated polarizer (deg)."),
     seed: int = typer.Option(0, help="[sim/virtual] random seed."),
 ) -> None:
