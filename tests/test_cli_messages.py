@@ -186,6 +186,17 @@ def test_verify_does_not_tell_you_to_run_verify(tmp_path):
     assert "does not match the manifest" in out.stderr and "urd verify" not in out.stderr
 
 
+def test_report_points_at_missing_and_truncated_files(tmp_path):
+    root = tmp_path / "ds"
+    assert invoke("capture", root, *SIM, "--sim-size", "96x64").exit_code == 0
+    shots = sorted((root / "scene_01" / "raw").glob("*.dng"))
+    shots[0].unlink()
+    shots[1].write_bytes(shots[1].read_bytes()[:100])
+    out = invoke("report", root)
+    assert out.exit_code == 0
+    assert f"2 listed files missing or of another size (raw/{shots[0].name}, raw/{shots[1].name}): run urd verify" in out.stdout
+
+
 def test_verify_checks_the_calibration_and_report_lists_the_scenes_whatever_its_state(tmp_path):
     root = tmp_path / "ds"
     assert invoke("capture", root, *SIM, "--sim-size", "96x64").exit_code == 0

@@ -22,7 +22,12 @@ def report_text(root: Path) -> str:
     scenes = ds.scenes()
     lines = [f"dataset {ds.root.resolve()}: {plural(len(scenes), 'scene')}; polarizer offset {offset}"]
     for scene in scenes:
-        lines.append(f"  {scene.status().describe()}")
+        status = scene.status()
+        lines.append(f"  {status.describe()}")
+        missing = [] if status.state == "broken" else scene.missing_files()
+        if missing:
+            lines.append(f"    {plural(len(missing), 'listed file')} missing or of another size ({', '.join(missing[:3])}"
+                         f"{', …' if len(missing) > 3 else ''}): run urd verify {ds.root}")
         lines += [f"    {line}" for line in _truth_lines(scene)]
     return "\n".join(lines)
 

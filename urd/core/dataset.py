@@ -426,6 +426,22 @@ class Scene:
             if cache != before:
                 self._save_cache(cache)
 
+    def _listed_records(self, data: dict) -> list[dict]:
+        """The file records of the shots, the aligned stack and the results."""
+        records = data["shots"] + data.get("ingest", {}).get("aligned", [])
+        return records + [rec for entry in data.get("results", {}).values() for rec in entry["files"]]
+
+    def missing_files(self) -> list[str]:
+        """Listed files (shots, aligned stack, results) that are missing or have another size than
+        the manifest records: a quick look, no hashing (`verify` hashes)."""
+        data = self._data()
+        missing = []
+        for rec in self._listed_records(data):
+            path = self.path / rec["file"]
+            if not path.is_file() or path.stat().st_size != rec["size"]:
+                missing.append(rec["file"])
+        return missing
+
     def verify(self) -> list[str]:
         """Problems of this scene (empty when every listed file is present and intact), every
         file hashed in full: shots, aligned stack, results and the virtual camera's ground truth."""
@@ -433,8 +449,7 @@ class Scene:
             data = self.reload()._data()
         except (ManifestError, OSError) as exc:
             return [str(exc)]
-        records = data["shots"] + data.get("ingest", {}).get("aligned", [])
-        records += [rec for entry in data.get("results", {}).values() for rec in entry["files"]]
+        records = self._listed_records(data)
         problems = []
         try:
             records += self._truth_records()
