@@ -186,6 +186,15 @@ def test_verify_does_not_tell_you_to_run_verify(tmp_path):
     assert "does not match the manifest" in out.stderr and "urd verify" not in out.stderr
 
 
+def test_an_existing_html_report_is_refused_before_anything_is_printed(tmp_path):
+    root = tmp_path / "ds"
+    assert invoke("capture", root, *SIM, "--sim-size", "96x64").exit_code == 0
+    assert invoke("report", root, "--html", tmp_path / "rep").exit_code == 0
+    out = invoke("report", root, "--html", tmp_path / "rep")
+    assert out.exit_code == 1 and out.stdout == "" and "already exists; pass --force to replace it" in out.stderr
+    assert invoke("report", root, "--html", tmp_path / "rep", "--force").exit_code == 0
+
+
 def test_report_points_at_missing_and_truncated_files(tmp_path):
     root = tmp_path / "ds"
     assert invoke("capture", root, *SIM, "--sim-size", "96x64").exit_code == 0

@@ -700,6 +700,8 @@ def report(
     from urd.report import report_html, report_text
 
     root = existing_dataset(dataset)
+    if html is not None and html.exists() and not force:
+        fail(f"{html}: report folder already exists; pass --force to replace it, or another folder")
     typer.echo(run_guarded(report_text, root))
     if html is not None:
         index = run_guarded(report_html, root, html, force, progress=TerminalProgress())

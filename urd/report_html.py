@@ -708,7 +708,8 @@ def write_html_report(scenes: list[SceneView], out_dir: Path, title: str, calibr
     out_dir = Path(out_dir)
     if out_dir.exists() or out_dir.is_symlink():
         if not overwrite:
-            raise ReportExistsError(f"{out_dir}: report folder already exists (replace it with overwrite / --force)")
+            raise ReportExistsError(f"{out_dir}: report folder already exists; pass --force to replace it, or "
+                                   "another folder")
         if out_dir.is_symlink() or not _is_report_folder(out_dir):
             raise ReportExistsError(f"{out_dir}: exists and is not an urd HTML report; refusing to replace it")
     out_dir.parent.mkdir(parents=True, exist_ok=True)
