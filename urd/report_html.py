@@ -653,7 +653,7 @@ def _howto_html() -> str:
             "Stokes vector summed over the colour channels.</li>"
             f"<li>AoLP is shown as hue (0° red, 60° green, 120° blue, over 0–180°), saturation DoLP / "
             f"{AOLP_FULL_SATURATION_DOLP:g}, value from S0. Angles: in the image plane from +x, counter-clockwise as seen.</li>"
-            "<li>R̂ + T̂ ≈ S0 for every method. Click any thumbnail for the full-resolution view (JPEG previews; "
+            "<li>R̂ + T̂ ≈ S0 for every method, except where T̂ was colour-matched (--colour-match). Click any thumbnail for the full-resolution view (JPEG previews; "
             "the dataset's linear 16-bit TIFFs are the data).</li></ul></section>")
 
 

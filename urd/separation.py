@@ -29,7 +29,7 @@ import cv2
 import numpy as np
 import tifffile
 
-from separate import metrics
+from separate import metrics, optics
 from separate.reference import Inspection, resolve_reference
 from urd.core.dataset import STAGING_PREFIX, Scene
 from urd.core.errors import DatasetError
@@ -81,8 +81,10 @@ def _read_mapped(path: Path, shape: tuple[int, ...], scene: Scene) -> np.ndarray
                        "to write it again")
 
 
-def truth_metrics(scene: Scene, r_hat: np.ndarray, t_hat: np.ndarray, rows: int = 256) -> dict | None:
-    """PSNR/SSIM of R̂, T̂ and of no separation (R̂ + T̂) against the scene's ground truth, if any.
+def truth_metrics(scene: Scene, r_hat: np.ndarray, t_hat: np.ndarray, images: np.ndarray, angles_deg: list[float],
+                  rows: int = 256) -> dict | None:
+    """PSNR/SSIM of R̂, T̂ and of no separation (S0 of the shots ``images`` at ``angles_deg``, the
+    same for every method) against the scene's ground truth, if any.
 
     Figures are computed 5% inside the border (aligned shots are padded there), with peak 1;
     PSNR over ``rows`` rows at a time (no full-size temporaries), SSIM on the central
@@ -95,8 +97,13 @@ def truth_metrics(scene: Scene, r_hat: np.ndarray, t_hat: np.ndarray, rows: int 
                       for name in ("R_obs.tiff", "T_obs.tiff"))
     h, w = t_true.shape[:2]
     top, bottom, cols = h // 20, h - h // 20, slice(w // 20, w - w // 20)
+    weights = np.linalg.pinv(optics.stokes_matrix(np.radians(angles_deg)))[0] * optics.code_scale(images)
+
+    def s0(region: tuple[slice, slice]) -> np.ndarray:
+        return np.tensordot(weights.astype(np.float32), images[(slice(None), *region)], axes=1).astype(np.float32)
+
     pairs = {"R": lambda region: (r_hat[region], r_true[region]), "T": lambda region: (t_hat[region], t_true[region]),
-             "T_no_separation": lambda region: (r_hat[region] + t_hat[region], t_true[region])}
+             "T_no_separation": lambda region: (s0(region), t_true[region])}
     squared = dict.fromkeys(pairs, 0.0)
     for y in range(top, bottom, rows):
         block = (slice(y, min(bottom, y + rows)), cols)
@@ -241,8 +248,8 @@ def prepare_scene(scene: Scene, method: str, run, info: dict, reference: str | f
     sees_polarization = sees_polarization_of(info)
     r_hat, t_hat, inspection, used = separate_inspected(images, angles, run, reference, sees_polarization)
     polarization = _maps(images, angles, used) if maps else None
+    metrics_truth = truth_metrics(scene, r_hat, t_hat, images, angles)
     del images                                            # the largest array: free it before writing
-    metrics_truth = truth_metrics(scene, r_hat, t_hat)
     reference_deg, warnings = inspection.reference_deg, inspection.warnings
     staging = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=scene.path))
     try:
