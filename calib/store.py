@@ -19,7 +19,7 @@ import numpy as np
 from calib.polarizer import ShotErrors, estimate_shot_errors, fit_offset
 from urd.core import raw as rawio
 from urd.core.dataset import Dataset, Scene
-from urd.core.errors import CalibrationError
+from urd.core.errors import CalibrationError, CaptureInterrupted, UrdError
 from urd.core.files import read_json
 from urd.core.progress import Progress
 
@@ -103,10 +103,23 @@ def sweep_and_calibrate(root: Path, stage: str, camera: str, step_deg: float, ta
             try:
                 run_capture(sweep, rig.stage, rig.camera, angles,
                             progress=lambda st: progress and st.kind == "record" and progress(next(counter), len(angles), "sweep"))
+            except KeyboardInterrupt:
+                raise CaptureInterrupted(f"calibration sweep interrupted; {_left(sweep)}") from None
+            except (UrdError, OSError) as exc:
+                raise UrdError(f"{exc}\ncalibration sweep stopped; {_left(sweep)}") from exc
             except BaseException:
                 sweep.discard_if_empty()
                 raise
             return calibrate_offset(ds, sweep, target_angle_deg)
+
+
+def _left(sweep: Scene) -> str:
+    """What a stopped sweep left: nothing, or its shots (a sweep is not resumed: the next
+    'urd calibrate offset' sweeps anew and the calibration never uses an incomplete one)."""
+    if sweep.discard_if_empty():
+        return "no shot was taken, nothing was kept"
+    return (f"its {len(sweep.shots())} shots are kept in {sweep.path.resolve()} (unused: an incomplete sweep is never "
+            "fitted; delete it if you like); run 'urd calibrate offset' again for a new sweep")
 
 
 def calibrate_shots(scene: Scene, apply: bool = True) -> ShotErrors:

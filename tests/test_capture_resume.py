@@ -167,3 +167,18 @@ def test_an_unusable_camera_is_reported_with_the_virtual_one_before_anything_is_
                          capture_output=True, text=True, timeout=300, env=env)
     assert out.returncode == 1 and "gphoto2" in out.stderr and "--camera virtual" in out.stderr
     assert not (tmp_path / "ds").exists()
+
+
+def test_an_interrupted_calibration_sweep_says_what_it_kept_and_is_never_fitted(tmp_path, monkeypatch):
+    root = tmp_path / "ds"
+    stop_at_shot(monkeypatch, 2)
+    out = invoke("calibrate", "offset", root, *SIM, "--step", "30")
+    monkeypatch.undo()
+    assert out.exit_code == 130, out.output
+    message = " ".join(out.stderr.split())
+    assert "calibration sweep interrupted; its 2 shots are kept in" in message and "sweep_01" in message
+    assert "run 'urd calibrate offset' again for a new sweep" in message
+    assert not (root / "calibration.json").exists()
+    out = invoke("calibrate", "offset", root, *SIM, "--step", "30")
+    assert out.exit_code == 0, out.output
+    assert json.loads((root / "calibration.json").read_text())["sweep"] == "calibration/sweep_02"
