@@ -146,3 +146,17 @@ def test_virtual_dng_decodes_to_the_rendered_linear_scene(tmp_path):
         img = rawio.decode(scene.path / shot["file"])
         expected = cam.render(shot["angle_commanded_deg"], shot["index"])
         np.testing.assert_allclose(img.mean(axis=(0, 1)), expected.mean(axis=(0, 1)), rtol=0.01)
+
+
+def test_a_new_dataset_that_gets_no_scene_is_not_left_behind(tmp_path):
+    from urd.ingest import ingest
+
+    raw_dir = tmp_path / "raw"
+    raw_dir.mkdir()
+    for i in range(3):
+        (raw_dir / f"IMG_{i}.dng").write_text("not a raw file")
+    report = ingest(raw_dir, tmp_path / "new", IngestOptions())
+    assert len(report.failed) == 1 and not (tmp_path / "new").exists()
+    (tmp_path / "mine").mkdir()                                            # the user's folder stays, empty
+    ingest(raw_dir, tmp_path / "mine", IngestOptions())
+    assert (tmp_path / "mine").is_dir() and list((tmp_path / "mine").iterdir()) == []

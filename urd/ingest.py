@@ -32,7 +32,7 @@ import tifffile
 
 from urd.core import raw as rawio
 from urd.core.align import Motion, align, apply_warp
-from urd.core.dataset import STAGING_PREFIX, Dataset, Scene
+from urd.core.dataset import DATASET_MANIFEST, STAGING_PREFIX, Dataset, Scene
 from urd.core.errors import AlignmentError, DatasetError, RawFormatError, UrdError
 from urd.core.files import atomic_path, sha256_file
 from urd.core.images import IMAGE_SUFFIXES, Transfer, codes_to_linear, linear_to_u16, read_raw_codes
@@ -419,7 +419,19 @@ def ingest(source: Path, root: Path, opts: IngestOptions, mosaic=None, demosaic=
     if jobs > 1 and (scenes == [] or mosaic is not None):
         raise ValueError(f"expected a dataset or scene folder with --jobs {jobs}, got {source}: a RAW folder or "
                          "mosaic frames are ingested by one process (ingest them, then a dataset with --jobs)")
+    made = scenes == [] and not (Path(root) / DATASET_MANIFEST).exists()
+    folder_is_new = not Path(root).exists()
     ds = Dataset.open_or_create(root) if scenes == [] else Dataset.open(root)
+    try:
+        return _ingest_into(ds, source, scenes, opts, mosaic, demosaic, transfer, progress, jobs)
+    finally:
+        if made:                                       # a new dataset that got no scene is not left behind
+            ds.remove_if_unused(folder_is_new)
+
+
+def _ingest_into(ds: Dataset, source: Path, scenes: list[str] | None, opts: IngestOptions, mosaic, demosaic,
+                 transfer: Transfer, progress: Progress | None, jobs: int) -> IngestReport:
+    """`ingest` once the dataset is open."""
     with ds.lock():
         ds.remove_stale()
         if mosaic is not None:

@@ -860,6 +860,18 @@ class Dataset:
                                                  "description": description}, overwrite=False)
         return ds
 
+    def remove_if_unused(self, folder_is_new: bool) -> None:
+        """Remove a dataset that holds nothing (no scene, no calibration): its manifest, and its
+        folder when this run made it and it is empty. For workflows that made the dataset and
+        then failed on every input, so that a failure leaves nothing behind."""
+        if self.scene_names() or self.calibration_path.exists() or (self.root / "calibration").exists():
+            return
+        self.manifest_path.unlink(missing_ok=True)
+        (self.root / LOCK_FILE).unlink(missing_ok=True)
+        if folder_is_new:
+            with contextlib.suppress(OSError):
+                self.root.rmdir()
+
     @classmethod
     def open(cls, root: Path) -> "Dataset":
         """Open an existing dataset; DatasetError when there is none."""
