@@ -103,6 +103,8 @@ def test_separate_scene_exports_the_maps_hashed_with_units(ingested):
     assert any("DoLP.tiff" in problem for problem in Dataset.open(root).scene(name).verify())
     separate_scene(Dataset.open(root).scene(name), "schechner", run, info, force=True, maps=True)
     assert Dataset.open(root).scene(name).verify() == []
+    separate_scene(Dataset.open(root).scene(name), "schechner", run, info, force=True)     # no maps this time
+    assert not (scene.results_dir("schechner") / "maps").exists()
 
 
 def test_reports_show_the_ground_truth_figures_the_reference_field_and_the_map_links(ingested, tmp_path):

@@ -658,9 +658,15 @@ class Scene:
                 folders.add(PurePosixPath(rec["file"]).parts[0])
                 rec["file"] = final
             named = {rec["file"] for rec in _file_records(data)}
+            emptied = set()
             for name in data.get("swap", {}).get("remove", []):
                 if name not in named:
-                    confined_path(self.path, name, str(self.manifest_path)).unlink(missing_ok=True)
+                    old = confined_path(self.path, name, str(self.manifest_path))
+                    old.unlink(missing_ok=True)
+                    emptied.add(old.parent)
+            for folder in sorted(emptied, key=lambda p: len(p.parts), reverse=True):     # e.g. maps/ of an earlier --maps
+                if folder != self.path and folder.is_dir() and not any(folder.iterdir()):
+                    folder.rmdir()
             data.pop("swap", None)
             self._save()
         except BaseException:
