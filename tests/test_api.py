@@ -105,6 +105,7 @@ def test_separate_scene_exports_the_maps_hashed_with_units(ingested):
     assert Dataset.open(root).scene(name).verify() == []
     separate_scene(Dataset.open(root).scene(name), "schechner", run, info, force=True)     # no maps this time
     assert not (scene.results_dir("schechner") / "maps").exists()
+    separate_scene(Dataset.open(root).scene(name), "schechner", run, info, force=True, maps=True)   # as the next test expects
 
 
 def test_reports_show_the_ground_truth_figures_the_reference_field_and_the_map_links(ingested, tmp_path):
