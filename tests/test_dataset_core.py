@@ -239,3 +239,15 @@ def test_no_dataset_error_for_a_scene_without_manifest_names_the_problem(tmp_pat
     with pytest.raises(DatasetError, match="has no scene.json"):
         ds.scene("scene_01")
     assert np.all([s.status().state == "broken" for s in ds.scenes()])
+
+
+def test_datasets_written_under_either_schema_name_open(tmp_path):
+    ds = Dataset.open_or_create(tmp_path / "ds")
+    record = json.loads(ds.manifest_path.read_text())
+    assert record["schema"] == "urd.dataset"
+    for name in ("urd.dataset", "urd.core.dataset"):          # the second: urd 0.1 wrote it for a while
+        write_json_atomic(ds.manifest_path, {**record, "schema": name}, overwrite=True)
+        assert Dataset.open(tmp_path / "ds").root == ds.root
+    write_json_atomic(ds.manifest_path, {**record, "schema": "urd.scene"}, overwrite=True)
+    with pytest.raises(ManifestError, match="field 'schema' is 'urd.scene', expected 'urd.dataset'"):
+        Dataset.open(tmp_path / "ds")

@@ -3,7 +3,7 @@
 Layout::
 
     DATASET/
-      dataset.json              dataset manifest (schema "urd.core.dataset")
+      dataset.json              dataset manifest (schema "urd.dataset")
       calibration.json          mounting offset of the polarizer with its history (schema
                                 "urd.calibration"); written by `Dataset.save_calibration`
                                 for `calib.store`
@@ -55,6 +55,7 @@ from urd.core import __version__
 from urd.core.errors import DatasetBusyError, DatasetError, ManifestError, UrdError
 from urd.core.files import pid_lock, read_json, sha256_file, write_json_atomic
 from urd.core.manifest import (
+    DATASET_SCHEMA,
     SCHEMA_VERSION,
     confined_path,
     now_iso,
@@ -861,7 +862,7 @@ class Dataset:
         if ds.manifest_path.exists():
             validate_dataset(read_json(ds.manifest_path), str(ds.manifest_path))
         else:
-            write_json_atomic(ds.manifest_path, {"schema": "urd.core.dataset", "schema_version": SCHEMA_VERSION,
+            write_json_atomic(ds.manifest_path, {"schema": DATASET_SCHEMA, "schema_version": SCHEMA_VERSION,
                                                  "created": now_iso(), "urd_version": __version__,
                                                  "description": description}, overwrite=False)
         return ds

@@ -74,8 +74,14 @@ def _check_angles(record: dict, where: str, keys: tuple[str, ...]) -> None:
             raise ManifestError(f"{where}: field '{key}' is {value!r:.40} deg, expected an angle within ±{MAX_ANGLE_DEG:g} deg")
 
 
-def _check_schema(record: dict, where: str, schema: str) -> None:
-    if record["schema"] != schema:
+#: The dataset manifest's schema name (like "urd.scene" and "urd.calibration", a format name,
+#: not a module path).
+DATASET_SCHEMA = "urd.dataset"
+
+
+def _check_schema(record: dict, where: str, schema: str, aliases: tuple[str, ...] = ()) -> None:
+    """The record's schema is ``schema`` (or one of its earlier ``aliases``) at a version this urd reads."""
+    if record["schema"] != schema and record["schema"] not in aliases:
         raise ManifestError(f"{where}: field 'schema' is {record['schema']!r}, expected {schema!r}")
     version = record["schema_version"]
     if version < 1:
@@ -172,7 +178,7 @@ def validate_dataset(record: Any, where: str) -> dict:
     """Check a dataset manifest; ManifestError naming file and field."""
     _check(record, where, {"schema": str, "schema_version": int, "created": str, "urd_version": str},
            {"description": str})
-    _check_schema(record, where, "urd.core.dataset")
+    _check_schema(record, where, DATASET_SCHEMA, aliases=("urd.core.dataset",))      # written by urd 0.1 for a while
     return record
 
 
