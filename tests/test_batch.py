@@ -91,5 +91,5 @@ def test_ingest_jobs_is_for_a_dataset_not_a_raw_folder(tmp_path):
     raw = tmp_path / "raw"
     raw.mkdir()
     out = urd("ingest", raw, tmp_path / "ds", "--jobs", "2")
-    assert out.returncode == 1 and "expected a dataset or scene folder with --jobs 2" in out.stderr
+    assert out.returncode == 2 and "--jobs is for a dataset or scene folder" in " ".join(out.stderr.split())
     assert not (tmp_path / "ds").exists()

@@ -186,6 +186,21 @@ def test_verify_does_not_tell_you_to_run_verify(tmp_path):
     assert "does not match the manifest" in out.stderr and "urd verify" not in out.stderr
 
 
+def test_ingest_says_which_options_it_cannot_apply(tmp_path, dataset):
+    raw = tmp_path / "raw"
+    shutil.copytree(dataset / "scene_01" / "raw", raw)
+    assert invoke("ingest", raw, tmp_path / "new", "--angles", "0,45,90").exit_code == 0
+    out = invoke("ingest", raw, tmp_path / "new", "--angles", "0,60,120")
+    assert out.exit_code == 0 and "already ingested as scene_01 at 0,45,90 deg, not the --angles given" in out.stdout
+    for args, reason in (((tmp_path / "new" / "scene_01", "--redo", "--angles", "0,60,120"), "a scene's angles are in its manifest"),
+                         ((raw, tmp_path / "other", "--demosaic", "bilinear"), "--demosaic: for --mosaic frames"),
+                         ((raw, tmp_path / "other", "--jobs", "2"), "--jobs is for a dataset or scene folder"),
+                         ((tmp_path / "nowhere", tmp_path / "other"), "no such folder or file")):
+        out = invoke("ingest", *args)
+        assert out.exit_code == 2 and reason in " ".join(out.stderr.split()), (args, out.output)
+    assert not (tmp_path / "other").exists()
+
+
 def test_an_existing_html_report_is_refused_before_anything_is_printed(tmp_path):
     root = tmp_path / "ds"
     assert invoke("capture", root, *SIM, "--sim-size", "96x64").exit_code == 0

@@ -117,7 +117,7 @@ def test_mixed_sizes_and_missing_folder(tmp_path):
     out = urd("ingest", raw_dir, tmp_path / "ds")
     assert out.returncode == 1 and "x2.dng: size 320×192 differs" in out.stderr
     out = urd("ingest", tmp_path / "nowhere", tmp_path / "ds")
-    assert out.returncode == 1 and "no such folder" in out.stderr
+    assert out.returncode == 2 and "no such folder" in out.stderr
 
 
 def test_real_camera_raws_decode_linear_and_the_scanner_is_rejected():

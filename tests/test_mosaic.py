@@ -240,3 +240,29 @@ def test_registered_demosaicing_of_the_real_wen2019_colour_mosaic_against_its_tr
     err = {m: float(np.abs(dolp_of(demosaic(mosaic, MosaicLayout.WEN2019, m)[0]) - true_dolp)[edges].mean()) for m in Demosaic}
     assert err[Demosaic.BILINEAR] < 0.3 * err[Demosaic.NONE], err
     assert err[Demosaic.NEWTON] < err[Demosaic.BILINEAR], err
+
+
+def test_redo_demosaics_a_frame_again_as_it_was_ingested(tmp_path):
+    import hashlib
+
+    from typer.testing import CliRunner
+
+    from urd.cli import app
+    from urd.core.dataset import Dataset
+
+    frame = tmp_path / "frames" / "frame.png"
+    frame.parent.mkdir()
+    cv2.imwrite(str(frame), np.random.default_rng(0).integers(1000, 60000, (64, 96), dtype=np.uint16))
+    runner = CliRunner()
+    assert runner.invoke(app, ["ingest", str(frame.parent), str(tmp_path / "ds"), "--mosaic", "imx250mzr",
+                               "--demosaic", "bilinear"]).exit_code == 0
+    scene = Dataset.open(tmp_path / "ds").scene("scene_01")
+    aligned = sorted((scene.path / "aligned").glob("*.tiff"))
+    digests = [hashlib.sha256(p.read_bytes()).hexdigest() for p in aligned]
+    aligned[1].unlink()                                              # a damaged scene: rebuilt from its frame
+    for args in (["ingest", str(scene.path), "--redo"], ["ingest", str(tmp_path / "ds"), "--redo", "--jobs", "2"]):
+        out = runner.invoke(app, args)
+        assert out.exit_code == 0 and "ingested scene_01" in out.stdout, out.output
+        assert [hashlib.sha256(p.read_bytes()).hexdigest() for p in aligned] == digests
+        assert scene.reload().ingest_options() == {"mosaic": "imx250mzr", "demosaic": "bilinear", "transfer": "linear"}
+    assert Dataset.open(tmp_path / "ds").scene("scene_01").verify() == []

@@ -264,6 +264,7 @@ def sim_stage(
 
 @app.command()
 def ingest(
+    ctx: typer.Context,
     source: Path = typer.Argument(..., help="A folder of RAW shots, a captured scene folder, a dataset folder, or (with --mosaic) polarization-camera frames."),
     dataset: Optional[Path] = typer.Argument(None, help="Dataset to add scenes to when SOURCE is a RAW folder or mosaics (default: the current folder if it holds dataset.json, else ./dataset).", show_default=False),
     angles: str = typer.Option("0,45,90", help="Polarizer angles of consecutive shots (deg), for RAW folders without a capture manifest."),
@@ -290,9 +291,6 @@ def ingest(
     from urd.core.images import Transfer
     from urd.ingest import IngestOptions, ingest as ingest_workflow
 
-    if source.is_file() and not mosaic:
-        raise typer.BadParameter(f"{source} is a file; ingest takes a folder (of RAW shots, a captured scene, or a "
-                                 "dataset): put the shots in a folder and pass that", param_hint="SOURCE")
     opts = IngestOptions(tuple(parse_angles(angles)), choice(Motion, motion, "--motion"), half_size, gap, redo)
     layout = method = None
     if mosaic:
@@ -300,6 +298,21 @@ def ingest(
 
         layout, method = choice(MosaicLayout, mosaic, "--mosaic"), choice(Demosaic, demosaic, "--demosaic")
     transfer_rule = choice(Transfer, transfer, "--transfer")
+    if not source.exists():
+        raise typer.BadParameter(f"{source}: no such folder or file", param_hint="SOURCE")
+    if source.is_file() and not mosaic:
+        raise typer.BadParameter(f"{source} is a file; ingest takes a folder (of RAW shots, a captured scene, or a "
+                                 "dataset): put the shots in a folder and pass that", param_hint="SOURCE")
+    recorded = (source / "scene.json").is_file() or (source / "dataset.json").is_file()
+    if recorded and given(ctx, "angles"):
+        raise typer.BadParameter("a scene's angles are in its manifest; --angles is for a folder of RAW files. To "
+                                 "record other angles, move the scene folder away and ingest its raw/ files again")
+    if jobs > 1 and (not recorded or mosaic):
+        raise typer.BadParameter("--jobs is for a dataset or scene folder; a RAW folder or mosaic frames are ingested "
+                                 "by one process (ingest them, then the dataset with --jobs)")
+    unused = [f"--{name}" for name in ("demosaic", "transfer") if given(ctx, name)]
+    if unused and not mosaic:
+        raise typer.BadParameter(f"{', '.join(unused)}: for --mosaic frames")
     report = run_guarded(ingest_workflow, source, dataset or default_root(), opts, layout, method, transfer_rule,
                          progress=TerminalProgress(), jobs=jobs)
     for path in report.ignored:

@@ -149,21 +149,29 @@ class PreparedIngest:
 
     scene: Path
     ok: bool
-    alignment: list
+    alignment: list | str
     staging: Path | None
     staged: dict[str, Path]
     error: str | None = None
+    options: dict | None = None             # the options to record, where not the ingest's own (a mosaic frame's)
+
+
+#: The alignment record of a polarization-camera frame's channels.
+SIMULTANEOUS = "none: the channels of a division-of-focal-plane sensor are simultaneous"
 
 
 def prepare_ingest(scene: Scene, opts: IngestOptions, progress: Progress | None = None) -> PreparedIngest:
     """Decode and align the shots of ``scene`` and stage ``aligned/`` in a new staging folder of
     the scene, without touching its manifest (so that several processes can prepare scenes of
     one dataset while one commits them; the dataset's recovery removes the folder should the
-    process die first).
+    process die first). A scene made from a polarization-camera frame is demosaiced again
+    instead, as it was first ingested.
 
     Raises RawFormatError for an undecodable shot, AlignmentError for mixed sizes; a failed
     alignment is prepared as ok false, with no aligned stack.
     """
+    if "mosaic" in scene.ingest_options():
+        return _prepare_mosaic(scene, progress)
     paths = scene.raw_paths()
     label = f"ingest {scene.name}"
     if progress:
@@ -200,11 +208,55 @@ def prepare_ingest(scene: Scene, opts: IngestOptions, progress: Progress | None 
     return PreparedIngest(scene.path, True, alignment, staging, staged)
 
 
+def _prepare_mosaic(scene: Scene, progress: Progress | None = None) -> PreparedIngest:
+    """`prepare_ingest` of a scene made from a polarization-camera frame: demosaic its frame
+    again with the layout, demosaicing and transfer it was ingested with."""
+    from urd.core.mosaic import Demosaic, MosaicLayout
+
+    options = scene.ingest_options()
+    frame = scene.raw_paths()[0]
+    if progress:
+        progress(0, 1, f"ingest {scene.name}")
+    stack, _ = _demosaiced(frame, MosaicLayout(options["mosaic"]), Demosaic(options["demosaic"]),
+                           Transfer(options["transfer"]))
+    staging = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=scene.path))
+    try:
+        staged = _write_stack(staging, stack)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    if progress:
+        progress(1, 1, f"ingest {scene.name}")
+    return PreparedIngest(scene.path, True, SIMULTANEOUS, staging, staged, options=options)
+
+
+def _demosaiced(path: Path, layout, demosaic, transfer: Transfer) -> tuple[np.ndarray, list[float]]:
+    """A frame's linear RGB stack (mono sensors give grey RGB) and its polarizer angles (deg)."""
+    from urd.core.mosaic import demosaic as run_demosaic
+
+    data = read_raw_codes(path)
+    if data.ndim != 2 or data.dtype not in (np.uint8, np.uint16):
+        raise RawFormatError(f"{path}: expected a single-channel 8- or 16-bit mosaic image, got {data.dtype} {data.shape}")
+    codes, angles = run_demosaic(data, layout, demosaic)
+    stack = codes_to_linear(codes, data.dtype, transfer)
+    return (np.repeat(stack, 3, axis=-1) if stack.shape[-1] == 1 else stack), [float(a) for a in angles]
+
+
+def _write_stack(staging: Path, stack: np.ndarray) -> dict[str, Path]:
+    """Write a stack's shots as aligned TIFFs into ``staging``; final name → staged path."""
+    files = {}
+    for i in range(len(stack)):
+        files[f"aligned/shot_{i:02d}.tiff"] = staging / f"shot_{i:02d}.tiff"
+        write_aligned(files[f"aligned/shot_{i:02d}.tiff"], stack[i])
+    return files
+
+
 def commit_ingest(scene: Scene, prepared: PreparedIngest, opts: IngestOptions) -> None:
     """Record a prepared ingest in the scene's manifest (`Scene.set_ingest`; the caller holds the
     dataset's lock); the staging folder is removed either way."""
     try:
-        scene.set_ingest(prepared.ok, opts.record(), prepared.alignment, prepared.staged, error=prepared.error)
+        scene.set_ingest(prepared.ok, prepared.options or opts.record(), prepared.alignment, prepared.staged,
+                         error=prepared.error)
     finally:
         if prepared.staging is not None:
             shutil.rmtree(prepared.staging, ignore_errors=True)
@@ -337,7 +389,14 @@ def ingest_folder(raw_dir: Path, ds: Dataset, opts: IngestOptions, progress: Pro
         else:
             already.setdefault(scene, []).append(path)
     for scene, paths in already.items():
-        outcomes.append(SceneOutcome(scene, paths, f"already ingested as {scene}", "skipped"))
+        try:
+            recorded = ds.scene(scene).uncalibrated_angles_deg()
+        except (UrdError, OSError):                     # a broken scene says so where it is listed
+            recorded = list(opts.angles_deg)
+        other = "" if [float(a) for a in opts.angles_deg] == [float(a) for a in recorded] else (
+            f" at {','.join(f'{a:g}' for a in recorded)} deg, not the --angles given; to record other angles, move "
+            f"{ds.root / scene} away and ingest again")
+        outcomes.append(SceneOutcome(scene, paths, f"already ingested as {scene}{other}", "skipped"))
     if not fresh:
         return IngestReport(outcomes, ignored)
     unreadable = {path: reason for path in fresh if (reason := unreadable_reason(path))}
@@ -364,22 +423,14 @@ def ingest_mosaic(ds: Dataset, path: Path, layout, demosaic, transfer: Transfer 
     sites registered to common points), which are simultaneous and need no alignment; mono
     sensors give grey RGB. 8-bit codes follow ``transfer`` (`urd.core.images`).
     """
-    from urd.core.mosaic import demosaic as run_demosaic
-
     digest = sha256_file(path)
     owner = ds.shot_index().get(digest)
     if owner is not None:
         return SceneOutcome(owner, [path], f"already ingested as {owner}", "skipped")
     try:
-        data = read_raw_codes(path)
-        if data.ndim != 2 or data.dtype not in (np.uint8, np.uint16):
-            raise RawFormatError(f"{path}: expected a single-channel 8- or 16-bit mosaic image, got {data.dtype} {data.shape}")
-        codes, angles = run_demosaic(data, layout, demosaic)
-        stack = codes_to_linear(codes, data.dtype, transfer)
-        if stack.shape[-1] == 1:
-            stack = np.repeat(stack, 3, axis=-1)
+        stack, angles = _demosaiced(path, layout, demosaic, transfer)
         options = {"mosaic": layout.value, "demosaic": str(getattr(demosaic, "value", demosaic)), "transfer": Transfer(transfer).value}
-        with ds.staged_scene("ingest", {"source_files": [str(path)], "angles_deg": [float(a) for a in angles],
+        with ds.staged_scene("ingest", {"source_files": [str(path)], "angles_deg": angles,
                                         "complete": True, **options}) as staged:
             (staged.path / "raw").mkdir()
             dst = staged.path / "raw" / path.name
@@ -388,12 +439,7 @@ def ingest_mosaic(ds: Dataset, path: Path, layout, demosaic, transfer: Transfer 
             for i, angle in enumerate(angles):
                 staged.add_shot(i, dst, angle)
             with staged.staging() as staging:
-                files = {}
-                for i in range(len(angles)):
-                    files[f"aligned/shot_{i:02d}.tiff"] = staging / f"shot_{i:02d}.tiff"
-                    write_aligned(files[f"aligned/shot_{i:02d}.tiff"], stack[i])
-                staged.set_ingest(True, options, "none: the channels of a division-of-focal-plane sensor are simultaneous",
-                                  files)
+                staged.set_ingest(True, options, SIMULTANEOUS, _write_stack(staging, stack))
             scene = ds.adopt_scene(staged.path)
         return SceneOutcome(scene.name, [path])
     except (UrdError, ValueError) as exc:

@@ -330,6 +330,11 @@ class Scene:
     def is_ingested(self) -> bool:
         return "ingest" in self._data()
 
+    def ingest_options(self) -> dict:
+        """The options of the last ingest (empty before any); a polarization-camera frame's
+        record its ``mosaic`` layout, ``demosaic`` and ``transfer``."""
+        return copy.deepcopy(self._data().get("ingest", {}).get("options", {}))
+
     def methods(self) -> list[str]:
         """Methods whose results the scene holds."""
         return sorted(self._data().get("results", {}))
