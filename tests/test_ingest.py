@@ -115,7 +115,8 @@ def test_mixed_sizes_and_missing_folder(tmp_path):
     for i, f in enumerate(files):
         shutil.copyfile(f, raw_dir / f"x{i}.dng")
     out = urd("ingest", raw_dir, tmp_path / "ds")
-    assert out.returncode == 1 and "x2.dng: size 320×192 differs" in out.stderr
+    assert out.returncode == 1 and "FAILED x0.dng, x1.dng, x2.dng: x2.dng: size 320×192 differs" in out.stderr
+    assert ".staging-" not in out.stderr and "another camera or setting" in out.stderr
     out = urd("ingest", tmp_path / "nowhere", tmp_path / "ds")
     assert out.returncode == 2 and "no such folder" in out.stderr
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
+import re
 import shutil
 import tempfile
 from pathlib import Path
@@ -129,8 +130,9 @@ def group_shots(files: list[Path], count: int, gap_s: float) -> tuple[list[list[
     for run in runs:
         if len(run) % count:
             failures.append(SceneOutcome(None, run, f"wrong shot count: {len(run)} shots taken together "
-                                                    f"({', '.join(p.name for p in run)}) is not a multiple of {count} angles",
-                                         "failed"))
+                                                    f"({', '.join(p.name for p in run)}) is not a multiple of {count} angles; "
+                                                    f"shots more than --gap {gap_s:g} s apart start a new scene, and "
+                                                    "--angles gives the angles of one scene's shots", "failed"))
             continue
         groups += [run[i : i + count] for i in range(0, len(run), count)]
     return groups, failures
@@ -364,7 +366,10 @@ def ingest_group(ds: Dataset, files: list[Path], opts: IngestOptions, progress: 
             ok, error = staged.ingest_outcome()
             scene = ds.adopt_scene(staged.path)
     except UrdError as exc:
-        message = str(exc)
+        message = re.sub(rf"\S*{re.escape(STAGING_PREFIX)}[^/\s]*/raw/", "", str(exc))    # the staged copies' folder
+        if isinstance(exc, AlignmentError) and "differs from" in message:
+            message += ("; shots of another camera or setting fell into this scene: put them in another folder, or "
+                        "split the scenes with a smaller --gap")
         for i, src in enumerate(files):
             message = message.replace(f"shot_{i:02d}_{opts.angles_deg[i]:05.1f}deg{src.suffix.lower()}", src.name)
         return SceneOutcome(None, files, message, "failed")
