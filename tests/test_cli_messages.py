@@ -169,6 +169,8 @@ def test_raw_files_given_to_separate_point_to_ingest_without_opencv_warnings(dat
 def test_verify_counts_one_scene_in_the_singular(dataset):
     out = invoke("verify", dataset)
     assert out.exit_code == 0 and "1 scene intact" in out.stdout and "scenes" not in out.stdout
+    out = invoke("verify", dataset / "scene_01")                      # one scene's folder
+    assert out.exit_code == 0 and "scene_01: ok" in out.stdout and "1 scene intact" in out.stdout
 
 
 def test_report_counts_one_scene_in_the_singular(dataset):
@@ -208,6 +210,12 @@ def test_an_existing_html_report_is_refused_before_anything_is_printed(tmp_path)
     out = invoke("report", root, "--html", tmp_path / "rep")
     assert out.exit_code == 1 and out.stdout == "" and "already exists; pass --force to replace it" in out.stderr
     assert invoke("report", root, "--html", tmp_path / "rep", "--force").exit_code == 0
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("keep")
+    for target in (tmp_path / "mine", tmp_path / "mine" / "notes.txt"):
+        out = invoke("report", root, "--html", target, "--force")
+        assert out.exit_code == 1 and "is not an urd HTML report; choose another folder" in out.stderr
+    assert (tmp_path / "mine" / "notes.txt").read_text() == "keep"
 
 
 def test_report_points_at_missing_and_truncated_files(tmp_path):

@@ -371,6 +371,10 @@ def test_ingest_redo_marks_results_stale_and_removes_the_shot_calibration(tmp_pa
     assert status.stale == ("none",) and not status.calibrated
     assert any(w.startswith("STALE") and "--force" in w for w in scene.result("none").warnings)
     assert [s.angle_calibrated_deg for s in scene.shots()] == [None] * 3
+    from urd.batch import targets
+
+    assert targets(Dataset.open(root), "none", force=False)[1][0].detail == \
+        "has STALE none results, from an earlier alignment (--force replaces them)"
     superseded = [p for p in scene.provenance() if p["step"] == "supersede"]
     assert superseded and superseded[-1]["parameters"]["calibration"]["errors_deg"] == [0.4, -0.3, 0.2]
     assert_clean(root)

@@ -43,7 +43,8 @@ def targets(ds: Dataset, method: str, force: bool) -> tuple[list[Scene], list[Ba
         elif not scene.is_ingested() or not scene.ingest_outcome()[0]:
             skipped.append(BatchOutcome(scene.name, "skipped", "not ingested (run urd ingest first)"))
         elif method in scene.methods() and not force:
-            skipped.append(BatchOutcome(scene.name, "skipped", f"has {method} results (--force replaces them)"))
+            what = f"STALE {method} results, from an earlier alignment" if method in status.stale else f"{method} results"
+            skipped.append(BatchOutcome(scene.name, "skipped", f"has {what} (--force replaces them)"))
         else:
             chosen.append(scene)
     return chosen, skipped

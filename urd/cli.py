@@ -712,9 +712,14 @@ def report(
     """
     from urd.report import report_html, report_text
 
+    from urd.report_html import is_report_folder
+
     root = existing_dataset(dataset)
-    if html is not None and html.exists() and not force:
-        fail(f"{html}: report folder already exists; pass --force to replace it, or another folder")
+    if html is not None and (html.exists() or html.is_symlink()):
+        if html.is_symlink() or not is_report_folder(html):
+            fail(f"{html}: exists and is not an urd HTML report; choose another folder for the report")
+        if not force:
+            fail(f"{html}: report folder already exists; pass --force to replace it, or another folder")
     typer.echo(run_guarded(report_text, root))
     if html is not None:
         index = run_guarded(report_html, root, html, force, progress=TerminalProgress())
@@ -722,13 +727,14 @@ def report(
 
 
 @app.command()
-def verify(dataset: Optional[Path] = typer.Argument(None, help=DATASET_HELP, show_default=False)) -> None:
+def verify(dataset: Optional[Path] = typer.Argument(None, help=DATASET_HELP + " Or one scene's folder.", show_default=False)) -> None:
     """Check every file a dataset's manifests list against its size and SHA-256; exit 1 on any problem.
 
     \b
     Example:
       urd verify
       urd verify dataset
+      urd verify dataset/scene_01
     """
     from urd.report import verify as verify_dataset
 

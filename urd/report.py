@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from urd.core.dataset import Dataset
+from urd.core.dataset import SCENE_MANIFEST, Dataset, Scene
 from urd.core.errors import ManifestError
 from urd.core.progress import plural
 
@@ -44,7 +44,11 @@ def _truth_lines(scene) -> list[str]:
 
 def verify(root: Path) -> dict[str, list[str]]:
     """Problems per scene (missing or changed files, unreadable manifests), and of the
-    calibration under the key "calibration" where the dataset has one; empty when intact."""
+    calibration under the key "calibration" where the dataset has one; empty when intact.
+    ``root`` may also be one scene's folder: then that scene alone."""
+    if (Path(root) / SCENE_MANIFEST).is_file():
+        scene = Scene(Path(root))
+        return {scene.name: scene.verify()}
     ds = Dataset.open(root)
     problems = {scene.name: scene.verify() for scene in ds.scenes()}
     if ds.calibration_path.exists() or ds.sweeps():

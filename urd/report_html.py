@@ -175,7 +175,8 @@ def _slug(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9_-]+", "-", text).strip("-")[:40] or "x"
 
 
-def _is_report_folder(path: Path) -> bool:
+def is_report_folder(path: Path) -> bool:
+    """Whether ``path`` is an empty folder or an HTML report urd wrote (which --force may replace)."""
     if path.is_dir() and not any(path.iterdir()):
         return True
     index = path / "index.html"
@@ -710,7 +711,7 @@ def write_html_report(scenes: list[SceneView], out_dir: Path, title: str, calibr
         if not overwrite:
             raise ReportExistsError(f"{out_dir}: report folder already exists; pass --force to replace it, or "
                                    "another folder")
-        if out_dir.is_symlink() or not _is_report_folder(out_dir):
+        if out_dir.is_symlink() or not is_report_folder(out_dir):
             raise ReportExistsError(f"{out_dir}: exists and is not an urd HTML report; refusing to replace it")
     out_dir.parent.mkdir(parents=True, exist_ok=True)
 
