@@ -161,3 +161,19 @@ def test_a_new_dataset_that_gets_no_scene_is_not_left_behind(tmp_path):
     (tmp_path / "mine").mkdir()                                            # the user's folder stays, empty
     ingest(raw_dir, tmp_path / "mine", IngestOptions())
     assert (tmp_path / "mine").is_dir() and list((tmp_path / "mine").iterdir()) == []
+
+
+def test_identical_files_are_not_a_scene(tmp_path):
+    from urd.ingest import ingest
+
+    ds = Dataset.open_or_create(tmp_path / "cap")
+    scene, _ = capture_virtual(ds, size=(96, 64), seed=1)
+    raw_dir = tmp_path / "raw"
+    raw_dir.mkdir()
+    shot = scene.path / scene.load()["shots"][0]["file"]
+    for i in range(3):
+        shutil.copyfile(shot, raw_dir / f"x{i}.dng")
+    report = ingest(raw_dir, tmp_path / "ds", IngestOptions())
+    assert [o.error for o in report.outcomes] == [
+        "x0.dng and x1.dng are the same file (identical content): a scene needs one shot per polarizer angle"]
+    assert not (tmp_path / "ds").exists()

@@ -349,6 +349,12 @@ def ingest_scenes(scenes: list[Scene], opts: IngestOptions, jobs: int, progress:
 
 def ingest_group(ds: Dataset, files: list[Path], opts: IngestOptions, progress: Progress | None = None) -> SceneOutcome:
     """Make a new scene from RAW files taken at ``opts.angles_deg``; nothing is left on failure."""
+    seen: dict[str, Path] = {}
+    for path in files:
+        first = seen.setdefault(sha256_file(path), path)
+        if first is not path:
+            return SceneOutcome(None, files, f"{first.name} and {path.name} are the same file (identical content): "
+                                             "a scene needs one shot per polarizer angle", "failed")
     try:
         with ds.staged_scene("ingest", {"source_files": [str(f) for f in files], "angles_deg": list(opts.angles_deg),
                                         "complete": True}) as staged:
