@@ -20,7 +20,6 @@ from calib.polarizer import ShotErrors, estimate_shot_errors, fit_offset
 from urd.core import raw as rawio
 from urd.core.dataset import Dataset, Scene
 from urd.core.errors import CalibrationError, CaptureInterrupted, UrdError
-from urd.core.files import read_json
 from urd.core.progress import Progress
 
 
@@ -56,7 +55,7 @@ def calibration_stage(ds: Dataset) -> dict | None:
     calibration = ds.calibration()
     if calibration is None:
         return None
-    stage = read_json(ds.calibration_path).get("stage")
+    stage = calibration.stage
     if stage is None and calibration.sweep is not None and Scene(calibration.sweep).exists():
         recorded = Scene(calibration.sweep).load(verify=False)["capture"].get("stage")
         stage = None if recorded is None else stage_identity(recorded)

@@ -209,7 +209,8 @@ class Result:
 @dataclasses.dataclass(frozen=True)
 class OffsetCalibration:
     """The polarizer's mounting offset (deg) with its uncertainty, the sweep it was fitted to
-    (a scene folder, or None), and when."""
+    (a scene folder, or None), when, and the stage it was measured on (its identity, as
+    `acquire.rig.stage_identity` gives it; None where not recorded)."""
 
     offset_deg: float
     uncertainty_deg: float
@@ -218,6 +219,7 @@ class OffsetCalibration:
     time: str
     sweep: Path | None
     earlier: int
+    stage: dict | None = None
 
 
 # ---------------------------------------------------------------- hash cache
@@ -1020,7 +1022,8 @@ class Dataset:
             return None
         sweep = confined_path(self.root, record["sweep"], str(self.calibration_path)) if "sweep" in record else None
         return OffsetCalibration(float(record["offset_deg"]), float(record["uncertainty_deg"]), record.get("modulation"),
-                                 float(record["target_angle_deg"]), record["time"], sweep, len(record["history"]))
+                                 float(record["target_angle_deg"]), record["time"], sweep, len(record["history"]),
+                                 record.get("stage"))
 
     def verify_calibration(self) -> list[str]:
         """Problems of the calibration (an unreadable or invalid ``calibration.json``, missing or
