@@ -28,7 +28,18 @@ from urd.core.progress import TerminalProgress, plural
 DATASET_HELP = "Dataset folder (default: the current folder if it holds dataset.json, else ./dataset)."
 HELP_OPTIONS = {"help_option_names": ["-h", "--help"]}
 
+class WorkflowOrder(typer.core.TyperGroup):
+    """Lists the commands in the order of the work: capture, calibrate, ingest, separate, look."""
+
+    ORDER = ("capture", "calibrate", "ingest", "separate", "report", "verify", "demo", "train", "bench", "sim-stage")
+
+    def list_commands(self, ctx) -> list[str]:
+        order = {name: k for k, name in enumerate(self.ORDER)}
+        return sorted(super().list_commands(ctx), key=lambda name: order.get(name, len(order)))
+
+
 app = typer.Typer(
+    cls=WorkflowOrder,
     help="urd: photograph scenes through glass with a rotating polarizer and separate reflection from transmission.",
     no_args_is_help=True,
     add_completion=False,
