@@ -268,7 +268,7 @@ def capture_scene(root: Path, stage: str, camera: str, angles_deg: list[float] |
                 announce(line)
                 scene = new_capture_scene(ds, list(angles_deg or DEFAULT_ANGLES_DEG), offset_deg,
                                           0.5 if tolerance_deg is None else tolerance_deg, rig.info, scene_name)
-            elif scene.is_complete():
+            elif scene.is_complete() and not _truth_missing(scene, rig.info):
                 raise DatasetError(f"{scene.name} is complete ({len(scene.shots())} shots); capture another scene: "
                                    "--new-scene, or --scene with a new name")
             else:
@@ -289,6 +289,12 @@ def capture_scene(root: Path, stage: str, camera: str, angles_deg: list[float] |
             except (UrdError, OSError) as exc:
                 raise UrdError(f"{exc}\ncapture of {scene.name} stopped; {_stopped(scene, ds.root)}") from exc
     return scene
+
+
+def _truth_missing(scene: Scene, rig_info: dict) -> bool:
+    """Whether a virtual-camera scene lacks its ground truth (a capture stopped while writing it:
+    the dataset's recovery set the torn folder aside); resuming it writes the truth again."""
+    return rig_info["camera"].get("kind") == "virtual" and not scene.truth_dir().exists()
 
 
 def _set_aside(path: Path) -> None:

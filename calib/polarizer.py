@@ -190,10 +190,13 @@ def estimate_shot_errors(stack: np.ndarray, nominal_deg: list[float], short_side
             draws.append(_solve_angles(data[:, idx], nominal)[0])
     spread = np.degrees(np.std(draws, axis=0)) if draws else np.full(n, np.nan)
     errors = np.degrees(phi - nominal)
-    if np.abs(errors).max() > MAX_SHOT_ERROR_DEG or (n >= 5 and unobservable is not None):
-        raise CalibrationError(
-            f"the images do not determine the shots' angles: the fit moves them by up to "
-            f"{np.abs(errors).max():.0f} deg (at most {MAX_SHOT_ERROR_DEG:.0f} is plausible); the scene has too little polarized light against the noise, or its shots are not aligned. "
-            "Calibrate on a scene with glare from glass or a polarizer target, from a tripod")
+    remedy = ("the scene has too little polarized light against the noise, or its shots are not aligned. "
+              "Calibrate on a scene with glare from glass or a polarizer target, from a tripod")
+    if np.abs(errors).max() > MAX_SHOT_ERROR_DEG:
+        raise CalibrationError(f"the images do not determine the shots' angles: the fit moves them by up to "
+                               f"{np.abs(errors).max():.0f} deg (at most {MAX_SHOT_ERROR_DEG:.0f} is plausible); {remedy}")
+    if n >= 5 and unobservable is not None:
+        raise CalibrationError("the images do not determine every shot's angle: one combination of the errors does "
+                               f"not show in them; {remedy}")
     return ShotErrors(errors.tolist(), spread.tolist(), int(chosen.sum()), iterations,
                       None if unobservable is None else unobservable.tolist())

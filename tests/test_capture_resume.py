@@ -6,6 +6,7 @@ import json
 import os
 import re
 import shlex
+import shutil
 import subprocess
 import sys
 
@@ -91,6 +92,11 @@ def test_a_plain_capture_resumes_the_scene_with_its_own_angles(tmp_path, monkeyp
     out = invoke("capture", root, *SIM, "--sim-size", "96x64", "--seed", "3", "--scene", "scene_01")
     assert out.exit_code == 1 and "scene_01 is complete (3 shots); capture another scene" in out.stderr
     assert (scene.path / "scene.json").read_bytes() == record
+    truth = {p.name: p.read_bytes() for p in scene.truth_dir().iterdir()}
+    shutil.rmtree(scene.truth_dir())                          # as the recovery sets a torn truth folder aside
+    out = invoke("capture", root, *SIM, "--sim-size", "96x64", "--seed", "3", "--scene", "scene_01")
+    assert out.exit_code == 0, out.output
+    assert {p.name: p.read_bytes() for p in scene.truth_dir().iterdir()} == truth    # written again, the same
 
 
 def test_a_dataset_is_never_made_inside_another(tmp_path):
@@ -101,6 +107,9 @@ def test_a_dataset_is_never_made_inside_another(tmp_path):
         assert out.exit_code == 1 and f"is inside the dataset {root.resolve()}" in out.stderr, out.output
     assert not (root / "elsewhere").exists() and not (root / "scene_01" / "scene_01").exists()
     assert Dataset.open(root).scene_names() == ["scene_01"]
+    (tmp_path / "tool").mkdir()
+    (tmp_path / "tool" / "dataset.json").write_text('{"name": "another tool\'s dataset"}')
+    assert invoke("capture", tmp_path / "tool" / "shoot", *SIM, "--sim-size", "96x64").exit_code == 0
     out = invoke("capture", tmp_path / "other", *SIM, "--sim-size", "96x64", "--scene", "../evil")
     assert out.exit_code == 1 and "expected a scene name like scene_01" in out.stderr
     assert not (tmp_path / "other").exists()

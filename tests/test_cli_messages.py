@@ -193,7 +193,7 @@ def test_ingest_says_which_options_it_cannot_apply(tmp_path, dataset):
     shutil.copytree(dataset / "scene_01" / "raw", raw)
     assert invoke("ingest", raw, tmp_path / "new", "--angles", "0,45,90").exit_code == 0
     out = invoke("ingest", raw, tmp_path / "new", "--angles", "0,60,120")
-    assert out.exit_code == 0 and "already ingested as scene_01 at 0,45,90 deg, not the --angles given" in out.stdout
+    assert out.exit_code == 0 and "already ingested as scene_01 at 0,45,90 deg (not 0,60,120: a scene keeps the angles" in out.stdout
     for args, reason in (((tmp_path / "new" / "scene_01", "--redo", "--angles", "0,60,120"), "a scene's angles are in its manifest"),
                          ((raw, tmp_path / "other", "--demosaic", "bilinear"), "--demosaic: for --mosaic frames"),
                          ((raw, tmp_path / "other", "--jobs", "2"), "--jobs is for a dataset or scene folder"),
@@ -201,6 +201,16 @@ def test_ingest_says_which_options_it_cannot_apply(tmp_path, dataset):
         out = invoke("ingest", *args)
         assert out.exit_code == 2 and reason in " ".join(out.stderr.split()), (args, out.output)
     assert not (tmp_path / "other").exists()
+
+
+def test_images_replaced_with_force_leave_one_runs_results(tmp_path, dataset):
+    shots = [a for p in sorted((dataset / "scene_01" / "aligned").glob("*.tiff")) for a in ("--images", p)]
+    assert invoke("separate", *shots, "--method", "schechner", "--maps", "--out", tmp_path / "out").exit_code == 0
+    assert (tmp_path / "out" / "reference_deg.tiff").is_file() and (tmp_path / "out" / "maps" / "S0.tiff").is_file()
+    out = invoke("separate", *shots, "--method", "none", "--force", "--out", tmp_path / "out")
+    assert out.exit_code == 0, out.output
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [
+        "R.tiff", "R_preview.png", "T.tiff", "T_preview.png", "clipped.png", "confidence.tiff"]
 
 
 def test_an_existing_html_report_is_refused_before_anything_is_printed(tmp_path):

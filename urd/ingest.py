@@ -405,8 +405,9 @@ def ingest_folder(raw_dir: Path, ds: Dataset, opts: IngestOptions, progress: Pro
         except (UrdError, OSError):                     # a broken scene says so where it is listed
             recorded = list(opts.angles_deg)
         other = "" if [float(a) for a in opts.angles_deg] == [float(a) for a in recorded] else (
-            f" at {','.join(f'{a:g}' for a in recorded)} deg, not the --angles given; to record other angles, move "
-            f"{ds.root / scene} away and ingest again")
+            f" at {','.join(f'{a:g}' for a in recorded)} deg (not {','.join(f'{a:g}' for a in opts.angles_deg)}: a "
+            f"scene keeps the angles it was ingested with; to record others, move {ds.root / scene} away and ingest "
+            "again with --angles)")
         outcomes.append(SceneOutcome(scene, paths, f"already ingested as {scene}{other}", "skipped"))
     if not fresh:
         return IngestReport(outcomes, ignored)

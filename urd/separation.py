@@ -18,6 +18,7 @@ against the virtual camera's ground truth when the scene has one.
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import dataclasses
 import functools
 import json
@@ -357,4 +358,18 @@ def separate_images(paths: list[Path], angles_deg: list[float], out: Path, run, 
                           reference_field=_field_image(used, inspection) if sees_polarization else None)
     if polarization is not None:
         paths += write_maps(Path(out) / "maps", polarization, overwrite=force)
+    _remove_replaced(Path(out), paths)
     return Separation(paths, inspection.reference_deg, inspection.warnings)
+
+
+def _remove_replaced(out: Path, written: list[Path]) -> None:
+    """Remove the result files of an earlier run in ``out`` that this run (--force) did not write
+    again (a reference map, polarization maps), so that the folder holds one run's results."""
+    from separate.maps import MAPS
+
+    earlier = [out / name for name in RESULT_NAMES] + [out / "maps" / f"{name}.tiff" for name in MAPS]
+    for path in earlier:
+        if path not in written and path.is_file():
+            path.unlink()
+    with contextlib.suppress(OSError):
+        (out / "maps").rmdir()                             # only when empty

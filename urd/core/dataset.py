@@ -674,7 +674,8 @@ class Scene:
                     emptied.add(old.parent)
             for folder in sorted(emptied, key=lambda p: len(p.parts), reverse=True):     # e.g. maps/ of an earlier --maps
                 if folder != self.path and folder.is_dir() and not any(folder.iterdir()):
-                    folder.rmdir()
+                    with contextlib.suppress(OSError):          # a file appeared meanwhile: the folder stays
+                        folder.rmdir()
             data.pop("swap", None)
             self._save()
         except BaseException:
@@ -841,6 +842,14 @@ def default_root(cwd: Path = Path(".")) -> Path:
 _HELD: dict[Path, int] = {}          # lock depth per dataset held by this process
 
 
+def _is_dataset(folder: Path) -> bool:
+    """Whether ``folder`` holds an urd dataset manifest (another tool's dataset.json is not one)."""
+    try:
+        return read_json(folder / DATASET_MANIFEST).get("schema") in (DATASET_SCHEMA, "urd.core.dataset")
+    except (ManifestError, OSError, AttributeError):
+        return False
+
+
 class Dataset:
     """A dataset root: ``dataset.json``, ``calibration.json`` and scene folders."""
 
@@ -857,7 +866,7 @@ class Dataset:
         another dataset (a scene folder, or any folder below a ``dataset.json``) is refused."""
         root = Path(root)
         if not (root / DATASET_MANIFEST).exists():
-            enclosing = next((p for p in root.resolve().parents if (p / DATASET_MANIFEST).is_file()), None)
+            enclosing = next((p for p in root.resolve().parents if _is_dataset(p)), None)
             if enclosing is not None:
                 raise DatasetError(f"{root} is inside the dataset {enclosing}; a dataset cannot hold another: "
                                    f"pass {enclosing} itself, or a folder outside it")
@@ -875,16 +884,21 @@ class Dataset:
         return ds
 
     def remove_if_unused(self, folder_is_new: bool) -> None:
-        """Remove a dataset that holds nothing (no scene, no calibration): its manifest, and its
-        folder when this run made it and it is empty. For workflows that made the dataset and
-        then failed on every input, so that a failure leaves nothing behind."""
-        if self.scene_names() or self.calibration_path.exists() or (self.root / "calibration").exists():
+        """Remove a dataset that holds nothing (no scene, none being staged, no calibration): its
+        manifest, and its folder when this run made it and it is empty. For workflows that made
+        the dataset and then failed on every input, so that a failure leaves nothing behind;
+        a dataset another process is using (its lock held) is left alone."""
+        try:
+            with self.lock():
+                if any(p.name != LOCK_FILE for p in self.root.iterdir() if p != self.manifest_path):
+                    return                                    # scenes, staged scenes, calibration, anything
+                self.manifest_path.unlink(missing_ok=True)
+                (self.root / LOCK_FILE).unlink(missing_ok=True)          # still held: no one else has it
+                if folder_is_new:
+                    with contextlib.suppress(OSError):
+                        self.root.rmdir()
+        except DatasetBusyError:
             return
-        self.manifest_path.unlink(missing_ok=True)
-        (self.root / LOCK_FILE).unlink(missing_ok=True)
-        if folder_is_new:
-            with contextlib.suppress(OSError):
-                self.root.rmdir()
 
     @classmethod
     def open(cls, root: Path) -> "Dataset":
