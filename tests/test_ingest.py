@@ -177,3 +177,22 @@ def test_identical_files_are_not_a_scene(tmp_path):
     assert [o.error for o in report.outcomes] == [
         "x0.dng and x1.dng are the same file (identical content): a scene needs one shot per polarizer angle"]
     assert not (tmp_path / "ds").exists()
+
+
+def test_shots_taken_together_split_into_several_scenes_are_pointed_out(tmp_path, monkeypatch):
+    from urd import ingest as ingest_mod
+
+    ds = Dataset.open_or_create(tmp_path / "cap")
+    raw_dir = tmp_path / "raw"
+    raw_dir.mkdir()
+    for k in range(2):
+        scene, _ = capture_virtual(ds, size=(96, 64), shake_px=0, shake_deg=0, seed=k)
+        for i, shot in enumerate(scene.load()["shots"]):
+            path = raw_dir / f"IMG_{3 * k + i}.dng"
+            shutil.copyfile(scene.path / shot["file"], path)
+            os.utime(path, (1e9 + 3 * k + i, 1e9 + 3 * k + i))           # six shots within seconds
+    monkeypatch.setattr(ingest_mod, "capture_time", lambda p: p.stat().st_mtime)
+    report = ingest_mod.ingest(raw_dir, tmp_path / "ds", IngestOptions())
+    assert [o.state for o in report.outcomes] == ["ingested", "ingested"]
+    assert report.notes == ["6 shots taken together (IMG_0.dng … IMG_5.dng) became 2 scenes of 3 angles; if they are "
+                            "one capture at 6 angles, move those scenes away and ingest the files again with --angles"]

@@ -328,6 +328,8 @@ def ingest(
                          progress=TerminalProgress(), jobs=jobs)
     for path in report.ignored:
         typer.echo(f"ignored (not a RAW file name): {path.resolve()}", err=True)
+    for note in report.notes:
+        warn(note)
     for outcome in report.outcomes:
         where = outcome.name or ", ".join(p.name for p in outcome.files)
         if outcome.state == "failed":

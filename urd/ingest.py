@@ -68,10 +68,12 @@ class SceneOutcome:
 
 @dataclasses.dataclass
 class IngestReport:
-    """Outcomes of one ``urd ingest`` run and the files it ignored (not RAW by name)."""
+    """Outcomes of one ``urd ingest`` run, the files it ignored (not RAW by name) and notes for
+    the user (how shots were grouped where that is a guess)."""
 
     outcomes: list[SceneOutcome]
     ignored: list[Path]
+    notes: list[str] = dataclasses.field(default_factory=list)
 
     @property
     def failed(self) -> list[SceneOutcome]:
@@ -110,11 +112,12 @@ def unreadable_reason(path: Path) -> str | None:
     return None
 
 
-def group_shots(files: list[Path], count: int, gap_s: float) -> tuple[list[list[Path]], list[SceneOutcome]]:
+def group_shots(files: list[Path], count: int, gap_s: float) -> tuple[list[list[Path]], list[SceneOutcome], list[str]]:
     """Group files into scenes of ``count`` shots: by capture time, split at gaps > ``gap_s``.
 
-    Returns the complete groups and, for runs whose length is not a multiple of ``count``,
-    a failed outcome naming the files.
+    Returns the complete groups, for runs whose length is not a multiple of ``count`` a failed
+    outcome naming the files, and a note for each run split into several scenes (one capture at
+    more angles than ``count`` looks the same).
     """
     timed = sorted((capture_time(f), f.name, f) for f in files)
     runs, current, last = [], [], None
@@ -126,7 +129,7 @@ def group_shots(files: list[Path], count: int, gap_s: float) -> tuple[list[list[
         last = t
     if current:
         runs.append(current)
-    groups, failures = [], []
+    groups, failures, notes = [], [], []
     for run in runs:
         if len(run) % count:
             failures.append(SceneOutcome(None, run, f"wrong shot count: {len(run)} shots taken together "
@@ -135,7 +138,11 @@ def group_shots(files: list[Path], count: int, gap_s: float) -> tuple[list[list[
                                                     "--angles gives the angles of one scene's shots", "failed"))
             continue
         groups += [run[i : i + count] for i in range(0, len(run), count)]
-    return groups, failures
+        if len(run) > count:
+            notes.append(f"{len(run)} shots taken together ({run[0].name} … {run[-1].name}) became "
+                         f"{len(run) // count} scenes of {count} angles; if they are one capture at {len(run)} "
+                         "angles, move those scenes away and ingest the files again with --angles")
+    return groups, failures, notes
 
 
 def write_aligned(path: Path, image: np.ndarray) -> None:
@@ -412,7 +419,7 @@ def ingest_folder(raw_dir: Path, ds: Dataset, opts: IngestOptions, progress: Pro
     if not fresh:
         return IngestReport(outcomes, ignored)
     unreadable = {path: reason for path in fresh if (reason := unreadable_reason(path))}
-    groups, failures = group_shots(fresh, len(opts.angles_deg), opts.gap_s)
+    groups, failures, notes = group_shots(fresh, len(opts.angles_deg), opts.gap_s)
     for failure in failures:
         bad = [p for p in failure.files if p in unreadable]
         if bad:
@@ -425,7 +432,7 @@ def ingest_folder(raw_dir: Path, ds: Dataset, opts: IngestOptions, progress: Pro
                                          "failed"))
             continue
         outcomes.append(ingest_group(ds, files, opts, progress))
-    return IngestReport(outcomes, ignored)
+    return IngestReport(outcomes, ignored, notes)
 
 
 def ingest_mosaic(ds: Dataset, path: Path, layout, demosaic, transfer: Transfer = Transfer.LINEAR) -> SceneOutcome:
