@@ -56,6 +56,7 @@ from urd.core.errors import DatasetBusyError, DatasetError, ManifestError, UrdEr
 from urd.core.files import pid_lock, read_json, sha256_file, write_json_atomic
 from urd.core.manifest import (
     DATASET_SCHEMA,
+    DATASET_SCHEMA_ALIASES,
     SCHEMA_VERSION,
     confined_path,
     now_iso,
@@ -845,7 +846,7 @@ _HELD: dict[Path, int] = {}          # lock depth per dataset held by this proce
 def _is_dataset(folder: Path) -> bool:
     """Whether ``folder`` holds an urd dataset manifest (another tool's dataset.json is not one)."""
     try:
-        return read_json(folder / DATASET_MANIFEST).get("schema") in (DATASET_SCHEMA, "urd.core.dataset")
+        return read_json(folder / DATASET_MANIFEST).get("schema") in (DATASET_SCHEMA, *DATASET_SCHEMA_ALIASES)
     except (ManifestError, OSError, AttributeError):
         return False
 

@@ -75,8 +75,9 @@ def _check_angles(record: dict, where: str, keys: tuple[str, ...]) -> None:
 
 
 #: The dataset manifest's schema name (like "urd.scene" and "urd.calibration", a format name,
-#: not a module path).
+#: not a module path), and the earlier name urd 0.1 wrote for a while, read too.
 DATASET_SCHEMA = "urd.dataset"
+DATASET_SCHEMA_ALIASES = ("urd.core.dataset",)
 
 
 def _check_schema(record: dict, where: str, schema: str, aliases: tuple[str, ...] = ()) -> None:
@@ -178,7 +179,7 @@ def validate_dataset(record: Any, where: str) -> dict:
     """Check a dataset manifest; ManifestError naming file and field."""
     _check(record, where, {"schema": str, "schema_version": int, "created": str, "urd_version": str},
            {"description": str})
-    _check_schema(record, where, DATASET_SCHEMA, aliases=("urd.core.dataset",))      # written by urd 0.1 for a while
+    _check_schema(record, where, DATASET_SCHEMA, DATASET_SCHEMA_ALIASES)
     return record
 
 
