@@ -27,6 +27,7 @@ import re
 import shutil
 import tempfile
 from pathlib import Path
+from typing import Iterable
 
 import numpy as np
 import tifffile
@@ -205,10 +206,7 @@ def prepare_ingest(scene: Scene, opts: IngestOptions, progress: Progress | None 
                               "alignment failed, no aligned stack written (" + "; ".join(bad) + ")")
     staging = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=scene.path))
     try:
-        staged = {}
-        for i in range(len(paths)):
-            staged[f"aligned/shot_{i:02d}.tiff"] = staging / f"shot_{i:02d}.tiff"
-            write_aligned(staged[f"aligned/shot_{i:02d}.tiff"], images.pop(i))
+        staged = _write_stack(staging, (images.pop(i) for i in range(len(paths))))    # each freed once written
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
@@ -251,12 +249,12 @@ def _demosaiced(path: Path, layout, demosaic, transfer: Transfer) -> tuple[np.nd
     return (np.repeat(stack, 3, axis=-1) if stack.shape[-1] == 1 else stack), [float(a) for a in angles]
 
 
-def _write_stack(staging: Path, stack: np.ndarray) -> dict[str, Path]:
-    """Write a stack's shots as aligned TIFFs into ``staging``; final name → staged path."""
+def _write_stack(staging: Path, shots: Iterable[np.ndarray]) -> dict[str, Path]:
+    """Write shots (H×W×C linear) as aligned TIFFs into ``staging``; final name → staged path."""
     files = {}
-    for i in range(len(stack)):
+    for i, shot in enumerate(shots):
         files[f"aligned/shot_{i:02d}.tiff"] = staging / f"shot_{i:02d}.tiff"
-        write_aligned(files[f"aligned/shot_{i:02d}.tiff"], stack[i])
+        write_aligned(files[f"aligned/shot_{i:02d}.tiff"], shot)
     return files
 
 
@@ -356,12 +354,6 @@ def ingest_scenes(scenes: list[Scene], opts: IngestOptions, jobs: int, progress:
 
 def ingest_group(ds: Dataset, files: list[Path], opts: IngestOptions, progress: Progress | None = None) -> SceneOutcome:
     """Make a new scene from RAW files taken at ``opts.angles_deg``; nothing is left on failure."""
-    seen: dict[str, Path] = {}
-    for path in files:
-        first = seen.setdefault(sha256_file(path), path)
-        if first is not path:
-            return SceneOutcome(None, files, f"{first.name} and {path.name} are the same file (identical content): "
-                                             "a scene needs one shot per polarizer angle", "failed")
     try:
         with ds.staged_scene("ingest", {"source_files": [str(f) for f in files], "angles_deg": list(opts.angles_deg),
                                         "complete": True}) as staged:
@@ -399,9 +391,10 @@ def ingest_folder(raw_dir: Path, ds: Dataset, opts: IngestOptions, progress: Pro
     if not raws:
         raise DatasetError(f"{raw_dir}: no RAW files (looked for {', '.join(rawio.RAW_SUFFIXES)})")
     known = ds.shot_index()
+    digests = {path: sha256_file(path) for path in raws}
     outcomes, fresh, already = [], [], {}
     for path in raws:
-        scene = known.get(sha256_file(path))
+        scene = known.get(digests[path])
         if scene is None:
             fresh.append(path)
         else:
@@ -427,11 +420,16 @@ def ingest_folder(raw_dir: Path, ds: Dataset, opts: IngestOptions, progress: Pro
     outcomes += failures
     for files in groups:
         bad = [p for p in files if p in unreadable]
+        twins = [p for k, p in enumerate(files) if digests[p] in {digests[q] for q in files[:k]}]
         if bad:
             outcomes.append(SceneOutcome(None, files, "; ".join(f"{p.name} is unreadable ({unreadable[p]})" for p in bad),
                                          "failed"))
-            continue
-        outcomes.append(ingest_group(ds, files, opts, progress))
+        elif twins:
+            first = next(q for q in files if digests[q] == digests[twins[0]])
+            outcomes.append(SceneOutcome(None, files, f"{first.name} and {twins[0].name} are the same file (identical "
+                                                      "content): a scene needs one shot per polarizer angle", "failed"))
+        else:
+            outcomes.append(ingest_group(ds, files, opts, progress))
     return IngestReport(outcomes, ignored, notes)
 
 
