@@ -183,6 +183,45 @@ def render(
     return alpha * i_r / 2 + (1.0 - alpha) * i_t / 2
 
 
+def diattenuate(stokes: Array, along: Array, across: Array, axis: Array) -> Array:
+    """Stokes stack (3, ...) after a linear diattenuator: intensity transmittance ``along`` for
+    light polarized along ``axis`` (rad) and ``across`` for light polarized across it (a
+    dielectric interface's Fresnel reflection or transmission, an ideal polarizer at 1 and 0).
+
+    In the axis's frame (`rotate_stokes`) S0' = (a + b)/2·S0 + (a − b)/2·S1,
+    S1' = (a − b)/2·S0 + (a + b)/2·S1, S2' = √(ab)·S2; the result is turned back. ``along``,
+    ``across`` and ``axis`` broadcast against ``stokes[0]`` (give H×W maps a channel axis with
+    `expand_map` for H×W×C stacks).
+    """
+    xp = _xp(stokes)
+    s0, s1, s2 = rotate_stokes(stokes, axis)
+    half_sum, half_diff = (along + across) / 2, (along - across) / 2
+    turned = xp.stack([half_sum * s0 + half_diff * s1, half_diff * s0 + half_sum * s1, xp.sqrt(along * across) * s2])
+    return rotate_stokes(turned, -axis)
+
+
+def pane_stokes(stokes_r: Array, stokes_t: Array, theta: Array, phi_perp: Array, n: float = N_GLASS) -> tuple[Array, Array]:
+    """The light a camera receives from a pane: the reflected and the transmitted part, each a
+    Stokes stack (3, H, W, C) (or (3, H, W)).
+
+    ``stokes_r`` is the light that the pane reflects towards the camera, ``stokes_t`` the light
+    from behind it, each of any polarization (an unpolarized photo I is (I, 0, 0)); the pane
+    reflects with R_s, R_p and transmits with 1 − R_s, 1 − R_p along / across its s-direction
+    φ⊥ (`diattenuate`; one interface, as `render`). Their sum seen through a polarizer at φ is
+    `intensity_from_stokes`, and for unpolarized layers equals `render`; their S0 are the
+    observable layers (R_obs, T_obs) of the separation target (`observable_layers`).
+
+    Args:
+        stokes_r, stokes_t: (3, H, W, C) or (3, H, W) linear Stokes stacks.
+        theta: angle of incidence (rad), scalar or H×W map.
+        phi_perp: s-direction φ⊥ (rad), scalar or H×W map.
+        n: refractive index.
+    """
+    r_s, r_p = fresnel_reflectance(theta, n)
+    r_s, r_p, axis = (expand_map(x, stokes_r[0]) for x in (r_s, r_p, phi_perp))
+    return diattenuate(stokes_r, r_s, r_p, axis), diattenuate(stokes_t, 1.0 - r_s, 1.0 - r_p, axis)
+
+
 def observable_layers(
     i_r: Array, i_t: Array, theta: Array, n: float = N_GLASS
 ) -> tuple[Array, Array]:

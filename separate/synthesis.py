@@ -29,6 +29,17 @@ they were), on in training the physics-anchored network's gate (``configs/cpu-ga
 * ``no_glass_prob``: no glass at all: the photo seen directly, with a polarization of its own
   (a smooth DoLP up to ``no_glass_dolp_max`` at a smoothly varying angle: sheen, varnish,
   glossy surfaces); the target is R = 0, T = S0;
+* ``t_polarized_prob``: the transmitted photo given a polarization of its own, as real scenes
+  have (`own_polarization`: sky-like smooth strong polarization, glossy highlights, diffuse
+  polarization across object contours, up to ``t_dolp_max``), rendered through the pane's
+  Fresnel transmission (`separate.optics.pane_stokes`); the target T is the S0 of what the
+  pane transmits;
+* ``real_prob``: the transmitted layer (or, without glass, the whole view) a crop of a real
+  capture without glass from the training side of the split (`urd.core.samples.no_glass_captures`,
+  its Stokes fit; scaled, flipped and turned with its polarization turned alike), where
+  ../shared/data is present (else the photo);
+* ``mono_prob``: both layers grey (a mono polarization camera); ``defocus_prob``: the reflection
+  out of focus (a Gaussian blur of σ 1–4 px per 128 px);
 * ``reference_field``: the ANY modes present the shots at the estimated per-pixel reference
   field (`separate.reference.estimate_reference_field`, turned to φ⊥'s side in
   ANY_TRUE_SIDE), as `urd separate` does, instead of at one global reference; ``angles`` are
@@ -56,6 +67,7 @@ from separate import optics
 from separate.optics import parabola_aoi, photo_to_linear
 from separate.reference import INCIDENCE_RANGE_DEG, inspect_stack
 from separate.presentation import field_at, present, present_field
+from urd.core import samples
 
 SHARED_NATURAL = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "natural"
 #: scikit-image photos that ship with the package (no download): the fallback image pool.
@@ -119,6 +131,11 @@ class SynthesisConfig:
     phi_field_max_deg: float = 20.0
     no_glass_prob: float = 0.0
     no_glass_dolp_max: float = 0.4
+    t_polarized_prob: float = 0.0
+    t_dolp_max: float = 0.6
+    real_prob: float = 0.0
+    mono_prob: float = 0.0
+    defocus_prob: float = 0.0
     incidence_estimate: bool = False
     incidence_error_deg: tuple[float, float] = (3.0, 1.5)
     incidence_failure: tuple[float, float] = (0.05, 0.3)
@@ -273,6 +290,95 @@ def true_side_deg(reference_deg: float, phi_perp_deg: float) -> float:
     return reference_deg + 90.0 if abs(optics.axis_gap_deg(reference_deg, phi_perp_deg)) > 45.0 else reference_deg
 
 
+def capture_stokes(capture: samples.Capture, max_side: int = 512) -> tuple[np.ndarray, np.ndarray]:
+    """A real capture's Stokes stack (3, H, W, 3) from the least-squares fit of its shots, scaled
+    to a mean S0 of 1, and its clipped pixels (H×W bool: ≥ `CLIPPED` in any shot), at most
+    ``max_side`` px long."""
+    stack, angles = samples.load(capture, max_side=max_side)
+    stokes = optics.stokes_from_images(stack, np.radians(angles)).astype(np.float32)
+    return stokes / max(float(stokes[0].mean()), 1e-6), (stack >= CLIPPED).any(axis=(0, 3))
+
+
+#: A real capture's pixel counts as clipped from this linear value in any of its shots.
+CLIPPED = 0.98
+
+
+def real_pool(split: str = "train") -> list[tuple[np.ndarray, np.ndarray, bool]]:
+    """The real no-glass captures of one side of the split as (Stokes, clipped, mono)
+    (`capture_stokes`); empty without ../shared/data."""
+    return [(*capture_stokes(c), c.mono) for c in samples.no_glass_captures(split=split)]
+
+
+def grey(image: np.ndarray) -> np.ndarray:
+    """An image (…, C) with every channel set to the channels' mean, float32."""
+    return np.repeat(image.mean(axis=-1, keepdims=True), image.shape[-1], axis=-1).astype(np.float32)
+
+
+def turn_stokes(stokes: np.ndarray, flip: bool, quarter_turns: int) -> np.ndarray:
+    """A Stokes stack (3, H, W, C) mirrored left–right (``flip``) and then turned by
+    ``quarter_turns`` × 90° counter-clockwise, its polarization turned alike: a mirror maps an
+    axis φ to −φ (S2 → −S2), a quarter turn to φ + 90° (S1, S2 → −S1, −S2)."""
+    out = stokes[:, :, ::-1] * np.array([1, 1, -1], np.float32)[:, None, None, None] if flip else stokes
+    out = np.rot90(out, quarter_turns, axes=(1, 2))
+    if quarter_turns % 2:
+        out = out * np.array([1, -1, -1], np.float32)[:, None, None, None]
+    return np.ascontiguousarray(out, dtype=np.float32)
+
+
+def real_crop(rng: np.random.Generator, stokes: np.ndarray, clipped: np.ndarray, size: int) -> np.ndarray | None:
+    """A random ``size``² crop of a real Stokes stack at a scale in [1, 2], mirrored and turned
+    at random (`turn_stokes`); None where it holds clipped pixels."""
+    h, w = stokes.shape[1:3]
+    side = int(min(h, w, size * rng.uniform(1.0, 2.0)))
+    y, x = rng.integers(0, h - side + 1), rng.integers(0, w - side + 1)
+    if clipped[y:y + side, x:x + side].mean() > 0.001:
+        return None
+    crop = np.stack([cv2.resize(np.ascontiguousarray(plane), (size, size), interpolation=cv2.INTER_AREA)
+                     for plane in stokes[:, y:y + side, x:x + side]])
+    return turn_stokes(crop, bool(rng.random() < 0.5), int(rng.integers(4)))
+
+
+def own_polarization(rng: np.random.Generator, photo: np.ndarray, dolp_max: float) -> tuple[np.ndarray, np.ndarray]:
+    """A polarization of the photo's own (DoLP, AoLP (rad)), each P×P float32: the sum of one to
+    three of the kinds real scenes show (the no-glass captures of ../shared/data: DoLP medians
+    0.02–0.12, 95th percentiles 0.07–0.5):
+
+    * sky: smooth and strong, DoLP up to ``dolp_max``, its angle turning slowly;
+    * gloss: the photo's highlights (its brightest 5–20 %, softened), DoLP up to ``dolp_max``;
+    * contours: diffuse polarization across object edges, DoLP up to 0.25, along the luminance
+      gradient (the surface normal's direction in the image).
+    """
+    p = photo.shape[0]
+    lum = photo.mean(axis=2)
+    stokes = np.zeros((3, p, p), np.float32)
+    stokes[0] = 1.0
+    for kind in rng.choice(3, int(rng.integers(1, 4)), replace=False):
+        if kind == 0:
+            dolp = rng.uniform(0.1, dolp_max) * smooth_field(rng, p, 3)
+            aolp = rng.uniform(0.0, np.pi) + np.radians(40.0) * (smooth_field(rng, p) - 0.5)
+        elif kind == 1:
+            bright = (lum >= np.quantile(lum, 1.0 - rng.uniform(0.05, 0.2))).astype(np.float32)
+            dolp = rng.uniform(0.2, dolp_max) * cv2.GaussianBlur(bright, (0, 0), 1.5)
+            aolp = rng.uniform(0.0, np.pi) + np.radians(60.0) * (smooth_field(rng, p) - 0.5)
+        else:
+            gx = cv2.Sobel(lum, cv2.CV_32F, 1, 0, ksize=3)
+            gy = cv2.Sobel(lum, cv2.CV_32F, 0, 1, ksize=3)
+            magnitude = cv2.GaussianBlur(np.hypot(gx, gy), (0, 0), 1.0)
+            dolp = rng.uniform(0.05, 0.25) * np.clip(magnitude / (np.quantile(magnitude, 0.95) + 1e-6), 0.0, 1.0)
+            aolp = np.arctan2(-gy, gx)                     # rows grow downwards, angles count upwards
+        stokes[1:] += optics.stokes_from_polarization(np.ones((p, p), np.float32), dolp, aolp)[1:].astype(np.float32)
+    return np.minimum(optics.dolp(stokes, eps=0.0), 0.95).astype(np.float32), optics.aolp(stokes).astype(np.float32)
+
+
+def _warp(image: np.ndarray, maps: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+    """An H×W×C image (or a (3, H, W, C) Stokes stack, plane by plane) through remap maps; as is for None."""
+    if maps is None:
+        return image
+    if image.ndim == 4:
+        return np.stack([_warp(plane, maps) for plane in image])
+    return cv2.remap(image, *maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+
+
 class Synthesizer:
     """Draws training samples from an image pool; deterministic for a seed.
 
@@ -281,10 +387,12 @@ class Synthesizer:
     reference), ``r`` and ``t`` P×P×3 (the observable layers R_obs, T_obs), ``theta`` and
     ``phi_perp`` P×P, ``angles`` (3,) the angles of ``obs`` (rad; CLASSIC: the true polarizer
     angles; ANY modes: reference + 0/45/90° in the nominal angles' frame, which is φ⊥'s frame),
-    and ``shots`` () the number of shots taken (3 in CLASSIC).
+    and ``shots`` () the number of shots taken (3 in CLASSIC). ``real``: the real captures'
+    (Stokes, clipped, mono) for ``cfg.real_prob`` (default: `real_pool`'s training side).
     """
 
-    def __init__(self, pool: list[np.ndarray], cfg: SynthesisConfig, seed: int):
+    def __init__(self, pool: list[np.ndarray], cfg: SynthesisConfig, seed: int,
+                 real: list[tuple[np.ndarray, np.ndarray, bool]] | None = None):
         if len(pool) < 2:
             raise ValueError(f"expected at least 2 images in the pool, got {len(pool)}")
         self.pool = [img for img in pool if min(img.shape[:2]) >= cfg.patch]
@@ -293,6 +401,9 @@ class Synthesizer:
         self.cfg = cfg
         self.rng = np.random.default_rng(seed)
         self.rejected = 0
+        if real is None and cfg.real_prob > 0:
+            real = real_pool("train")
+        self.real = [entry for entry in (real or []) if min(entry[0].shape[1:3]) >= cfg.patch]
 
     def sample(self) -> dict[str, np.ndarray]:
         """One accepted sample (rejected draws are counted in ``self.rejected``)."""
@@ -314,11 +425,20 @@ class Synthesizer:
         i, j = rng.choice(len(self.pool), 2, replace=False)
         refl = photo_to_linear(random_crop(rng, self.pool[i], p))
         trans = photo_to_linear(random_crop(rng, self.pool[j], p))
+        stokes_t = self._transmitted(trans)
+        mono = cfg.mono_prob > 0 and rng.random() < cfg.mono_prob
+        if mono:
+            refl, trans = grey(refl), grey(trans)
+            stokes_t = None if stokes_t is None else grey(stokes_t)
+        if cfg.defocus_prob > 0 and rng.random() < cfg.defocus_prob:
+            refl = cv2.GaussianBlur(refl, (0, 0), rng.uniform(1.0, 4.0) * p / 128)
         if cfg.dynamic_range:
             beta = rng.uniform(1.0, cfg.k_max)
             refl, trans = refl * beta, trans / beta
+            stokes_t = None if stokes_t is None else stokes_t / beta
         if rng.random() < cfg.abrupt_prob:
-            refl = np.where(refl.mean(axis=2, keepdims=True) < (refl + trans).mean(), 0.0, refl).astype(np.float32)
+            level = (refl + (trans if stokes_t is None else stokes_t[0])).mean()
+            refl = np.where(refl.mean(axis=2, keepdims=True) < level, 0.0, refl).astype(np.float32)
         theta, phi_perp = surface_maps(rng, cfg)
         if cfg.angles is AngleMode.CLASSIC:
             phi0 = phi_perp[0, 0] - rng.uniform(-np.pi / 4, np.pi / 4)
@@ -332,15 +452,43 @@ class Synthesizer:
         sigma = rng.uniform(0.0, cfg.nrd_sigma_max_px) * p / 128
         shots = []
         for phi in angles:
-            r_i, t_i = refl, trans
-            if deform:
-                mx, my = smooth_warp_field(rng, p, cfg.nrd_grid, sigma)
-                r_i = cv2.remap(refl, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-                t_i = cv2.remap(trans, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-            shots.append(optics.render(r_i, t_i, theta, phi_perp, float(phi), cfg.n))
+            maps = smooth_warp_field(rng, p, cfg.nrd_grid, sigma) if deform else None
+            if stokes_t is None:
+                shots.append(optics.render(_warp(refl, maps), _warp(trans, maps), theta, phi_perp, float(phi), cfg.n))
+            else:
+                zeros = np.zeros_like(refl)
+                part_r, part_t = optics.pane_stokes(np.stack([_warp(refl, maps), zeros, zeros]), _warp(stokes_t, maps),
+                                                    theta, phi_perp, cfg.n)
+                shots.append(optics.intensity_from_stokes(part_r + part_t, float(phi)))
         obs = np.stack(shots).astype(np.float32)
-        exposed = self._expose(obs, *optics.observable_layers(refl, trans, theta, cfg.n))
+        if stokes_t is None:
+            r_obs, t_obs = optics.observable_layers(refl, trans, theta, cfg.n)
+        else:
+            zeros = np.zeros_like(refl)
+            part_r, part_t = optics.pane_stokes(np.stack([refl, zeros, zeros]), stokes_t, theta, phi_perp, cfg.n)
+            r_obs, t_obs = part_r[0], part_t[0]
+        exposed = self._expose(obs, r_obs, t_obs)
         return None if exposed is None else self._finish(*exposed, nominal, angles, theta, phi_perp)
+
+    def _transmitted(self, photo: np.ndarray) -> np.ndarray | None:
+        """The transmitted light's Stokes stack (3, P, P, 3) where the sample's transmitted layer
+        is polarized: a real capture's crop (``real_prob``, scaled to the photo's mean) or the
+        photo with a polarization of its own (``t_polarized_prob``); None for the unpolarized photo."""
+        cfg, rng = self.cfg, self.rng
+        if self.real and cfg.real_prob > 0 and rng.random() < cfg.real_prob:
+            crop = self._real_crop()
+            if crop is not None:
+                return crop * float(photo.mean())
+        if cfg.t_polarized_prob > 0 and rng.random() < cfg.t_polarized_prob:
+            dolp, aolp = own_polarization(rng, photo, cfg.t_dolp_max)
+            return optics.stokes_from_polarization(photo, dolp[..., None], aolp[..., None]).astype(np.float32)
+        return None
+
+    def _real_crop(self) -> np.ndarray | None:
+        """A crop of a random real capture (`real_crop`), grey for a mono capture; None where clipped."""
+        stokes, clipped, mono = self.real[int(self.rng.integers(len(self.real)))]
+        crop = real_crop(self.rng, stokes, clipped, self.cfg.patch)
+        return crop if crop is None or not mono else grey(crop)
 
     def _expose(self, obs: np.ndarray, r_obs: np.ndarray, t_obs: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
@@ -357,12 +505,18 @@ class Synthesizer:
         return np.clip(obs, 0.0, 1.0).astype(np.float32), r_obs, t_obs
 
     def _draw_no_glass(self) -> dict[str, np.ndarray] | None:
-        """A view with no glass: one photo with a smooth polarization of its own (module docstring)."""
+        """A view with no glass: one photo with a smooth polarization of its own, or a real capture's
+        crop (``real_prob``) (module docstring)."""
         cfg, rng, p = self.cfg, self.rng, self.cfg.patch
-        photo = photo_to_linear(random_crop(rng, self.pool[int(rng.integers(len(self.pool)))], p))
-        dolp = rng.uniform(0.0, cfg.no_glass_dolp_max) * smooth_field(rng, p)
-        aolp = rng.uniform(0.0, np.pi) + np.radians(60.0) * (smooth_field(rng, p) - 0.5)
-        stokes = optics.stokes_from_polarization(photo, optics.expand_map(dolp, photo), optics.expand_map(aolp, photo))
+        stokes = self._real_crop() if self.real and cfg.real_prob > 0 and rng.random() < cfg.real_prob else None
+        if stokes is None:
+            photo = photo_to_linear(random_crop(rng, self.pool[int(rng.integers(len(self.pool)))], p))
+            dolp = rng.uniform(0.0, cfg.no_glass_dolp_max) * smooth_field(rng, p)
+            aolp = rng.uniform(0.0, np.pi) + np.radians(60.0) * (smooth_field(rng, p) - 0.5)
+            stokes = optics.stokes_from_polarization(photo, optics.expand_map(dolp, photo), optics.expand_map(aolp, photo))
+        if cfg.mono_prob > 0 and rng.random() < cfg.mono_prob:
+            stokes = grey(stokes)
+        photo = stokes[0].astype(np.float32)
         offsets = optics.PAPER_ANGLES_DEG if cfg.angles is AngleMode.CLASSIC else \
             cfg.angle_sets_deg[int(rng.integers(len(cfg.angle_sets_deg)))]
         nominal = rng.uniform(0.0, np.pi) + np.radians(offsets)

@@ -54,8 +54,9 @@ class TrainConfig:
     estimate of their angle of incidence); ``trainable`` is "all" or "gate" (the fresnel
     network's gate alone, the rest frozen). ``phi_field_prob``, ``no_glass_prob``,
     ``reference_field``, the sensor-noise ranges ``shot_gain_log10`` and ``read_var_log10`` and
-    the gate's θ-estimate errors ``incidence_error_deg`` and ``incidence_failure`` are the
-    synthesis settings of the same names (`separate.synthesis.SynthesisConfig`). ``workers``
+    the gate's θ-estimate errors ``incidence_error_deg`` and ``incidence_failure``, and the
+    scene's own polarization ``t_polarized_prob``, ``real_prob``, ``mono_prob`` and
+    ``defocus_prob`` are the synthesis settings of the same names (`separate.synthesis.SynthesisConfig`). ``workers``
     synthesis processes per rank feed the network (0: the rank synthesizes between steps; 0 and
     1 draw the same samples, K > 1 interleaves K seeded streams); ``schedule_minutes`` > 0 lets the
     learning rate's cosine end after that much training time where that comes before ``steps``
@@ -95,6 +96,10 @@ class TrainConfig:
     workers: int = 0
     schedule_minutes: float = 0.0
     loss: str = "l2"
+    t_polarized_prob: float = 0.0
+    real_prob: float = 0.0
+    mono_prob: float = 0.0
+    defocus_prob: float = 0.0
 
     def __post_init__(self):
         for name in ("shot_gain_log10", "read_var_log10", "incidence_error_deg", "incidence_failure"):
@@ -145,7 +150,9 @@ def synthesis_config(cfg: TrainConfig, pipeline: str | None = None) -> Synthesis
     return dataclasses.replace(base, phi_field_prob=cfg.phi_field_prob, no_glass_prob=cfg.no_glass_prob,
                                reference_field=cfg.reference_field, incidence_estimate=cfg.base == "fresnel",
                                shot_gain_log10=cfg.shot_gain_log10, read_var_log10=cfg.read_var_log10,
-                               incidence_error_deg=cfg.incidence_error_deg, incidence_failure=cfg.incidence_failure)
+                               incidence_error_deg=cfg.incidence_error_deg, incidence_failure=cfg.incidence_failure,
+                               t_polarized_prob=cfg.t_polarized_prob, real_prob=cfg.real_prob, mono_prob=cfg.mono_prob,
+                               defocus_prob=cfg.defocus_prob)
 
 
 def validation_set(cfg: TrainConfig) -> dict[str, np.ndarray]:

@@ -640,6 +640,8 @@ def bench(
     jobs: int = typer.Option(2, min=1, help="With --ablation: training runs side by side (one thread each)."),
     runs: Optional[Path] = typer.Option(None, help="With --ablation: folder of the training runs (unfinished ones resume; default runs/ablation, or runs/ablation-STEPS with --steps)."),
     steps: Optional[int] = typer.Option(None, min=1, help="With --ablation: training steps of every run (default: the configs' 4000; e.g. 16000 on a GPU); its runs in runs/ablation-STEPS and its report in OUT/ablation-STEPS."),
+    semireal: bool = typer.Option(False, "--semireal", help="The semi-real set: held-out real captures without glass (../shared/data/polarization) as the transmitted layer behind a rendered pane reflecting a bsds500/test photo, exact ground truth; 3, 4 and 6 shots, mono, and the no-glass R share; every method of --methods (default none, Schechner, Kong, Farid, network; LABEL=PATH adds the network with other weights); tables in OUT/semireal (default docs/bench/semireal). About 20 min on 2 cores."),
+    weights: Optional[Path] = typer.Option(None, help="With --semireal: the network's weights (default: shipped)."),
     virtual: bool = typer.Option(False, "--virtual", help="The virtual-camera set: flat panes rendered by urd's virtual camera at angles of incidence 20-75 deg and a wide view (phi_perp turning 50 deg), the network against Schechner, Kong, Farid and no separation (4 photo pairs of 768x512; --methods to choose); tables in OUT/virtual (default docs/bench/virtual)."),
 ) -> None:
     """Benchmark the methods on synthetic data with ground truth: by default one table of RMSE /
@@ -655,6 +657,13 @@ def bench(
     """
     if large and not full:
         raise typer.BadParameter("--24mp goes with --full")
+    if semireal:
+        if virtual or quick or full or ablation or given(ctx, "count") or given(ctx, "size"):
+            raise typer.BadParameter("--semireal goes alone (with --methods, --weights and --out): it has its own scenes")
+        bench_semireal(methods if given(ctx, "methods") else None, weights, out)
+        return
+    if weights is not None:
+        raise typer.BadParameter("--weights goes with --semireal")
     if virtual:
         if quick or full or ablation or given(ctx, "count") or given(ctx, "size"):
             raise typer.BadParameter("--virtual goes alone (with --methods and --out): it has its own scenes")
@@ -691,6 +700,26 @@ def bench(
     typer.echo(format_table(rows))
     if {"network", "direct"} <= {r["method"] for r in rows}:
         typer.echo(format_paired(rows, "network", "direct"))
+
+
+def bench_semireal(methods: Optional[str], weights: Optional[Path], out: Optional[Path]) -> None:
+    """``urd bench --semireal``: print the tables and write them, with the per-scene figures, into OUT/semireal."""
+    import json
+
+    from separate.bench_run import DEFAULT_OUT
+    from separate.semireal import DEFAULT_METHODS, run_semireal
+    from urd.core.files import write_bytes_atomic
+
+    chosen = tuple(methods.split(",")) if methods else DEFAULT_METHODS
+    bar = TerminalProgress()
+    tables, records = run_guarded(run_semireal, chosen, weights, progress=bar)
+    bar.close()
+    folder = (out or DEFAULT_OUT) / "semireal"
+    folder.mkdir(parents=True, exist_ok=True)
+    write_bytes_atomic(folder / "tables.md", tables.encode(), overwrite=True)
+    write_bytes_atomic(folder / "scenes.json", json.dumps(records, indent=1).encode(), overwrite=True)
+    typer.echo(tables)
+    typer.echo(f"wrote {(folder / 'tables.md').resolve()} and scenes.json")
 
 
 def bench_virtual(methods: Optional[str], out: Optional[Path]) -> None:

@@ -1,0 +1,177 @@
+"""The scene's own polarization: the pane's Stokes optics against closed forms, the real no-glass
+captures and their split, polarized training data, and the semi-real benchmark's scenes."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from conftest import SHARED_DATA
+from separate import optics, semireal
+from separate.synthesis import Synthesizer, SynthesisConfig, load_image_pool, own_polarization, turn_stokes
+from urd.cli import app
+from urd.core import samples
+
+NO_GLASS = samples.no_glass_captures(SHARED_DATA / "polarization")
+needs_captures = pytest.mark.skipif(not NO_GLASS, reason=f"the real polarization captures (../shared/data, the team's "
+                                    f"shared reference data) are not present: {SHARED_DATA / 'polarization'}")
+
+
+def test_pane_of_unpolarized_layers_renders_as_eq_1():
+    rng = np.random.default_rng(0)
+    i_r, i_t = rng.random((2, 6, 7, 3))
+    theta, phi_perp = rng.uniform(0.2, 1.4, (6, 7)), rng.uniform(0.0, np.pi, (6, 7))
+    zeros = np.zeros_like(i_r)
+    part_r, part_t = optics.pane_stokes(np.stack([i_r, zeros, zeros]), np.stack([i_t, zeros, zeros]), theta, phi_perp)
+    for phi in (0.0, 0.4, 1.9):
+        np.testing.assert_allclose(optics.intensity_from_stokes(part_r + part_t, phi),
+                                   optics.render(i_r, i_t, theta, phi_perp, phi), atol=1e-12)
+    r_obs, t_obs = optics.observable_layers(i_r, i_t, theta)
+    np.testing.assert_allclose(part_r[0], r_obs, atol=1e-12)
+    np.testing.assert_allclose(part_t[0], t_obs, atol=1e-12)
+
+
+def test_diattenuator_closed_forms():
+    light = optics.stokes_from_polarization(np.float64(2.0), 0.6, np.radians(20.0))
+    # an ideal polarizer at 50 deg passes (S0/2)(1 + DoLP cos 2(AoLP - 50 deg)) (Malus)
+    out = optics.diattenuate(light, 1.0, 0.0, np.radians(50.0))
+    assert out[0] == pytest.approx(1.0 * (1 + 0.6 * np.cos(np.radians(-60.0))))
+    assert optics.dolp(out) == pytest.approx(1.0, abs=1e-6)
+    assert np.degrees(optics.aolp(out)) == pytest.approx(50.0)
+    # a pane's transmission (Brewster: R_p = 0) polarizes unpolarized light across phi_perp
+    theta_b = optics.brewster_angle()
+    r_s, r_p = optics.fresnel_reflectance(theta_b)
+    out = optics.diattenuate(np.array([1.0, 0.0, 0.0]), 1 - r_s, 1 - r_p, np.radians(10.0))
+    assert r_p == pytest.approx(0.0, abs=1e-12)
+    assert out[0] == pytest.approx(1 - r_s / 2)
+    assert optics.dolp(out) == pytest.approx(r_s / (2 - r_s))
+    assert optics.axis_gap_deg(np.degrees(optics.aolp(out)), 100.0) == pytest.approx(0.0, abs=1e-9)
+
+
+@pytest.mark.parametrize("flip,turns,expected_deg", [(False, 1, 120.0), (True, 0, -30.0), (True, 1, 60.0), (False, 2, 30.0)])
+def test_turned_stokes_turn_their_polarization(flip, turns, expected_deg):
+    stokes = optics.stokes_from_polarization(np.ones((4, 4, 1), np.float32), 0.5, np.radians(30.0)).astype(np.float32)
+    out = turn_stokes(stokes, flip, turns)
+    assert optics.axis_gap_deg(np.degrees(optics.aolp(out)), expected_deg) == pytest.approx(0.0, abs=1e-4)
+    np.testing.assert_allclose(optics.dolp(out), 0.5, atol=1e-6)
+
+
+def test_turned_stokes_follow_the_turned_image():
+    """Shooting a turned scene through a polarizer turned alike gives the turned shot."""
+    rng = np.random.default_rng(1)
+    s0 = rng.random((5, 5, 1)) + 1
+    stokes = optics.stokes_from_polarization(s0, rng.random((5, 5, 1)) * 0.5, rng.uniform(0, np.pi, (5, 5, 1))).astype(np.float32)
+    phi = np.radians(25.0)
+    shot = optics.intensity_from_stokes(stokes, phi)
+    turned = turn_stokes(stokes, False, 1)
+    np.testing.assert_allclose(optics.intensity_from_stokes(turned, phi + np.pi / 2), np.rot90(shot), atol=1e-5)
+    mirrored = turn_stokes(stokes, True, 0)
+    np.testing.assert_allclose(optics.intensity_from_stokes(mirrored, -phi), shot[:, ::-1], atol=1e-5)
+
+
+def test_own_polarization_stays_physical():
+    photo = optics.photo_to_linear(load_image_pool(None, 128)[0][:128, :128])
+    for seed in range(4):
+        dolp, aolp = own_polarization(np.random.default_rng(seed), photo, 0.6)
+        assert dolp.shape == aolp.shape == photo.shape[:2]
+        assert 0.0 <= dolp.min() and dolp.max() <= 0.95
+        assert dolp.mean() > 0.005
+
+
+def _clean(cfg: SynthesisConfig) -> SynthesisConfig:
+    return dataclasses.replace(cfg, noise=False, nrd_prob=0.0, angle_noise_deg=0.0)
+
+
+@pytest.mark.parametrize("switch", ["t_polarized_prob", "mono_prob", "defocus_prob"])
+def test_polarized_training_samples_keep_r_plus_t_the_shots_s0(switch):
+    pool = load_image_pool(None, 256)
+    cfg = _clean(SynthesisConfig(**{switch: 1.0}))
+    batch = Synthesizer(pool, cfg, seed=3).batch(4)
+    for obs, r, t, angles in zip(batch["obs"], batch["r"], batch["t"], batch["angles"]):
+        s0 = optics.stokes_from_images(obs, angles)[0]
+        np.testing.assert_allclose(r + t, s0, atol=2e-5)
+        if switch == "mono_prob":
+            np.testing.assert_allclose(t[..., 0], t[..., 2], atol=1e-6)
+
+
+def test_new_switches_off_draw_the_paper_samples():
+    """The polarization switches at 0 draw nothing: the same seed gives the same samples with a
+    real pool handed in or not."""
+    pool = load_image_pool(None, 256)
+    stokes = np.ones((3, 200, 200, 3), np.float32)
+    a = Synthesizer(pool, SynthesisConfig(), seed=5).batch(3)
+    b = Synthesizer(pool, SynthesisConfig(), seed=5, real=[(stokes, np.zeros((200, 200), bool), False)]).batch(3)
+    for key in a:
+        np.testing.assert_array_equal(a[key], b[key])
+
+
+@needs_captures
+def test_no_glass_split_is_fixed_and_disjoint():
+    train = {c.name for c in samples.no_glass_captures(SHARED_DATA / "polarization", "train")}
+    test = {c.name for c in samples.no_glass_captures(SHARED_DATA / "polarization", "test")}
+    assert train and test and not train & test
+    assert test == set(samples.NO_GLASS_TEST) & {c.name for c in NO_GLASS}
+    assert {"imx250mzr-fruits", "imx250mzr-camera", "wen2019-scene61"} <= test
+    with pytest.raises(ValueError, match="split"):
+        samples.no_glass_captures(SHARED_DATA / "polarization", "val")
+
+
+@needs_captures
+def test_every_no_glass_capture_obeys_malus():
+    """I0 + I90 = I45 + I135 within 3% of S0 for every capture (the angle labels pair right)."""
+    for capture in NO_GLASS:
+        stack, angles = samples.load(capture, max_side=256)
+        by_angle = dict(zip(angles, stack))
+        residual = np.abs(by_angle[0.0] + by_angle[90.0] - by_angle[45.0] - by_angle[135.0]).mean()
+        assert residual / (by_angle[0.0] + by_angle[90.0]).mean() < 0.03, capture.name
+        if capture.mono:
+            np.testing.assert_array_equal(stack[..., 0], stack[..., 1])
+
+
+@needs_captures
+def test_real_training_samples_are_polarized_and_consistent():
+    cfg = _clean(SynthesisConfig(real_prob=1.0, no_glass_prob=0.5))
+    synth = Synthesizer(load_image_pool(None, 256), cfg, seed=2)
+    batch = synth.batch(6)
+    for obs, r, t, angles in zip(batch["obs"], batch["r"], batch["t"], batch["angles"]):
+        np.testing.assert_allclose(r + t, optics.stokes_from_images(obs, angles)[0], atol=2e-5)
+    assert (batch["r"].reshape(6, -1).max(axis=1) == 0).any()         # a view without glass: R = 0
+
+
+@needs_captures
+def test_semireal_scenes_have_exact_ground_truth():
+    captures = [c for c in NO_GLASS if c.name in ("dphr2022-outdoor-01", "imx250mzr-fruits")]
+    scenes = semireal.make_scenes(captures, size=64)
+    conditions = {(s.capture, s.condition) for s in scenes}
+    assert ("dphr2022-outdoor-01", "3 shots, colour made grey") in conditions
+    assert ("imx250mzr-fruits", "3 shots, colour made grey") not in conditions
+    for scene in scenes:
+        assert len(scene.shots) == len(scene.angles_deg) == int(scene.condition[0]) if scene.condition[0].isdigit() else 3
+        s0 = optics.stokes_from_images(scene.shots, np.radians(scene.angles_deg))[0]
+        # nominal angles are off by up to 2 deg and the shots carry zero-mean noise: S0 holds on average
+        assert abs(s0.mean() - (scene.r + scene.t).mean()) < 0.01 * (scene.r + scene.t).mean()
+        if scene.condition == "no glass":
+            assert not scene.r.any()
+        else:
+            assert scene.r.mean() > 0.05 * scene.t.mean()
+    again = semireal.make_scenes(captures, size=64)
+    np.testing.assert_array_equal(scenes[3].shots, again[3].shots)
+
+
+@needs_captures
+def test_semireal_tables_score_every_method():
+    captures = [c for c in NO_GLASS if c.name == "dphr2022-outdoor-01"]
+    tables, records = semireal.run_semireal(("none", "schechner"), size=48, captures=captures)
+    assert "| 3 shots | 2 |" in tables and "| 6 shots | 1 |" in tables
+    none_share = [r["r_share"] for r in records if r["method"] == "none" and r["condition"] == "no glass"]
+    assert none_share == [0.0]
+    assert "| **mean** | **0.0%** |" in tables
+
+
+def test_semireal_goes_alone():
+    result = CliRunner().invoke(app, ["bench", "--semireal", "--count", "4"])
+    assert result.exit_code == 2
+    assert "--semireal goes alone" in result.output
+    result = CliRunner().invoke(app, ["bench", "--weights", "x.pt"])
+    assert result.exit_code == 2 and "--weights goes with --semireal" in result.output
