@@ -438,7 +438,7 @@ def separate(
     incidence: Optional[float] = typer.Option(None, "--incidence", help="Network: the angle of incidence on the glass (deg, between the camera's axis and the pane's normal) where you know it; the network's Fresnel gate uses it instead of the estimate from the shots. Schechner takes it as --param theta_deg=DEG.", show_default=False),
     param: Optional[list[str]] = typer.Option(None, "--param", help="A baseline's parameter as NAME=VALUE (repeat), e.g. --method kong --param smoothness=0.5; names and paper defaults in each baseline's docstring (separate/baselines/)."),
     force: bool = typer.Option(False, help="Replace existing results of this method (only once the new ones are complete)."),
-    maps: bool = typer.Option(False, "--maps", help="Also write the polarization maps: S0, S1, S2, DoLP, AoLP, phi_perp, theta as float32 TIFF with units (results/METHOD/maps/)."),
+    maps: bool = typer.Option(False, "--maps", help="Also write the polarization maps: S0, S1, S2, DoLP, AoLP, phi_perp, theta as float32 TIFF with units (results/METHOD/maps/); on a scene that has results of the method, adds the maps to them without separating again."),
     all_scenes: bool = typer.Option(False, "--all", help="Every ingested scene of the dataset without results of this method (with --force: every ingested scene)."),
     jobs: int = typer.Option(1, min=1, help="With --all: worker processes, each on cores/jobs threads."),
 ) -> None:
@@ -458,7 +458,7 @@ def separate(
     from separate.precision import describe, resolve
     from urd.core.images import Transfer
     from urd.core.raw import RAW_SUFFIXES
-    from urd.separation import describe_incidence, sees_polarization_of, separate_images, separate_scene
+    from urd.separation import add_maps, describe_incidence, sees_polarization_of, separate_images, separate_scene
 
     if method not in METHODS:
         raise typer.BadParameter(f"unknown method {method!r}; expected one of {sorted(METHODS)}")
@@ -511,6 +511,12 @@ def separate(
                          forced, maps, jobs)
         return
     target = None if images else run_guarded(resolve_scene, scene, dataset)
+    if target is not None and maps and not force and method in target.methods():
+        result = run_guarded(add_maps, target, method, forced)
+        typer.echo(f"added the polarization maps to {target.name}'s {method} results (a Stokes fit; not separated again)")
+        for path in result.files:
+            typer.echo(f"wrote {Path(path).resolve()}")
+        return
     if target is not None and not force:
         run_guarded(target.check_no_results, method)
     bar = TerminalProgress()
@@ -562,7 +568,9 @@ def separate_dataset(dataset: Optional[Path], method: str, weights: Optional[Pat
         typer.echo(f"{outcome.scene}: {outcome.state}{': ' + outcome.detail if outcome.detail else ''}")
     failed = sum(o.state == "failed" for o in outcomes)
     done = sum(o.state == "separated" for o in outcomes)
-    typer.echo(f"{plural(done, 'scene')} separated with {method}, {failed} failed" + (
+    mapped = sum(o.state == "maps added" for o in outcomes)
+    typer.echo(f"{plural(done, 'scene')} separated with {method}, " + (f"maps added to {mapped}, " if mapped else "") +
+               f"{failed} failed" + (
         f"; results in each scene's results/{method}/ (look at them: urd report {root} --html report)" if done else ""))
     if failed:
         raise typer.Exit(1)

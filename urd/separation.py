@@ -295,6 +295,34 @@ def separate_scene(scene: Scene, method: str, run, info: dict, force: bool = Fal
     return separation
 
 
+def add_maps(scene: Scene, method: str, reference: str | float = "auto") -> Separation:
+    """Add the polarization maps to a scene's stored results of ``method`` without separating
+    again: a Stokes fit of the aligned stack, presented at the reference the separation used
+    (its ``reference_deg.tiff``; for a method that sees S0 only, ``reference`` estimated without
+    a trial separation). The maps are staged inside the scene and recorded with their hashes.
+    DatasetError when the results are missing or already hold maps."""
+    with scene.lock():
+        scene.reload()
+        result = scene.result(method)
+        if any(path.parent.name == "maps" for path in result.files.values()):
+            raise DatasetError(f"{scene.name}'s {method} results already have maps ({scene.results_dir(method) / 'maps'}); "
+                               "pass --force to separate again with maps")
+        images, angles = scene.load_stack(codes=True)
+        if "reference_deg.tiff" in result.files:
+            used = tifffile.imread(result.files["reference_deg.tiff"])
+        else:
+            inspection, chosen = resolve_reference(images, angles, reference, None)
+            used = inspection.field if reference == "auto" else chosen
+        polarization = _maps(images, angles, used)
+        del images
+        with scene.staging() as staging:
+            staged = {f"results/{method}/maps/{p.name}": p for p in write_maps(staging / "maps", polarization)}
+            stored = scene.add_result_files(method, staged, f"maps of {method}")
+        scene.reload()
+    files = [path for path in stored.files.values() if path.parent.name == "maps"]
+    return Separation(files, result.reference_deg or 0.0, [], None)
+
+
 def describe_incidence(incidence: dict) -> str:
     """A line on the angle-of-incidence estimate (`separate.reference.Incidence.record`) and
     whether the physics-anchored network used it."""

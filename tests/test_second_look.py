@@ -1,0 +1,117 @@
+"""What a new user trips on after `urd demo` (issue 43): maps that keep their stated ranges and
+come without a network pass, errors that name the option, progress that shows waits, hints."""
+
+import json
+
+import numpy as np
+import pytest
+import tifffile
+from typer.testing import CliRunner
+
+import urd
+from separate import optics
+from separate.maps import DARK_S0, MAPS, polarization_maps
+from urd.cli import app
+from urd.core.dataset import Dataset
+
+SIM = ("--stage", "sim", "--camera", "virtual")
+
+
+def invoke(*args):
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+@pytest.fixture(autouse=True)
+def wide_terminal(monkeypatch):
+    monkeypatch.setenv("COLUMNS", "200")
+
+
+@pytest.fixture(scope="module")
+def separated(tmp_path_factory):
+    """A dataset with one captured, ingested 256×192 scene (scene_01), separated by the network."""
+    root = tmp_path_factory.mktemp("second-look") / "ds"
+    assert invoke("capture", root, *SIM, "--sim-size", "256x192").exit_code == 0
+    assert invoke("ingest", root).exit_code == 0
+    result = invoke("separate", "scene_01", "--dataset", root)
+    assert result.exit_code == 0, result.output
+    return root
+
+
+def noisy_dark_stack(seed: int = 0) -> tuple[np.ndarray, list[float]]:
+    """Shots of a 40%-polarized scene whose left half is nearly black, with sensor noise."""
+    rng = np.random.default_rng(seed)
+    angles = [0.0, 45.0, 90.0]
+    s0 = np.full((16, 32, 3), 0.6, np.float32)
+    s0[:, :16] = 0.002
+    stokes = np.stack([s0, 0.4 * s0, np.zeros_like(s0)])
+    shots = np.stack([optics.intensity_from_stokes(stokes, np.radians(a)) for a in angles])
+    return (shots + rng.normal(0, 0.003, shots.shape)).astype(np.float32), angles
+
+
+# ---------------------------------------------------------------- 1. maps
+
+
+def test_dolp_stays_in_its_range_and_dark_pixels_are_marked():
+    shots, angles = noisy_dark_stack()
+    maps = polarization_maps(shots, angles, 0.0)
+    dolp, aolp = maps["DoLP"], maps["AoLP"]
+    assert np.isnan(dolp[:, :16]).all() and np.isnan(aolp[:, :16]).all()    # S0 within the noise
+    assert not np.isnan(dolp[:, 16:]).any()
+    assert np.nanmax(dolp) <= 1.0 and np.nanmin(dolp) >= 0.0
+    np.testing.assert_allclose(dolp[:, 16:], 0.4, atol=0.05)
+    assert "NaN" in MAPS["DoLP"][1] and str(DARK_S0) in MAPS["DoLP"][1] and "[0, 1]" in MAPS["DoLP"][1]
+
+
+def test_maps_of_a_separated_scene_come_without_the_network(separated, monkeypatch):
+    import separate.methods
+    import urd.separation
+
+    def no_network(*args, **kwargs):
+        raise AssertionError("the network was run")
+
+    monkeypatch.setattr(separate.methods, "get_method", no_network)
+    monkeypatch.setattr(urd.separation, "separate_inspected", no_network)
+    before = Dataset.open(separated).scene("scene_01").result("network")
+    result = invoke("separate", "scene_01", "--dataset", separated, "--maps")
+    assert result.exit_code == 0, result.output
+    assert "added the polarization maps" in result.output and "not separated again" in result.output
+    scene = Dataset.open(separated).scene("scene_01")
+    after = scene.result("network")
+    assert {name for name in after.files} == {name for name in before.files} | {f"{m}.tiff" for m in MAPS}
+    assert after.files["R.tiff"].read_bytes() == before.files["R.tiff"].read_bytes()
+    assert scene.verify() == []                                              # stored with their hashes
+    records = json.loads(scene.manifest_path.read_text())["results"]["network"]["files"]
+    assert {"results/network/maps/DoLP.tiff", "results/network/R.tiff"} <= {r["file"] for r in records}
+    assert all(len(r["sha256"]) == 64 for r in records)
+    with tifffile.TiffFile(after.files["DoLP.tiff"]) as tif:
+        assert "NaN" in json.loads(tif.pages[0].description)["quantity"]
+        dolp = tif.asarray()
+    assert np.nanmax(dolp) <= 1.0
+    phi = tifffile.imread(after.files["phi_perp.tiff"])
+    assert np.isfinite(phi).all()
+    again = invoke("separate", "scene_01", "--dataset", separated, "--maps")   # maps there already: nothing replaced
+    assert again.exit_code == 1 and "already have maps" in again.output and "--force" in again.output
+
+
+def test_all_maps_adds_maps_to_separated_scenes(separated, monkeypatch):
+    import urd.batch
+
+    monkeypatch.setattr(urd.batch, "_prepare", lambda *a, **k: pytest.fail("a scene was separated again"))
+    result = invoke("separate", "--all", "--method", "network", "--dataset", separated, "--maps")
+    assert result.exit_code == 0, result.output
+    assert "scene_01: skipped: has network results with maps" in result.output
+
+
+def test_polarization_maps_settle_the_side_without_the_network(monkeypatch):
+    import separate.methods
+
+    real = separate.methods.get_method
+
+    def classical_only(name, *args, **kwargs):
+        assert name != "network", "polarization_maps ran the network"
+        return real(name, *args, **kwargs)
+
+    monkeypatch.setattr(separate.methods, "get_method", classical_only)
+    shots, angles = noisy_dark_stack()
+    maps = urd.polarization_maps(shots, angles)
+    assert set(maps) == set(MAPS)
