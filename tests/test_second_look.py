@@ -115,3 +115,58 @@ def test_polarization_maps_settle_the_side_without_the_network(monkeypatch):
     shots, angles = noisy_dark_stack()
     maps = urd.polarization_maps(shots, angles)
     assert set(maps) == set(MAPS)
+
+
+# ---------------------------------------------------------------- 2. one error style
+
+
+@pytest.mark.parametrize(("args", "option", "says"), [
+    (("--method", "schechnr"), "--method", "expected one of arvanitopoulos, ceilnet"),
+    (("--reference", "sideways"), "--reference", "expected 'auto', 'global' or an angle"),
+    (("--precision", "fp16"), "--precision", "fp32 or bf16, got 'fp16'"),
+    (("--tile", "100"), "--tile", "at least 320 px"),
+])
+def test_usage_errors_name_the_option(separated, args, option, says):
+    result = invoke("separate", "scene_01", "--dataset", separated, *args)
+    assert result.exit_code == 2
+    assert f"Error: Invalid value for '{option}': " in result.output and says in result.output
+
+
+def test_a_missing_scene_is_named_with_the_scenes_there(separated):
+    result = invoke("separate", "scene_09", "--dataset", separated)
+    assert result.exit_code == 2
+    assert "Error: Invalid value for 'SCENE': no scene 'scene_09'" in result.output and "scenes: scene_01" in result.output
+
+
+def test_bounds_speak_urd_not_pydantic(separated):
+    result = invoke("separate", "--all", "--jobs", "0", "--dataset", separated)
+    assert result.exit_code == 2
+    assert "Error: Invalid value for '--jobs': expected at least 1, got 0" in result.output
+    assert "Input should be" not in result.output
+    result = invoke("calibrate", "offset", "--stage", "sim", "--step", "90")
+    assert result.exit_code == 2 and "Invalid value for '--step': expected between 1 and 45, got 90" in result.output
+
+
+def test_options_that_do_not_go_together_are_a_usage_error(separated):
+    result = invoke("separate", "scene_01", "--dataset", separated, "--jobs", "2")
+    assert result.exit_code == 2 and "Error: --jobs is for --all" in result.output and "Invalid value" not in result.output
+
+
+def test_failures_exit_1_in_the_same_voice(separated):
+    result = invoke("separate", "scene_01", "--dataset", separated)          # results there already
+    assert result.exit_code == 1 and result.output.startswith("Error: ") and "--force" in result.output
+
+
+def test_an_unwritable_output_folder_fails_before_the_network(tmp_path, monkeypatch):
+    import urd.separation
+
+    monkeypatch.setattr(urd.separation, "separate_inspected", lambda *a, **k: pytest.fail("the method ran"))
+    shots, _ = noisy_dark_stack()
+    files = []
+    for k, shot in enumerate(shots):
+        files += ["--images", tmp_path / f"shot_{k}.tiff"]
+        tifffile.imwrite(tmp_path / f"shot_{k}.tiff", (np.clip(shot, 0, 1) * 65535).astype(np.uint16))
+    (tmp_path / "a-file").write_text("not a folder")
+    result = invoke("separate", *files, "--method", "schechner", "--out", tmp_path / "a-file" / "out")
+    assert result.exit_code == 1
+    assert "Error: cannot write into the output folder" in result.output and "nothing was separated" in result.output

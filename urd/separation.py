@@ -368,6 +368,7 @@ def separate_images(paths: list[Path], angles_deg: list[float], out: Path, run, 
     (``reference_deg.tiff``) only for a method that ``sees_polarization``."""
     if len(paths) != len(angles_deg):
         raise ValueError(f"expected one angle per image ({len(paths)} images), got {len(angles_deg)} angles")
+    check_writable(Path(out))
     existing = sorted(p.name for p in Path(out).glob("*") if p.name in RESULT_NAMES or p.name == "maps") \
         if Path(out).is_dir() and not force else []
     if existing:
@@ -388,6 +389,18 @@ def separate_images(paths: list[Path], angles_deg: list[float], out: Path, run, 
         paths += write_maps(Path(out) / "maps", polarization, overwrite=force)
     _remove_replaced(Path(out), paths)
     return Separation(paths, inspection.reference_deg, inspection.warnings)
+
+
+def check_writable(folder: Path) -> None:
+    """Make ``folder`` (and its parents) if needed and check that a file can be written into it,
+    before any work; DatasetError naming the folder and what to do when not."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        raise DatasetError(f"cannot write into the output folder {folder} ({exc.strerror or exc}); nothing was "
+                           "separated. Choose another --out, or make this one writable") from exc
 
 
 def _remove_replaced(out: Path, written: list[Path]) -> None:
