@@ -170,3 +170,41 @@ def test_an_unwritable_output_folder_fails_before_the_network(tmp_path, monkeypa
     result = invoke("separate", *files, "--method", "schechner", "--out", tmp_path / "a-file" / "out")
     assert result.exit_code == 1
     assert "Error: cannot write into the output folder" in result.output and "nothing was separated" in result.output
+
+
+# ---------------------------------------------------------------- 3. progress that tells the truth
+
+
+def test_the_driver_reports_its_waits_and_retries(scripted_peer):
+    import serial
+
+    from acquire.ell14 import Ell14
+
+    info = b"0IN0E1140051720231701016800023000\r\n"
+    peer = scripted_peer([(b"0in", info), (b"0gp", b""), (b"0gp", b"0PO00008C00\r\n")])    # the first reply is lost
+    waits, retries = [], []
+    with serial.Serial(peer.port_name, 9600, timeout=0.1) as port, Ell14(port, timeout_s=0.5) as stage:
+        stage.info()
+        stage.on_wait, stage.on_retry = lambda: waits.append(1), retries.append
+        assert stage.position() == pytest.approx(90.0)
+    peer.check()
+    assert retries == ["no reply within 0.5 s to 'gp'; sending it again (retry 1 of 2)"]
+    assert len(waits) >= 4                                  # the bar is redrawn while the lost reply is waited out
+
+
+def test_the_capture_bar_runs_through_waits_and_shows_retries():
+    from acquire.plan import _shown
+
+    class Stage:
+        on_wait = on_retry = None
+
+    calls, lines = [], []
+    stage = Stage()
+    with _shown(stage, lambda *args: calls.append(args), 5, "capture scene_01", lines.append) as show:
+        stage.on_wait()
+        stage.on_retry("no reply within 10 s to 'ma00008C00'; sending it again (retry 1 of 2)")
+        stage.on_wait()
+        show(None)
+    assert calls == [(0, 5, "capture scene_01")] * 3 + [(1, 5, "capture scene_01")]   # drawn from the start, during waits
+    assert lines == ["stage: no reply within 10 s to 'ma00008C00'; sending it again (retry 1 of 2)"]
+    assert stage.on_wait is None and stage.on_retry is None

@@ -272,9 +272,10 @@ def capture(
     choice(CameraKind, camera, "--camera")
     angle_list = parse_angles(angles) if given(ctx, "angles") else None
     sim = sim_settings(sim_offset, sim_jitter, sim_faults, sim_size, sim_shake, reflection, transmission, seed)
+    bar = TerminalProgress()
     result = run_guarded(capture_scene, dataset or default_root(), stage, camera, angle_list, scene, new_scene,
-                         tolerance if given(ctx, "tolerance") else None, address, sim, announce=typer.echo,
-                         progress=TerminalProgress())
+                         tolerance if given(ctx, "tolerance") else None, address, sim,
+                         announce=lambda line: (bar.break_line(), typer.echo(line)), progress=bar)
     typer.echo(f"scene complete: {result.path.resolve()}")
 
 
