@@ -208,3 +208,37 @@ def test_the_capture_bar_runs_through_waits_and_shows_retries():
     assert calls == [(0, 5, "capture scene_01")] * 3 + [(1, 5, "capture scene_01")]   # drawn from the start, during waits
     assert lines == ["stage: no reply within 10 s to 'ma00008C00'; sending it again (retry 1 of 2)"]
     assert stage.on_wait is None and stage.on_retry is None
+
+
+# ---------------------------------------------------------------- 4. hints
+
+
+def test_ingest_of_frames_without_mosaic_names_the_option(tmp_path):
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    tifffile.imwrite(frames / "frame_0001.tiff", np.zeros((8, 8), np.uint16))
+    result = invoke("ingest", frames, tmp_path / "ds")
+    assert result.exit_code == 1
+    assert "no RAW files" in result.output and "--mosaic imx250mzr|imx250myr|wen2019" in result.output
+
+
+def test_each_demo_run_gets_a_fresh_dataset_and_says_so(tmp_path):
+    folder = tmp_path / "urd-demo"
+    first = invoke("demo", folder, "--size", "256x192")
+    assert first.exit_code == 0, first.output
+    assert "exists" not in first.output and Dataset.open(folder).scene_names() == ["scene_01"]
+    second = invoke("demo", folder, "--size", "256x192")
+    assert second.exit_code == 0, second.output
+    assert f"{folder} exists (an earlier run): this run writes a fresh dataset, {folder}-2" in second.output
+    assert Dataset.open(folder).scene_names() == ["scene_01"]                 # nothing piled up
+    assert Dataset.open(tmp_path / "urd-demo-2").scene_names() == ["scene_01"]
+
+
+def test_skips_for_the_shared_data_say_what_it_is():
+    from conftest import shared_data
+
+    with pytest.raises(pytest.skip.Exception) as skipped:
+        shared_data("no-such-set")
+    reason = str(skipped.value)
+    assert "no-such-set is not present" in reason and "third-party research data" in reason
+    assert "urd does not ship it" in reason

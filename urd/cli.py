@@ -813,7 +813,7 @@ def verify(dataset: Optional[Path] = typer.Argument(None, help=DATASET_HELP + " 
 
 @app.command()
 def demo(
-    folder: Path = typer.Argument(Path("urd-demo"), help="Dataset folder for the demo (created, or extended with a new scene)."),
+    folder: Path = typer.Argument(Path("urd-demo"), help="Dataset folder for the demo, created; when it exists, a fresh FOLDER-2, FOLDER-3 … (said on the first line)."),
     size: str = typer.Option("1536x1024", help="Virtual sensor size WIDTHxHEIGHT."),
     seed: int = typer.Option(0, help="Random seed of the simulated rig."),
     precision: str = typer.Option("auto", help="Network arithmetic: auto, fp32 or bf16."),
