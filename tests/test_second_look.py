@@ -242,3 +242,55 @@ def test_skips_for_the_shared_data_say_what_it_is():
     reason = str(skipped.value)
     assert "no-such-set is not present" in reason and "third-party research data" in reason
     assert "urd does not ship it" in reason
+
+
+# ---------------------------------------------------------------- 5. the report for a newcomer
+
+
+def test_the_report_explains_itself_names_the_best_method_and_previews_the_maps(separated, tmp_path):
+    import re
+
+    import cv2
+
+    invoke("separate", "scene_01", "--dataset", separated, "--maps")          # maps there (added, or already)
+    assert invoke("separate", "scene_01", "--dataset", separated, "--method", "none").exit_code == 0
+    result = invoke("report", separated, "--html", tmp_path / "report")
+    assert result.exit_code == 0, result.output
+    page = (tmp_path / "report" / "index.html").read_text()
+    howto = page[page.index("Reading this page"):]
+    assert howto.index("<b>Each scene</b>") < howto.index("k = 1 /")                 # what a row is before the maths
+    assert "<b>Reflection presence</b> is a hint" in howto and "transmitted objects" in howto
+    truth = Dataset.open(separated).scene("scene_01")
+    psnr = {m: truth.result(m).truth_metrics["T"]["psnr_db"] for m in ("network", "none")}
+    best = max(psnr, key=psnr.get)
+    assert f"Against the ground truth, <b>{best}</b> recovers T̂ with {psnr[best]:.2f} dB PSNR (best of 2 methods" in page
+    assert "<th>best T̂ vs ground truth</th>" in page and f"<td>{best}, {psnr[best]:.2f} dB</td>" in page
+    previews = re.findall(r'<a href="([^"]+_map_DoLP\.png)">DoLP</a>', page)
+    assert len(previews) == 1
+    preview = cv2.imread(str(tmp_path / "report" / previews[0]))
+    assert preview is not None and preview.shape[2] == 3                           # a PNG a browser shows
+    assert "maps/DoLP.tiff" in page                                                # the data stays linked
+    phi = re.search(r'<img src="([^"]+_phi_t\.jpg)" width="(\d+)"', page)
+    assert phi is not None and int(phi.group(2)) <= 320 // 3                        # the φ⊥ map is small
+
+
+def test_help_gives_each_command_its_whole_summary():
+    import typer
+
+    result = invoke("--help")
+    commands = result.output[result.output.index("Commands:"):]
+    assert result.exit_code == 0 and "..." not in commands and "…" not in commands
+    words = " ".join(commands.split())
+    for name, command in typer.main.get_command(app).commands.items():
+        first = command.get_short_help_str(limit=1000)
+        assert " ".join(first.split()) in words, name
+    sub = invoke("calibrate", "--help")
+    assert "..." not in sub.output.split("Commands:")[1] and "mounting offset." in " ".join(sub.output.split())
+
+
+def test_the_api_example_prints_the_angle_of_incidence_over_the_frame_not_a_corner_pixel():
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    for text in ((root / "docs" / "api.md").read_text(), (root / "docs" / "examples" / "separate_scene.py").read_text()):
+        assert "theta'][0, 0]" not in text and "np.median(theta)" in text

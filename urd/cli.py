@@ -38,6 +38,15 @@ class WorkflowOrder(typer.core.TyperGroup):
         order = {name: k for k, name in enumerate(self.ORDER)}
         return sorted(super().list_commands(ctx), key=lambda name: order.get(name, len(order)))
 
+    def format_commands(self, ctx, formatter) -> None:
+        """Each command with its whole first sentence (wrapped, never cut with "...")."""
+        commands = [(name, self.get_command(ctx, name)) for name in self.list_commands(ctx)]
+        rows = [(name, command.get_short_help_str(limit=1000)) for name, command in commands
+                if command is not None and not command.hidden]
+        if rows:
+            with formatter.section("Commands"):
+                formatter.write_dl(rows)
+
 
 app = typer.Typer(
     cls=WorkflowOrder,
@@ -377,7 +386,7 @@ def ingest(
         fail(f"{failed} of {plural(len(report.outcomes), 'scene')} {'failed or was' if failed == 1 else 'failed or were'} flagged")
 
 
-calibrate_app = typer.Typer(help="Measure the polarizer: mounting offset from a sweep, per-shot angle errors of a scene."
+calibrate_app = typer.Typer(cls=WorkflowOrder, help="Measure the polarizer: mounting offset from a sweep, per-shot angle errors of a scene."
                                  "\n\n\b\nExample:\n  urd calibrate offset --stage /dev/ttyUSB0\n  urd calibrate shots scene_01",
                             no_args_is_help=True, rich_markup_mode=None, context_settings=HELP_OPTIONS)
 app.add_typer(calibrate_app, name="calibrate")
