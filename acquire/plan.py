@@ -242,13 +242,12 @@ def capture_scene(root: Path, stage: str, camera: str, angles_deg: list[float] |
     plan (angles, offset, tolerance; ``angles_deg`` and ``tolerance_deg`` None take them, other
     values must match) and must be captured with the camera and stage it recorded. A new scene
     takes ``angles_deg`` (default `DEFAULT_ANGLES_DEG`), ``tolerance_deg`` (default 0.5) and the
-    dataset's mounting offset calibration of this stage (`calib.store.offset_for_stage`). The
+    dataset's mounting offset calibration of this stage (`acquire.rig.offset_for_stage`). The
     rig is opened before the dataset or any scene is made, and a scene that got no shot is
     removed, so a failing start leaves nothing. Errors and Ctrl-C are re-raised with the
     command that resumes the capture; once every shot is taken the scene is complete instead.
     """
-    from acquire.rig import open_rig
-    from calib.store import offset_for_stage
+    from acquire.rig import offset_for_stage, open_rig
 
     if scene_name is not None and not SCENE_NAME.match(scene_name):
         raise DatasetError(f"expected a scene name like scene_01, got {scene_name!r}")

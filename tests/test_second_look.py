@@ -294,3 +294,23 @@ def test_the_api_example_prints_the_angle_of_incidence_over_the_frame_not_a_corn
     root = Path(__file__).resolve().parent.parent
     for text in ((root / "docs" / "api.md").read_text(), (root / "docs" / "examples" / "separate_scene.py").read_text()):
         assert "theta'][0, 0]" not in text and "np.median(theta)" in text
+
+
+# ---------------------------------------------------------------- 6. one owner per room
+
+
+def test_hardware_and_calibration_do_not_import_each_other():
+    import ast
+    import tomllib
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    contracts = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["importlinter"]["contracts"]
+    assert {"type": "independence", "modules": ["acquire", "calib"]}.items() <= next(
+        c for c in contracts if c["type"] == "independence").items()
+    for package, other in (("acquire", "calib"), ("calib", "acquire")):
+        for path in (root / package).glob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text())):
+                names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
+                    [node.module or ""] if isinstance(node, ast.ImportFrom) else []
+                assert not any(n == other or n.startswith(other + ".") for n in names), f"{path.name} imports {other}"

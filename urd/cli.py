@@ -1,5 +1,5 @@
 """The ``urd`` command line: a thin layer. Each command parses its options, calls one workflow
-function (acquire.plan, urd.ingest, calib.store, urd.separation, urd.report, urd.demo,
+function (acquire.plan, urd.ingest, urd.calibration, calib.store, urd.separation, urd.report, urd.demo,
 separate.train, separate.bench) and prints.
 
 Angles are degrees here and in manifests. Errors print one line in one voice, "Error: ...":
@@ -426,7 +426,7 @@ def calibrate_offset_cmd(
     """
     from acquire.camera import CameraKind
     from acquire.rig import SimSettings
-    from calib.store import sweep_and_calibrate
+    from urd.calibration import sweep_and_calibrate
 
     choice(CameraKind, camera, "--camera")
     root = dataset or default_root()
