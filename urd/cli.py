@@ -718,7 +718,7 @@ def bench(
         raise usage("--seeds, --jobs, --runs and --steps go with --ablation")
     if ablation:
         from separate.ablation import run_ablation
-        from separate.evaluate import DEFAULT_OUT
+        from separate.bench_run import DEFAULT_OUT
 
         seed_list = parse_seeds(seeds)
         folder = (out or DEFAULT_OUT) / ("ablation" + (f"-{steps}" if steps else ""))
@@ -733,7 +733,7 @@ def bench(
         if not (quick or full):
             return
     if quick or full:
-        from separate.evaluate import DEFAULT_OUT, run_evaluation
+        from separate.bench_run import DEFAULT_OUT, run_evaluation
 
         result = run_guarded(run_evaluation, out or DEFAULT_OUT, quick, images, progress=TerminalProgress(),
                              large=large, command=" ".join(["urd"] + sys.argv[1:]))
