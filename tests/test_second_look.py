@@ -172,6 +172,27 @@ def test_an_unwritable_output_folder_fails_before_the_network(tmp_path, monkeypa
     assert "Error: cannot write into the output folder" in result.output and "nothing was separated" in result.output
 
 
+def test_a_full_disk_is_said_as_such_with_the_file(tmp_path):
+    import subprocess
+
+    small = tmp_path / "small"
+    small.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=96k", "tmpfs", str(small)], capture_output=True).returncode:
+        pytest.skip("cannot mount a small tmpfs here (needs root)")
+    try:
+        files = []
+        for k, angle in enumerate((0, 45, 90)):
+            shot = np.random.default_rng(k).integers(0, 65535, (128, 160, 3), dtype=np.uint16)
+            tifffile.imwrite(tmp_path / f"shot_{angle}.tiff", shot)
+            files += ["--images", tmp_path / f"shot_{angle}.tiff"]
+        result = invoke("separate", *files, "--method", "schechner", "--out", small / "out")
+        assert result.exit_code == 1
+        assert "Error: disk full: cannot write " + str(small / "out") in result.output
+        assert "requested and" not in result.output and "Write Error" not in result.output
+    finally:
+        subprocess.run(["umount", str(small)])
+
+
 # ---------------------------------------------------------------- 3. progress that tells the truth
 
 

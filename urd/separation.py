@@ -57,9 +57,7 @@ def write_preview(path: Path, image: np.ndarray, white: float, overwrite: bool =
     if scale < 1:
         image = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
     rgb = to_display(image, 1.0 / white)
-    with atomic_path(path, overwrite) as tmp:
-        if not cv2.imwrite(str(tmp), rgb[..., ::-1]):
-            raise DatasetError(f"cannot write {path}")
+    write_png(path, rgb[..., ::-1], overwrite)
 
 
 def _read_mapped(path: Path, shape: tuple[int, ...], scene: Scene) -> np.ndarray:
@@ -158,9 +156,17 @@ def write_maps(folder: Path, maps: dict[str, np.ndarray], overwrite: bool = Fals
 
 def write_mask(path: Path, mask: np.ndarray, overwrite: bool = False) -> None:
     """A boolean mask as an 8-bit PNG (255 = true), atomically."""
+    write_png(path, mask.astype(np.uint8) * np.uint8(255), overwrite)
+
+
+def write_png(path: Path, image: np.ndarray, overwrite: bool = False) -> None:
+    """An 8-bit image (H×W, or H×W×3 BGR) as a PNG, atomically: encoded in memory and written by
+    Python, so that a full disk is an error naming the file (`urd.core.files.atomic_path`)."""
+    ok, data = cv2.imencode(".png", image)
+    if not ok:
+        raise DatasetError(f"cannot encode {path} as PNG")
     with atomic_path(path, overwrite) as tmp:
-        if not cv2.imwrite(str(tmp), mask.astype(np.uint8) * np.uint8(255)):
-            raise DatasetError(f"cannot write {path}")
+        tmp.write_bytes(data.tobytes())
 
 
 #: The files `write_results` may write (besides ``maps/``).
