@@ -27,6 +27,7 @@ from __future__ import annotations
 import dataclasses
 import re
 import time
+from typing import Callable
 
 import serial
 
@@ -115,6 +116,11 @@ class Ell14:
         move_timeout_s: deadline for a home or move to finish (s).
         retries: extra attempts after a lost or garbled reply.
 
+    Two optional hooks let a progress display tell the truth about the link: ``on_wait()`` is
+    called about every 0.1 s while a reply is awaited (a lost reply is waited out for the whole
+    time-out, up to ``move_timeout_s`` for a move), ``on_retry(message)`` before a command is sent
+    again, with a line saying why.
+
     Use as a context manager; on exit the input buffer is drained and the port stays open
     (its owner closes it).
     """
@@ -128,6 +134,8 @@ class Ell14:
         self.timeout_s = timeout_s
         self.move_timeout_s = move_timeout_s
         self.retries = retries
+        self.on_wait: Callable[[], None] | None = None
+        self.on_retry: Callable[[str], None] | None = None
         self._info: Ell14Info | None = None
 
     def __enter__(self) -> "Ell14":
@@ -153,6 +161,8 @@ class Ell14:
                 )
             self.port.timeout = min(remaining, 0.1)
             line += self.port.read_until(b"\n")
+            if self.on_wait is not None:
+                self.on_wait()
         match = REPLY.match(line)
         if not match:
             raise ProtocolError(f"garbled reply from ELL14: {line!r}")
@@ -195,10 +205,13 @@ class Ell14:
                     if code in expect:
                         return code, data
                     raise ProtocolError(f"unexpected reply {code}{data} to command {command!r}")
-            except (DeviceTimeoutError, ProtocolError):
+            except (DeviceTimeoutError, ProtocolError) as exc:
                 if attempt >= self.retries:
                     raise
                 attempt += 1
+                if self.on_retry is not None:
+                    why = f"no reply within {timeout_s:g} s" if isinstance(exc, DeviceTimeoutError) else "a garbled reply"
+                    self.on_retry(f"{why} to {command!r}; sending it again (retry {attempt} of {self.retries})")
 
     # -- device API --------------------------------------------------------------------------
     def info(self) -> Ell14Info:

@@ -13,11 +13,12 @@ commanded ``polarizer angle − mounting offset`` when a calibration is known.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import shlex
 import shutil
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 from acquire.camera import Camera
 from acquire.ell14 import Ell14
@@ -241,13 +242,12 @@ def capture_scene(root: Path, stage: str, camera: str, angles_deg: list[float] |
     plan (angles, offset, tolerance; ``angles_deg`` and ``tolerance_deg`` None take them, other
     values must match) and must be captured with the camera and stage it recorded. A new scene
     takes ``angles_deg`` (default `DEFAULT_ANGLES_DEG`), ``tolerance_deg`` (default 0.5) and the
-    dataset's mounting offset calibration of this stage (`calib.store.offset_for_stage`). The
+    dataset's mounting offset calibration of this stage (`acquire.rig.offset_for_stage`). The
     rig is opened before the dataset or any scene is made, and a scene that got no shot is
     removed, so a failing start leaves nothing. Errors and Ctrl-C are re-raised with the
     command that resumes the capture; once every shot is taken the scene is complete instead.
     """
-    from acquire.rig import open_rig
-    from calib.store import offset_for_stage
+    from acquire.rig import offset_for_stage, open_rig
 
     if scene_name is not None and not SCENE_NAME.match(scene_name):
         raise DatasetError(f"expected a scene name like scene_01, got {scene_name!r}")
@@ -278,10 +278,9 @@ def capture_scene(root: Path, stage: str, camera: str, angles_deg: list[float] |
             done = {shot.index for shot in scene.shots()}
             steps = len(plan_capture(planned, done))
             announce(f"capturing {scene.path.resolve()} at {planned} deg ({len(planned) - len(done)} shots to take)")
-            counter = iter(range(1, steps + 1))
             try:
-                run_capture(scene, rig.stage, rig.camera, planned,
-                            progress=lambda step: progress and progress(next(counter), steps, f"capture {scene.name}"))
+                with _shown(rig.stage, progress, steps, f"capture {scene.name}", announce) as show:
+                    run_capture(scene, rig.stage, rig.camera, planned, progress=show)
                 if not scene.truth_dir().exists():
                     rig.camera.write_truth(scene.truth_dir())
             except KeyboardInterrupt:
@@ -289,6 +288,32 @@ def capture_scene(root: Path, stage: str, camera: str, angles_deg: list[float] |
             except (UrdError, OSError) as exc:
                 raise UrdError(f"{exc}\ncapture of {scene.name} stopped; {_stopped(scene, ds.root)}") from exc
     return scene
+
+
+@contextlib.contextmanager
+def _shown(stage, progress: Progress | None, steps: int, label: str,
+           announce: Callable[[str], None]) -> Iterator[Callable[[Step], None]]:
+    """A `run_capture` progress callback counting steps, with the stage's waits and retries
+    shown: the bar is redrawn while a reply is awaited (its clock runs through a lost reply's
+    time-out) and each retry is announced with its reason. The stage's hooks are removed after."""
+    done = 0
+
+    def show(step: Step) -> None:
+        nonlocal done
+        done += 1
+        if progress is not None:
+            progress(done, steps, label)
+
+    def waiting() -> None:
+        if progress is not None:
+            progress(done, steps, label)
+
+    stage.on_wait, stage.on_retry = waiting, lambda line: announce(f"stage: {line}")
+    waiting()
+    try:
+        yield show
+    finally:
+        stage.on_wait = stage.on_retry = None
 
 
 def _truth_missing(scene: Scene, rig_info: dict) -> bool:

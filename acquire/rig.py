@@ -1,7 +1,9 @@
 """Assemble a capture rig: a stage (real port or simulated twin) and a camera.
 
 ``open_rig`` is a context manager: it opens the serial port (the only place that does),
-starts the simulated stage when asked, and closes everything on exit.
+starts the simulated stage when asked, and closes everything on exit. `offset_for_stage` gives
+the mounting offset a capture with a stage commands: the dataset's calibration, when it was
+measured on that stage (`stage_identity`).
 """
 
 from __future__ import annotations
@@ -17,7 +19,8 @@ from acquire.camera import CameraKind, Gphoto2Camera
 from acquire.ell14 import Ell14
 from acquire.sim_ell14 import SimulatedEll14
 from acquire.virtual_camera import VirtualCamera, make_glass_scene, make_polarized_target
-from urd.core.errors import DeviceError
+from urd.core.dataset import Dataset, Scene
+from urd.core.errors import CalibrationError, DeviceError
 
 SIM = "sim"
 
@@ -130,3 +133,39 @@ def open_rig(stage: str, camera: str, address: str = "0", sim: SimSettings | Non
 def _image_name(path: Path | None) -> str | None:
     """An image file of the virtual camera's scene as an absolute path (None: the bundled photo)."""
     return None if path is None else str(Path(path).resolve())
+
+
+def calibration_stage(ds: Dataset) -> dict | None:
+    """The identity (`stage_identity`) of the stage the dataset's mounting offset
+    was calibrated on: as recorded in ``calibration.json``, else (calibrations written before
+    it was recorded) from the sweep's manifest; None when not known."""
+    calibration = ds.calibration()
+    if calibration is None:
+        return None
+    stage = calibration.stage
+    if stage is None and calibration.sweep is not None and Scene(calibration.sweep).exists():
+        recorded = Scene(calibration.sweep).load(verify=False)["capture"].get("stage")
+        stage = None if recorded is None else stage_identity(recorded)
+    return stage
+
+
+def offset_for_stage(ds: Dataset, stage_info: dict) -> tuple[float, str]:
+    """The mounting offset (deg) a new capture with the stage ``stage_info`` (`open_rig`'s
+    ``info["stage"]``) commands, and a line saying which calibration that is.
+
+    0 without a calibration. CalibrationError when the dataset's calibration belongs to
+    another stage (its offset would put every shot at the wrong angle).
+    """
+    calibration = ds.calibration()
+    if calibration is None:
+        return 0.0, "mounting offset: not calibrated (urd calibrate offset); stage zero taken as polarizer angle 0 deg"
+    owner, this = calibration_stage(ds), stage_identity(stage_info)
+    if owner is not None and owner != this:
+        raise CalibrationError(
+            f"{ds.calibration_path.resolve()}: the mounting offset {calibration.offset_deg:.3f} deg was calibrated on "
+            f"{describe_stage(owner)}, not on this stage ({describe_stage(this)}); calibrate this stage "
+            f"with 'urd calibrate offset {ds.root.resolve()} --stage {stage_info.get('port') or 'PORT'}"
+            f"{' --camera virtual' if this['kind'] == 'ELL14 simulator' else ''}', or capture into another dataset")
+    whose = describe_stage(owner) if owner is not None else "a stage it does not record"
+    return calibration.offset_deg, (f"mounting offset: {calibration.offset_deg:.3f} ± {calibration.uncertainty_deg:.3f} deg "
+                                    f"from {ds.calibration_path.resolve()} ({calibration.time}, on {whose})")

@@ -6,8 +6,10 @@ which keep the colour channels (H×W×C). Angles are degrees in urd's image-plan
 (`separate.optics`: from the +x axis, counter-clockwise as the viewer sees the image): AoLP in
 [0, 180), φ⊥ the reference field (`separate.reference.estimate_reference_field`, continuous, so
 it may leave [0, 180)), θ the per-pixel estimate of `separate.reference.estimate_incidence_field`
-(a plane fitted to block estimates: it turns across a wide view of a flat pane). `MAPS` gives each map's unit and meaning; the exporter
-writes them into the files' metadata.
+(a plane fitted to block estimates: it turns across a wide view of a flat pane). DoLP keeps to
+[0, 1]; where S0 is within the sensor's noise (luminance below `DARK_S0`) DoLP and AoLP have no
+meaning and are NaN. `MAPS` gives each map's unit and meaning; the exporter writes them into the
+files' metadata.
 """
 
 from __future__ import annotations
@@ -20,13 +22,20 @@ from separate import optics
 from separate.reference import estimate_incidence_field
 from separate.presentation import check_stack, field_at
 
+#: S0 of the luminance (linear, 1.0 = a shot's white level) below which a pixel is dark: its
+#: polarization is within the noise (1 % of white: at the 1-2 codes of noise of an 8-bit reading a
+#: DoLP error of ±0.5), and DoLP and AoLP are NaN there.
+DARK_S0 = 0.01
+
 #: name → (unit, meaning) of each map `polarization_maps` returns.
 MAPS = {
     "S0": ("linear (1.0 = sensor white)", "Stokes S0: total intensity, the image without a polarizer"),
     "S1": ("linear (1.0 = sensor white)", "Stokes S1: linear polarization along 0 deg minus along 90 deg"),
     "S2": ("linear (1.0 = sensor white)", "Stokes S2: linear polarization along 45 deg minus along 135 deg"),
-    "DoLP": ("1 (0 = unpolarized, 1 = fully polarized)", "degree of linear polarization of the luminance"),
-    "AoLP": ("deg in [0, 180), from +x, counter-clockwise", "angle of linear polarization of the luminance"),
+    "DoLP": ("1 (0 = unpolarized, 1 = fully polarized)",
+             f"degree of linear polarization of the luminance, in [0, 1]; NaN where S0 < {DARK_S0} (dark: within the noise)"),
+    "AoLP": ("deg in [0, 180), from +x, counter-clockwise",
+             f"angle of linear polarization of the luminance; NaN where S0 < {DARK_S0} (dark: within the noise)"),
     "phi_perp": ("deg, from +x, counter-clockwise", "reference s-direction of the glass used for separation"),
     "theta": ("deg", "estimated angle of incidence on the glass, per pixel (a plane fitted over the frame)"),
 }
@@ -43,7 +52,8 @@ def polarization_maps(images: np.ndarray, angles_deg: Sequence[float], reference
         rows: image rows processed at a time.
 
     Returns:
-        name → float32 array: S0, S1, S2 H×W×C; the others H×W.
+        name → float32 array: S0, S1, S2 H×W×C; the others H×W; DoLP in [0, 1] and AoLP in
+        [0, 180), both NaN where the luminance's S0 < `DARK_S0`.
     """
     phi = check_stack(images, angles_deg)
     n, h, w, c = images.shape
@@ -57,9 +67,13 @@ def polarization_maps(images: np.ndarray, angles_deg: Sequence[float], reference
     theta = field_at(estimate_incidence_field(images, angles_deg, reference_deg), (h, w))
     aolp = np.mod(np.degrees(optics.aolp(lum.astype(np.float64))), 180.0).astype(np.float32)
     aolp[aolp >= 180.0] = 0.0                                 # float32 rounding of values just below 180
+    dark = lum[0] < DARK_S0
+    dolp = np.clip(optics.dolp(lum), 0.0, 1.0).astype(np.float32)
+    dolp[dark] = np.nan
+    aolp[dark] = np.nan
     return {
         "S0": stokes[0], "S1": stokes[1], "S2": stokes[2],
-        "DoLP": np.clip(optics.dolp(lum), 0.0, None).astype(np.float32),
+        "DoLP": dolp,
         "AoLP": aolp,
         "phi_perp": field,
         "theta": theta,

@@ -10,12 +10,17 @@ import pytest
 
 SHARED_DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
 
+#: What ../shared/data is, for the reasons of the tests that skip without it.
+SHARED_DATA_NOTE = ("../shared/data is the developers' folder of third-party research data beside the checkout "
+                    "(BSDS500 photos, real polarization-camera captures; licences in its README.md): urd does not "
+                    "ship it, so a user's checkout lacks it and these tests skip; the rest of the suite needs none of it")
+
 
 def shared_data(*parts: str) -> Path:
     """Path under ../shared/data; skips the test when it is absent."""
     path = SHARED_DATA.joinpath(*parts)
     if not path.exists():
-        pytest.skip(f"shared data {path} is not present (fresh checkout without ../shared/data)")
+        pytest.skip(f"{path} is not present. {SHARED_DATA_NOTE}")
     return path
 
 

@@ -97,7 +97,7 @@ def test_separate_scene_exports_the_maps_hashed_with_units(ingested):
         meta = json.loads(tif.pages[0].description)
         aolp = tif.asarray()
     assert meta["unit"].startswith("deg") and "counter-clockwise" in meta["angle_convention"]
-    assert aolp.dtype == np.float32 and 0.0 <= aolp.min() and aolp.max() < 180.0
+    assert aolp.dtype == np.float32 and 0.0 <= np.nanmin(aolp) and np.nanmax(aolp) < 180.0
     assert Dataset.open(root).scene(name).verify() == []
     (scene.results_dir("schechner") / "maps" / "DoLP.tiff").write_bytes(b"broken")
     assert any("DoLP.tiff" in problem for problem in Dataset.open(root).scene(name).verify())

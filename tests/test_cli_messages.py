@@ -155,7 +155,7 @@ def test_keep_copies_is_recorded_for_the_network_and_refused_for_a_baseline(data
 
 def test_no_precision_line_before_no_such_scene(dataset):
     out = invoke("separate", "scene_09", "--dataset", dataset, "--method", "network")
-    assert out.exit_code == 1 and "no scene 'scene_09'" in out.stderr and "precision" not in out.stderr
+    assert out.exit_code == 2 and "no scene 'scene_09'" in out.stderr and "precision" not in out.stderr
 
 
 def test_raw_files_given_to_separate_point_to_ingest_without_opencv_warnings(dataset):

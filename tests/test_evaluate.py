@@ -344,11 +344,3 @@ def test_photo_pools_name_the_users_folder_and_never_replace_an_absent_set(tmp_p
     assert [(name, pool is None) for name, _, pool in pools] == [
         ("bsds500-test", True), ("skimage-bundled", False), ("images-mine", False)]
     assert [int(p[0, 0, 0]) for p in pools[2][2]] == [156, 7]
-
-
-def test_separate_evaluate_re_exports_the_moved_names():
-    from separate import evaluate
-
-    assert evaluate.run_evaluation is bench_run.run_evaluation and evaluate.DEFAULT_OUT == bench_run.DEFAULT_OUT
-    assert evaluate.AXES is robustness.AXES and evaluate.BenchmarkMismatch is BenchmarkMismatch
-    assert evaluate.time_method is speed.time_method and evaluate.settings_for is bench_plan.settings_for

@@ -8,7 +8,7 @@ import shutil
 import numpy as np
 import pytest
 
-from conftest import SHARED_DATA
+from conftest import SHARED_DATA, SHARED_DATA_NOTE
 from separate import optics
 from separate.methods import get_method
 from separate.reference import Basis, estimate_reference
@@ -20,7 +20,7 @@ from urd.core.mosaic import Demosaic, MosaicLayout
 from urd.separation import separate_scene
 
 CAPTURES = samples.captures(SHARED_DATA / "polarization")
-pytestmark = pytest.mark.skipif(not CAPTURES, reason=f"real captures not present ({SHARED_DATA / 'polarization'})")
+pytestmark = pytest.mark.skipif(not CAPTURES, reason=f"real captures not present ({SHARED_DATA / 'polarization'}). {SHARED_DATA_NOTE}")
 
 
 def edge_and_flat_dolp(stack, angles):

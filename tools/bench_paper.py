@@ -1,4 +1,4 @@
-"""Reproduce the paper's evaluation (`separate.evaluate`): cross-validation on held-out synthetic
+"""Reproduce the paper's evaluation (`separate.bench_run`): cross-validation on held-out synthetic
 sets (Table 1), robustness to angle errors, misalignment, noise, the s-direction, the number of
 angles and calibration, and speed and memory; Markdown, CSV and PNG into OUT/quick or OUT/full.
 

@@ -58,12 +58,14 @@ def separate(images: np.ndarray, angles_deg: Sequence[float], method: str = "net
 
 
 def polarization_maps(images: np.ndarray, angles_deg: Sequence[float], reference: str | float = "auto",
-                      method: str = "network") -> dict[str, np.ndarray]:
-    """S0, S1, S2 (H×W×C), DoLP, AoLP, φ⊥ and θ (H×W) of a stack (`separate.maps.MAPS`: units).
+                      method: str = "schechner") -> dict[str, np.ndarray]:
+    """S0, S1, S2 (H×W×C), DoLP, AoLP, φ⊥ and θ (H×W) of a stack (`separate.maps.MAPS`: units;
+    DoLP in [0, 1], DoLP and AoLP NaN at dark pixels).
 
     ``reference`` as in `separate`, chosen the same way (`separate.reference.resolve_reference`):
     the φ⊥ map is the estimated field ("auto"), one estimated angle ("global") or the given
-    angle; an assumed side is settled by separating both sides with ``method``.
+    angle; an assumed side is settled by separating both sides with ``method``: by default the
+    classical Schechner inversion (a fraction of a second), "network" for the network's verdict.
     """
     from separate.maps import polarization_maps as maps
     from separate.methods import get_method

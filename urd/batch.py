@@ -1,7 +1,8 @@
 """Whole datasets at once: ``urd separate --all [--jobs N]``.
 
 The scenes to separate are every ingested scene without results of the method (every ingested
-scene with ``force``). Each is prepared (`urd.separation.prepare_scene`: separated, outputs
+scene with ``force``); with ``maps``, scenes that hold results of the method get the polarization
+maps added to them without separating again (`urd.separation.add_maps`). Each is prepared (`urd.separation.prepare_scene`: separated, outputs
 written into a staging folder of the scene) by one of ``jobs`` worker processes, and committed
 to its manifest by this process, which holds the dataset's lock throughout: one writer, so a
 kill leaves every scene committed so far intact and the next run's recovery removes what was
@@ -24,7 +25,7 @@ from urd.core.progress import Progress, plural
 
 @dataclasses.dataclass
 class BatchOutcome:
-    """One scene of a batch: its name, ``state`` ("separated", "skipped" or "failed") and a
+    """One scene of a batch: its name, ``state`` ("separated", "maps added", "skipped" or "failed") and a
     detail (the error, or why it was skipped)."""
 
     scene: str
@@ -85,6 +86,10 @@ def separate_all(root: Path, method: str, options: dict, force: bool = False, re
     ds = Dataset.open(root)
     with ds.lock():
         chosen, outcomes = targets(ds, method, force)
+        if maps and not force:
+            outcomes = [_add_maps(ds.scene(o.scene), method, reference)
+                        if o.state == "skipped" and method in ds.scene(o.scene).methods() else o
+                        for o in outcomes]
         threads = max(1, (os.cpu_count() or 1) // jobs)
         label = f"separate --all ({method}, {plural(jobs, 'job')})"
         if progress:
@@ -100,6 +105,21 @@ def separate_all(root: Path, method: str, options: dict, force: bool = False, re
             if progress:
                 progress(done, len(chosen), label)
     return sorted(outcomes, key=lambda o: o.scene)
+
+
+def _add_maps(scene: Scene, method: str, reference: str | float) -> BatchOutcome:
+    """``--all --maps`` on a scene that holds results of the method: the maps added to them
+    (`urd.separation.add_maps`), or why not."""
+    from urd.separation import add_maps
+
+    try:
+        add_maps(scene, method, reference)
+    except Exception as exc:  # noqa: BLE001 - one scene's failure, whatever it is, must not stop the others
+        already = "already have maps" in str(exc)
+        return BatchOutcome(scene.name, "skipped" if already else "failed",
+                            f"has {method} results with maps (--force separates again)" if already else
+                            f"{type(exc).__name__}: {exc}")
+    return BatchOutcome(scene.name, "maps added", f"to the {method} results (not separated again)")
 
 
 def _prepared(scenes: list[Scene], method: str, options: dict, reference: str | float, maps: bool, jobs: int,

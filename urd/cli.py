@@ -1,9 +1,10 @@
 """The ``urd`` command line: a thin layer. Each command parses its options, calls one workflow
-function (acquire.plan, urd.ingest, calib.store, urd.separation, urd.report, urd.demo,
+function (acquire.plan, urd.ingest, urd.calibration, calib.store, urd.separation, urd.report, urd.demo,
 separate.train, separate.bench) and prints.
 
-Angles are degrees here and in manifests. Errors print one line and exit with status 1
-(130 after Ctrl-C); bad arguments exit with status 2. Output paths are printed absolute.
+Angles are degrees here and in manifests. Errors print one line in one voice, "Error: ...":
+bad arguments name the option ("Invalid value for '--method': ...") and exit with status 2,
+failures exit with status 1 (130 after Ctrl-C). Output paths are printed absolute.
 """
 
 from __future__ import annotations
@@ -37,6 +38,15 @@ class WorkflowOrder(typer.core.TyperGroup):
         order = {name: k for k, name in enumerate(self.ORDER)}
         return sorted(super().list_commands(ctx), key=lambda name: order.get(name, len(order)))
 
+    def format_commands(self, ctx, formatter) -> None:
+        """Each command with its whole first sentence (wrapped, never cut with "...")."""
+        commands = [(name, self.get_command(ctx, name)) for name in self.list_commands(ctx)]
+        rows = [(name, command.get_short_help_str(limit=1000)) for name, command in commands
+                if command is not None and not command.hidden]
+        if rows:
+            with formatter.section("Commands"):
+                formatter.write_dl(rows)
+
 
 app = typer.Typer(
     cls=WorkflowOrder,
@@ -63,9 +73,37 @@ def main_options(
 
 
 def fail(message: str, code: int = 1) -> None:
-    """Print an error line and exit with ``code``."""
-    typer.secho(f"error: {message}", fg=typer.colors.RED, err=True)
+    """Print an error line in the voice of usage errors ("Error: ...") and exit with ``code``."""
+    typer.secho(f"Error: {message}", fg=typer.colors.RED, err=True)
     raise typer.Exit(code)
+
+
+def bad(option: str, message: str) -> typer.BadParameter:
+    """A usage error (exit 2) naming ``option``: "Invalid value for '--option': message"."""
+    return typer.BadParameter(message, param_hint=f"'{option}'")
+
+
+class OptionClash(typer.BadParameter):
+    """A usage error (exit 2) about options that do not go together; its message names them."""
+
+    def format_message(self) -> str:
+        return self.message
+
+
+def usage(message: str) -> OptionClash:
+    """An `OptionClash` saying ``message``."""
+    return OptionClash(message)
+
+
+def within(low: float | None = None, high: float | None = None):
+    """An option callback: the value, or a usage error naming the option when it is below ``low`` or above ``high``."""
+    def check(value):
+        if value is not None and ((low is not None and value < low) or (high is not None and value > high)):
+            expected = (f"between {low:g} and {high:g}" if low is not None and high is not None
+                        else f"at least {low:g}" if low is not None else f"at most {high:g}")
+            raise typer.BadParameter(f"expected {expected}, got {value:g}")
+        return value
+    return check
 
 
 def given(ctx: typer.Context, name: str) -> bool:
@@ -87,7 +125,7 @@ def choice(kind: type[enum.Enum], value: str, option: str) -> enum.Enum:
         return kind(value)
     except ValueError:
         names = [member.value for member in kind]
-        raise typer.BadParameter(f"expected one of {', '.join(names)}, got {value!r}", param_hint=option) from None
+        raise typer.BadParameter(f"expected one of {', '.join(names)}, got {value!r}", param_hint=f"'{option}'") from None
 
 
 def existing_dataset(dataset: Optional[Path]) -> Path:
@@ -129,30 +167,30 @@ def end_line(bar) -> None:
         bar.close()
 
 
-def parse_angles(text: str, min_distinct: int = 3) -> list[float]:
+def parse_angles(text: str, min_distinct: int = 3, option: str = "--angles") -> list[float]:
     """'0,45,90' → [0.0, 45.0, 90.0] (degrees): finite, no direction twice (mod 180), at least
     ``min_distinct`` of them."""
     try:
         angles = [float(a) for a in text.split(",") if a.strip()]
     except ValueError:
-        raise typer.BadParameter(f"expected comma-separated degrees like 0,45,90, got {text!r}") from None
+        raise bad(option, f"expected comma-separated degrees like 0,45,90, got {text!r}") from None
     if not all(math.isfinite(a) for a in angles):
-        raise typer.BadParameter(f"expected finite angles in degrees, got {text!r}")
+        raise bad(option, f"expected finite angles in degrees, got {text!r}")
     directions = [round(a % 180.0, 6) for a in angles]
     if len(set(directions)) != len(directions):
-        raise typer.BadParameter(f"expected each polarizer direction once (angles are the same mod 180 deg), got {text!r}")
+        raise bad(option, f"expected each polarizer direction once (angles are the same mod 180 deg), got {text!r}")
     if len(angles) < min_distinct:
-        raise typer.BadParameter(f"expected at least {min_distinct} distinct polarizer angles (mod 180), got {text!r}")
+        raise bad(option, f"expected at least {min_distinct} distinct polarizer angles (mod 180), got {text!r}")
     return angles
 
 
-def parse_params(items: list[str]) -> dict:
+def parse_params(items: list[str], option: str = "--param") -> dict:
     """['smoothness=0.5', 'theta_deg=35'] → {'smoothness': 0.5, 'theta_deg': 35} (JSON values, else text)."""
     params = {}
     for item in items:
         name, sep, value = item.partition("=")
         if not sep or not name:
-            raise typer.BadParameter(f"expected NAME=VALUE, got {item!r}")
+            raise bad(option, f"expected NAME=VALUE, got {item!r}")
         try:
             params[name] = json.loads(value)
         except json.JSONDecodeError:
@@ -160,38 +198,38 @@ def parse_params(items: list[str]) -> dict:
     return params
 
 
-def parse_size(text: str) -> tuple[int, int]:
+def parse_size(text: str, option: str = "--size") -> tuple[int, int]:
     """'1536x1024' → (1536, 1024), each side 16 to 20000 px."""
     try:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
-        raise typer.BadParameter(f"expected WIDTHxHEIGHT like 1536x1024, got {text!r}") from None
+        raise bad(option, f"expected WIDTHxHEIGHT like 1536x1024, got {text!r}") from None
     if not (16 <= w <= 20000 and 16 <= h <= 20000):
-        raise typer.BadParameter(f"expected each side between 16 and 20000 px, got {text!r}")
+        raise bad(option, f"expected each side between 16 and 20000 px, got {text!r}")
     return w, h
 
 
-def parse_seeds(text: str) -> list[int]:
+def parse_seeds(text: str, option: str = "--seeds") -> list[int]:
     """'0,1' → [0, 1]: at least two different non-negative integers."""
     try:
         seeds = [int(v) for v in text.split(",") if v.strip()]
     except ValueError:
-        raise typer.BadParameter(f"expected comma-separated integers like 0,1, got {text!r}") from None
+        raise bad(option, f"expected comma-separated integers like 0,1, got {text!r}") from None
     if len(set(seeds)) < 2 or min(seeds) < 0:
-        raise typer.BadParameter(f"expected at least two different non-negative seeds, got {text!r}")
+        raise bad(option, f"expected at least two different non-negative seeds, got {text!r}")
     return seeds
 
 
-def parse_reference(text: str) -> str | float:
+def parse_reference(text: str, option: str = "--reference") -> str | float:
     """'auto', 'global' or degrees."""
     if text in ("auto", "global"):
         return text
     try:
         value = float(text)
     except ValueError:
-        raise typer.BadParameter(f"expected 'auto', 'global' or an angle in degrees, got {text!r}") from None
+        raise bad(option, f"expected 'auto', 'global' or an angle in degrees, got {text!r}") from None
     if not math.isfinite(value):
-        raise typer.BadParameter(f"expected a finite angle, got {text!r}")
+        raise bad(option, f"expected a finite angle, got {text!r}")
     return value % 180.0
 
 
@@ -200,11 +238,11 @@ def sim_settings(offset: float, jitter: float, faults: str, size: str, shake: fl
     from acquire.rig import SimSettings
     from acquire.sim_ell14 import parse_faults
 
-    width, height = parse_size(size)
+    width, height = parse_size(size, "--sim-size")
     try:
         fault_map = parse_faults(faults)
     except ValueError as exc:
-        raise typer.BadParameter(str(exc)) from None
+        raise bad("--sim-faults", str(exc)) from None
     return SimSettings(offset, jitter, fault_map, width, height, shake, 0.5, reflection, transmission, seed)
 
 
@@ -217,13 +255,13 @@ def capture(
     angles: str = typer.Option("0,45,90", help="Polarizer angles in degrees, comma-separated (at least 3 distinct)."),
     scene: Optional[str] = typer.Option(None, help="Scene name; an existing incomplete scene is resumed. Default: resume the newest incomplete scene, else the next free scene_NN."),
     new_scene: bool = typer.Option(False, "--new-scene", help="Start a new scene even if an incomplete one exists."),
-    tolerance: float = typer.Option(0.5, min=0.0, help="Largest accepted difference of read-back and commanded angle (deg)."),
+    tolerance: float = typer.Option(0.5, callback=within(0.0), help="Largest accepted difference of read-back and commanded angle (deg)."),
     address: str = typer.Option("0", help="ELL14 device address 0-F.", callback=check_address),
     sim_offset: float = typer.Option(0.0, help="[sim] polarizer mounting offset (deg)."),
-    sim_jitter: float = typer.Option(0.0, min=0.0, help="[sim] per-move angle error the encoder does not see, std (deg)."),
+    sim_jitter: float = typer.Option(0.0, callback=within(0.0), help="[sim] per-move angle error the encoder does not see, std (deg)."),
     sim_faults: str = typer.Option("", help="[sim] fault probabilities per command, e.g. drop=0.05,garble=0.05,mech_timeout=0.02,miss=0.02,vanish=0.01."),
     sim_size: str = typer.Option("1536x1024", help="[virtual] sensor size WIDTHxHEIGHT."),
-    sim_shake: float = typer.Option(4.0, min=0.0, help="[virtual] camera shake between shots, max translation (px)."),
+    sim_shake: float = typer.Option(4.0, callback=within(0.0), help="[virtual] camera shake between shots, max translation (px)."),
     reflection: Optional[Path] = typer.Option(None, help="[virtual] image file reflected in the glass (default: bundled photo)."),
     transmission: Optional[Path] = typer.Option(None, help="[virtual] image file seen through the glass (default: bundled photo)."),
     seed: int = typer.Option(0, help="[sim/virtual] random seed."),
@@ -243,9 +281,10 @@ def capture(
     choice(CameraKind, camera, "--camera")
     angle_list = parse_angles(angles) if given(ctx, "angles") else None
     sim = sim_settings(sim_offset, sim_jitter, sim_faults, sim_size, sim_shake, reflection, transmission, seed)
+    bar = TerminalProgress()
     result = run_guarded(capture_scene, dataset or default_root(), stage, camera, angle_list, scene, new_scene,
-                         tolerance if given(ctx, "tolerance") else None, address, sim, announce=typer.echo,
-                         progress=TerminalProgress())
+                         tolerance if given(ctx, "tolerance") else None, address, sim,
+                         announce=lambda line: (bar.break_line(), typer.echo(line)), progress=bar)
     typer.echo(f"scene complete: {result.path.resolve()}")
 
 
@@ -253,7 +292,7 @@ def capture(
 def sim_stage(
     address: str = typer.Option("0", help="Device address 0-F.", callback=check_address),
     offset: float = typer.Option(0.0, help="Polarizer mounting offset the encoder does not see (deg)."),
-    jitter: float = typer.Option(0.0, min=0.0, help="Per-move angle error the encoder does not see, std (deg)."),
+    jitter: float = typer.Option(0.0, callback=within(0.0), help="Per-move angle error the encoder does not see, std (deg)."),
     faults: str = typer.Option("", help="Fault probabilities per command, e.g. drop=0.05,garble=0.05,mech_timeout=0.02,miss=0.02,vanish=0.01."),
     seed: int = typer.Option(0, help="Random seed of jitter and faults."),
 ) -> None:
@@ -268,7 +307,7 @@ def sim_stage(
     try:
         fault_map = parse_faults(faults)
     except ValueError as exc:
-        raise typer.BadParameter(str(exc)) from None
+        raise bad("--faults", str(exc)) from None
     with SimulatedEll14(address, sim_offset_deg=offset, sim_jitter_deg=jitter, sim_faults=fault_map, seed=seed) as sim:
         run_guarded(serve, sim, typer.echo)
 
@@ -281,12 +320,12 @@ def ingest(
     angles: str = typer.Option("0,45,90", help="Polarizer angles of consecutive shots (deg), for RAW folders without a capture manifest."),
     motion: str = typer.Option("euclidean", help="Alignment model: translation, euclidean or homography."),
     half_size: bool = typer.Option(False, help="Decode at half resolution (one pixel per 2x2 CFA tile; ~4x faster)."),
-    gap: float = typer.Option(60.0, min=0.0, help="Seconds between shots that start a new scene when grouping by capture time."),
+    gap: float = typer.Option(60.0, callback=within(0.0), help="Seconds between shots that start a new scene when grouping by capture time."),
     redo: bool = typer.Option(False, help="Decode and align again scenes that are already ingested (the old aligned stack is replaced only on success)."),
     mosaic: Optional[str] = typer.Option(None, help="SOURCE holds polarization-camera frames (PNG/TIFF) with this layout: imx250mzr, imx250myr or wen2019; one scene per frame."),
     demosaic: str = typer.Option("newton", help="Demosaicing of --mosaic frames: none (sites as they are, unregistered), bilinear, newton (registers the four polarizer sites)."),
     transfer: str = typer.Option("linear", help="8-bit frames: linear (sensor codes, polarization cameras) or srgb (photos from ordinary cameras). 16-bit frames are always linear."),
-    jobs: int = typer.Option(1, min=1, help="Worker processes for the scenes of a dataset (SOURCE a dataset folder): each decodes and aligns one scene at a time."),
+    jobs: int = typer.Option(1, callback=within(1), help="Worker processes for the scenes of a dataset (SOURCE a dataset folder): each decodes and aligns one scene at a time."),
 ) -> None:
     """Decode RAW shots to linear images, group them into scenes and align each scene (ECC).
 
@@ -310,20 +349,20 @@ def ingest(
         layout, method = choice(MosaicLayout, mosaic, "--mosaic"), choice(Demosaic, demosaic, "--demosaic")
     transfer_rule = choice(Transfer, transfer, "--transfer")
     if not source.exists():
-        raise typer.BadParameter(f"{source}: no such folder or file", param_hint="SOURCE")
+        raise bad("SOURCE", f"{source}: no such folder or file")
     if source.is_file() and not mosaic:
-        raise typer.BadParameter(f"{source} is a file; ingest takes a folder (of RAW shots, a captured scene, or a "
-                                 "dataset): put the shots in a folder and pass that", param_hint="SOURCE")
+        raise bad("SOURCE", f"{source} is a file; ingest takes a folder (of RAW shots, a captured scene, or a "
+                                 "dataset): put the shots in a folder and pass that")
     recorded = (source / "scene.json").is_file() or (source / "dataset.json").is_file()
     if recorded and given(ctx, "angles"):
-        raise typer.BadParameter("a scene's angles are in its manifest; --angles is for a folder of RAW files. To "
+        raise usage("a scene's angles are in its manifest; --angles is for a folder of RAW files. To "
                                  "record other angles, move the scene folder away and ingest its raw/ files again")
     if jobs > 1 and (not recorded or mosaic):
-        raise typer.BadParameter("--jobs is for a dataset or scene folder; a RAW folder or mosaic frames are ingested "
+        raise usage("--jobs is for a dataset or scene folder; a RAW folder or mosaic frames are ingested "
                                  "by one process (ingest them, then the dataset with --jobs)")
     unused = [f"--{name}" for name in ("demosaic", "transfer") if given(ctx, name)]
     if unused and not mosaic:
-        raise typer.BadParameter(f"{', '.join(unused)}: for --mosaic frames")
+        raise usage(f"{', '.join(unused)}: for --mosaic frames")
     report = run_guarded(ingest_workflow, source, dataset or default_root(), opts, layout, method, transfer_rule,
                          progress=TerminalProgress(), jobs=jobs)
     for path in report.ignored:
@@ -347,7 +386,7 @@ def ingest(
         fail(f"{failed} of {plural(len(report.outcomes), 'scene')} {'failed or was' if failed == 1 else 'failed or were'} flagged")
 
 
-calibrate_app = typer.Typer(help="Measure the polarizer: mounting offset from a sweep, per-shot angle errors of a scene."
+calibrate_app = typer.Typer(cls=WorkflowOrder, help="Measure the polarizer: mounting offset from a sweep, per-shot angle errors of a scene."
                                  "\n\n\b\nExample:\n  urd calibrate offset --stage /dev/ttyUSB0\n  urd calibrate shots scene_01",
                             no_args_is_help=True, rich_markup_mode=None, context_settings=HELP_OPTIONS)
 app.add_typer(calibrate_app, name="calibrate")
@@ -360,7 +399,11 @@ def resolve_scene(scene: str, dataset: Optional[Path]):
     path = Path(scene)
     if (path / "scene.json").is_file():
         return Scene(path)
-    return Dataset.open(existing_dataset(dataset)).scene(scene)
+    ds = Dataset.open(existing_dataset(dataset))
+    if scene not in ds.scene_names():
+        raise bad("SCENE", f"no scene {scene!r} in {ds.root.resolve()} (scenes: {', '.join(ds.scene_names()) or 'none'}); "
+                           "give a scene's name, or its folder")
+    return ds.scene(scene)
 
 
 @calibrate_app.command("offset")
@@ -368,7 +411,7 @@ def calibrate_offset_cmd(
     dataset: Optional[Path] = typer.Argument(None, help="Dataset whose polarizer to calibrate, where calibration.json is written (default: the current folder if it holds dataset.json, else ./dataset).", show_default=False),
     stage: str = typer.Option(..., help="Serial port of the ELL14 stage, or 'sim'."),
     camera: str = typer.Option("gphoto2", help="Camera driver: gphoto2 or virtual."),
-    step: float = typer.Option(10.0, min=1.0, max=45.0, help="Sweep step (deg) over 180 deg."),
+    step: float = typer.Option(10.0, callback=within(1.0, 45.0), help="Sweep step (deg) over 180 deg."),
     target_angle: float = typer.Option(0.0, help="Polarization angle of the target's light (deg, image plane, CCW from x)."),
     address: str = typer.Option("0", help="ELL14 device address 0-F.", callback=check_address),
     sim_offset: float = typer.Option(0.0, help="[sim] true mounting offset of the simulated polarizer (deg)."),
@@ -383,7 +426,7 @@ def calibrate_offset_cmd(
     """
     from acquire.camera import CameraKind
     from acquire.rig import SimSettings
-    from calib.store import sweep_and_calibrate
+    from urd.calibration import sweep_and_calibrate
 
     choice(CameraKind, camera, "--camera")
     root = dataset or default_root()
@@ -438,9 +481,9 @@ def separate(
     incidence: Optional[float] = typer.Option(None, "--incidence", help="Network: the angle of incidence on the glass (deg, between the camera's axis and the pane's normal) where you know it; the network's Fresnel gate uses it instead of the estimate from the shots. Schechner takes it as --param theta_deg=DEG.", show_default=False),
     param: Optional[list[str]] = typer.Option(None, "--param", help="A baseline's parameter as NAME=VALUE (repeat), e.g. --method kong --param smoothness=0.5; names and paper defaults in each baseline's docstring (separate/baselines/)."),
     force: bool = typer.Option(False, help="Replace existing results of this method (only once the new ones are complete)."),
-    maps: bool = typer.Option(False, "--maps", help="Also write the polarization maps: S0, S1, S2, DoLP, AoLP, phi_perp, theta as float32 TIFF with units (results/METHOD/maps/)."),
+    maps: bool = typer.Option(False, "--maps", help="Also write the polarization maps: S0, S1, S2, DoLP, AoLP, phi_perp, theta as float32 TIFF with units (results/METHOD/maps/); on a scene that has results of the method, adds the maps to them without separating again."),
     all_scenes: bool = typer.Option(False, "--all", help="Every ingested scene of the dataset without results of this method (with --force: every ingested scene)."),
-    jobs: int = typer.Option(1, min=1, help="With --all: worker processes, each on cores/jobs threads."),
+    jobs: int = typer.Option(1, callback=within(1), help="With --all: worker processes, each on cores/jobs threads."),
 ) -> None:
     """Separate a scene into reflection R and transmission T (linear 16-bit TIFF, sRGB previews,
     a reflection-presence map and the reference angle used), or every scene with --all.
@@ -458,59 +501,68 @@ def separate(
     from separate.precision import describe, resolve
     from urd.core.images import Transfer
     from urd.core.raw import RAW_SUFFIXES
-    from urd.separation import describe_incidence, sees_polarization_of, separate_images, separate_scene
+    from urd.separation import add_maps, describe_incidence, sees_polarization_of, separate_images, separate_scene
 
     if method not in METHODS:
-        raise typer.BadParameter(f"unknown method {method!r}; expected one of {sorted(METHODS)}")
+        raise bad("--method", f"expected one of {', '.join(sorted(METHODS))}, got {method!r}")
     raws = [Path(name).name for name in [*(images or []), *([scene] if scene else [])]
             if Path(name).suffix.lower() in RAW_SUFFIXES]
     if raws:
-        raise typer.BadParameter(f"{', '.join(raws)}: RAW files; separate takes an ingested scene, or with --images "
+        raise usage(f"{', '.join(raws)}: RAW files; separate takes an ingested scene, or with --images "
                                  "decoded images (TIFF, PNG, JPEG). Ingest RAW shots with 'urd ingest FOLDER', "
                                  "then run 'urd separate SCENE'")
     if all_scenes and (scene is not None or images):
-        raise typer.BadParameter("expected --all alone, without a scene name or --images")
+        raise usage("expected --all alone, without a scene name or --images")
     if jobs > 1 and not all_scenes:
-        raise typer.BadParameter("--jobs is for --all (one scene runs in one process)")
+        raise usage("--jobs is for --all (one scene runs in one process)")
     if images is None and scene is None and not all_scenes:
-        raise typer.BadParameter("expected a scene name, --all or --images")
+        raise usage("expected a scene name, --all or --images")
     if images and scene is not None:
-        raise typer.BadParameter(f"expected a scene name or --images, not both (got {scene!r} and --images)")
+        raise usage(f"expected a scene name or --images, not both (got {scene!r} and --images)")
     networks = ("network", "ceilnet")
     unused = [f"--{name.replace('_', '-')}" for name in ("weights", "tile", "precision", "colour_match") if given(ctx, name)]
     if unused and method not in networks:
-        raise typer.BadParameter(f"{', '.join(unused)}: for the networks (network, ceilnet), not {method}")
+        raise usage(f"{', '.join(unused)}: for the networks (network, ceilnet), not {method}")
     unused = [f"--{name}" for name in ("angles", "out", "transfer") if given(ctx, name)]
     if unused and not images:
-        raise typer.BadParameter(f"{', '.join(unused)}: for --images; a scene's angles come from its manifest and its "
+        raise usage(f"{', '.join(unused)}: for --images; a scene's angles come from its manifest and its "
                                  "results go into the scene's results/METHOD/")
     try:
         chosen = resolve(precision)
+    except ValueError as exc:
+        raise bad("--precision", str(exc)) from None
+    try:
         if tile is not None and method in networks:
             check_tiling(tile, OVERLAP)
     except ValueError as exc:
-        raise typer.BadParameter(str(exc)) from None
+        raise bad("--tile", str(exc)) from None
     transfer_rule = choice(Transfer, transfer, "--transfer")
     if return_copies is not None and method != "network":
-        raise typer.BadParameter(f"--return-copies/--keep-copies is for the network, not {method}")
+        raise usage(f"--return-copies/--keep-copies is for the network, not {method}")
     return_copies = return_copies is not False
     if incidence is not None and method != "network":
-        raise typer.BadParameter(f"--incidence is for the network, not {method}" + (
+        raise usage(f"--incidence is for the network, not {method}" + (
             " (use --param theta_deg=DEG)" if method == "schechner" else ""))
     if incidence is not None and not 0 < incidence < 90:
-        raise typer.BadParameter(f"expected --incidence between 0 and 90 deg, got {incidence:g}")
+        raise bad("--incidence", f"expected between 0 and 90 deg, got {incidence:g}")
     if param and method in networks + ("none",):
-        raise typer.BadParameter(f"--param is for the baselines; {method} takes its own options")
+        raise usage(f"--param is for the baselines; {method} takes its own options")
     params = parse_params(param or [])
     forced = parse_reference(reference)
     angle_list = parse_angles(angles) if images else None
     if images and len(images) != len(angle_list):
-        raise typer.BadParameter(f"expected one --images file per angle of --angles {angles}, got {len(images)} files")
+        raise usage(f"expected one --images file per angle of --angles {angles}, got {len(images)} files")
     if all_scenes:
         separate_dataset(dataset, method, weights, tile, chosen, colour_match, return_copies, incidence, params, force,
                          forced, maps, jobs)
         return
     target = None if images else run_guarded(resolve_scene, scene, dataset)
+    if target is not None and maps and not force and method in target.methods():
+        result = run_guarded(add_maps, target, method, forced)
+        typer.echo(f"added the polarization maps to {target.name}'s {method} results (a Stokes fit; not separated again)")
+        for path in result.files:
+            typer.echo(f"wrote {Path(path).resolve()}")
+        return
     if target is not None and not force:
         run_guarded(target.check_no_results, method)
     bar = TerminalProgress()
@@ -562,7 +614,9 @@ def separate_dataset(dataset: Optional[Path], method: str, weights: Optional[Pat
         typer.echo(f"{outcome.scene}: {outcome.state}{': ' + outcome.detail if outcome.detail else ''}")
     failed = sum(o.state == "failed" for o in outcomes)
     done = sum(o.state == "separated" for o in outcomes)
-    typer.echo(f"{plural(done, 'scene')} separated with {method}, {failed} failed" + (
+    mapped = sum(o.state == "maps added" for o in outcomes)
+    typer.echo(f"{plural(done, 'scene')} separated with {method}, " + (f"maps added to {mapped}, " if mapped else "") +
+               f"{failed} failed" + (
         f"; results in each scene's results/{method}/ (look at them: urd report {root} --html report)" if done else ""))
     if failed:
         raise typer.Exit(1)
@@ -584,7 +638,7 @@ def train(
     config: Path = typer.Argument(..., help="TOML config (see configs/cpu.toml and configs/paper.toml)."),
     run_dir: Path = typer.Argument(..., help="Run folder: checkpoints, log.jsonl; an existing run resumes."),
     init: Optional[Path] = typer.Option(None, help="Start from these weights (e.g. the shipped ones) instead of scratch."),
-    seed: Optional[int] = typer.Option(None, min=0, help="Override the config's seed (weight initialisation and training data), e.g. for a multi-seed ablation."),
+    seed: Optional[int] = typer.Option(None, callback=within(0), help="Override the config's seed (weight initialisation and training data), e.g. for a multi-seed ablation."),
 ) -> None:
     """Train the separation network (or the CEILNet baseline: configs/ceilnet.toml) on synthesized data (config file, checkpoints, resume; torchrun for DDP).
 
@@ -631,15 +685,15 @@ def bench(
     large: bool = typer.Option(False, "--24mp", help="With --full: also time the network and Schechner on a 24 MP scene."),
     images: Optional[Path] = typer.Option(None, help="With --quick/--full: also cross-validate on the photos of this folder (JPEG, PNG, 8/16-bit TIFF)."),
     out: Optional[Path] = typer.Option(None, help="With --quick/--full/--ablation: output folder (default docs/bench)."),
-    count: int = typer.Option(64, min=1, help="Benchmark patches (seeded, from bsds500/test or bundled photos)."),
-    size: int = typer.Option(256, min=32, help="Patch size (px)."),
+    count: int = typer.Option(64, callback=within(1), help="Benchmark patches (seeded, from bsds500/test or bundled photos)."),
+    size: int = typer.Option(256, callback=within(32), help="Patch size (px)."),
     methods: str = typer.Option("none,network", help="Comma-separated methods, plus 'direct' for the direct variant (shipped urd-direct.pt or --direct-weights), and LABEL=PATH for the network with other weights."),
     direct_weights: Optional[Path] = typer.Option(None, help="Weights of the direct variant."),
     ablation: bool = typer.Option(False, "--ablation", help="The paper's pipeline ablation (DR, DR+NRD, DR+NRD+LCG) with several seeds: trains the runs missing from --runs (configs/ablation-*.toml, about 1 h of CPU each), scores them on --count patches, writes OUT/ablation (default docs/bench/ablation)."),
     seeds: str = typer.Option("0,1", help="With --ablation: comma-separated training seeds (at least two)."),
-    jobs: int = typer.Option(2, min=1, help="With --ablation: training runs side by side (one thread each)."),
+    jobs: int = typer.Option(2, callback=within(1), help="With --ablation: training runs side by side (one thread each)."),
     runs: Optional[Path] = typer.Option(None, help="With --ablation: folder of the training runs (unfinished ones resume; default runs/ablation, or runs/ablation-STEPS with --steps)."),
-    steps: Optional[int] = typer.Option(None, min=1, help="With --ablation: training steps of every run (default: the configs' 4000; e.g. 16000 on a GPU); its runs in runs/ablation-STEPS and its report in OUT/ablation-STEPS."),
+    steps: Optional[int] = typer.Option(None, callback=within(1), help="With --ablation: training steps of every run (default: the configs' 4000; e.g. 16000 on a GPU); its runs in runs/ablation-STEPS and its report in OUT/ablation-STEPS."),
     semireal: bool = typer.Option(False, "--semireal", help="The semi-real set: held-out real captures without glass (../shared/data/polarization) as the transmitted layer behind a rendered pane reflecting a bsds500/test photo, exact ground truth; 3, 4 and 6 shots, mono, and the no-glass R share; every method of --methods (default none, Schechner, Kong, Farid, network; LABEL=PATH adds the network with other weights); tables in OUT/semireal (default docs/bench/semireal). About 20 min on 2 cores."),
     weights: Optional[Path] = typer.Option(None, help="With --semireal: the network's weights (default: shipped)."),
     virtual: bool = typer.Option(False, "--virtual", help="The virtual-camera set: flat panes rendered by urd's virtual camera at angles of incidence 20-75 deg and a wide view (phi_perp turning 50 deg), the network against Schechner, Kong, Farid and no separation (4 photo pairs of 768x512; --methods to choose); tables in OUT/virtual (default docs/bench/virtual)."),
@@ -656,24 +710,24 @@ def bench(
       urd bench --virtual
     """
     if large and not full:
-        raise typer.BadParameter("--24mp goes with --full")
+        raise usage("--24mp goes with --full")
     if semireal:
         if virtual or quick or full or ablation or given(ctx, "count") or given(ctx, "size"):
-            raise typer.BadParameter("--semireal goes alone (with --methods, --weights and --out): it has its own scenes")
+            raise usage("--semireal goes alone (with --methods, --weights and --out): it has its own scenes")
         bench_semireal(methods if given(ctx, "methods") else None, weights, out)
         return
     if weights is not None:
-        raise typer.BadParameter("--weights goes with --semireal")
+        raise usage("--weights goes with --semireal")
     if virtual:
         if quick or full or ablation or given(ctx, "count") or given(ctx, "size"):
-            raise typer.BadParameter("--virtual goes alone (with --methods and --out): it has its own scenes")
+            raise usage("--virtual goes alone (with --methods and --out): it has its own scenes")
         bench_virtual(methods if given(ctx, "methods") else None, out)
         return
     if not ablation and (seeds != "0,1" or jobs != 2 or runs is not None or steps is not None):
-        raise typer.BadParameter("--seeds, --jobs, --runs and --steps go with --ablation")
+        raise usage("--seeds, --jobs, --runs and --steps go with --ablation")
     if ablation:
         from separate.ablation import run_ablation
-        from separate.evaluate import DEFAULT_OUT
+        from separate.bench_run import DEFAULT_OUT
 
         seed_list = parse_seeds(seeds)
         folder = (out or DEFAULT_OUT) / ("ablation" + (f"-{steps}" if steps else ""))
@@ -688,7 +742,7 @@ def bench(
         if not (quick or full):
             return
     if quick or full:
-        from separate.evaluate import DEFAULT_OUT, run_evaluation
+        from separate.bench_run import DEFAULT_OUT, run_evaluation
 
         result = run_guarded(run_evaluation, out or DEFAULT_OUT, quick, images, progress=TerminalProgress(),
                              large=large, command=" ".join(["urd"] + sys.argv[1:]))
@@ -797,7 +851,7 @@ def verify(dataset: Optional[Path] = typer.Argument(None, help=DATASET_HELP + " 
 
 @app.command()
 def demo(
-    folder: Path = typer.Argument(Path("urd-demo"), help="Dataset folder for the demo (created, or extended with a new scene)."),
+    folder: Path = typer.Argument(Path("urd-demo"), help="Dataset folder for the demo, created; when it exists, a fresh FOLDER-2, FOLDER-3 … (said on the first line)."),
     size: str = typer.Option("1536x1024", help="Virtual sensor size WIDTHxHEIGHT."),
     seed: int = typer.Option(0, help="Random seed of the simulated rig."),
     precision: str = typer.Option("auto", help="Network arithmetic: auto, fp32 or bf16."),
@@ -816,7 +870,7 @@ def demo(
     try:
         resolve(precision)
     except ValueError as exc:
-        raise typer.BadParameter(str(exc)) from None
+        raise bad("--precision", str(exc)) from None
     result = run_guarded(run_demo, folder, width, height, seed, precision, typer.echo, progress=TerminalProgress())
     report_truth(result.truth_metrics)
     show_previews(result.files)

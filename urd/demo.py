@@ -9,10 +9,23 @@ from urd.core.errors import UrdError
 from urd.core.progress import Progress
 
 
+def fresh_folder(folder: Path) -> Path:
+    """``folder`` when it does not exist or is empty, else the first of ``folder-2``,
+    ``folder-3`` … that does not exist: each demo run gets a dataset of its own."""
+    folder = Path(folder)
+    if not folder.exists() or (folder.is_dir() and not any(folder.iterdir())):
+        return folder
+    number = 2
+    while folder.with_name(f"{folder.name}-{number}").exists():
+        number += 1
+    return folder.with_name(f"{folder.name}-{number}")
+
+
 def run_demo(folder: Path, width: int, height: int, seed: int, precision: str = "auto",
              announce: Callable[[str], None] = print, progress: Progress | None = None):
-    """Capture a scene with the simulated ELL14 and virtual camera, ingest it, separate it with
-    the shipped network; returns the `urd.separation.Separation` (with PSNR against truth)."""
+    """Capture a scene with the simulated ELL14 and virtual camera into a fresh dataset
+    (`fresh_folder`; said when it is not ``folder``), ingest it, separate it with the shipped
+    network; returns the `urd.separation.Separation` (with PSNR against truth)."""
     from acquire.plan import capture_scene
     from acquire.rig import SimSettings
     from separate.methods import get_method
@@ -20,6 +33,10 @@ def run_demo(folder: Path, width: int, height: int, seed: int, precision: str = 
     from urd.ingest import IngestOptions, ingest_scene
     from urd.separation import describe_incidence, separate_scene
 
+    target = fresh_folder(folder)
+    if target != Path(folder):
+        announce(f"{Path(folder).resolve()} exists (an earlier run): this run writes a fresh dataset, {target.resolve()}")
+    folder = target
     sim = SimSettings(offset_deg=0.0, jitter_deg=0.3, width=width, height=height, seed=seed)
     scene = capture_scene(folder, "sim", "virtual", [0.0, 45.0, 90.0], new=True, sim=sim,
                           announce=lambda line: None, progress=progress)

@@ -38,6 +38,7 @@ from urd.core.dataset import DATASET_MANIFEST, STAGING_PREFIX, Dataset, Scene
 from urd.core.errors import AlignmentError, DatasetError, RawFormatError, UrdError
 from urd.core.files import atomic_path, sha256_file
 from urd.core.images import IMAGE_SUFFIXES, Transfer, codes_to_linear, linear_to_u16, read_raw_codes
+from urd.core.mosaic import MosaicLayout
 from urd.core.progress import Progress
 
 
@@ -218,7 +219,7 @@ def prepare_ingest(scene: Scene, opts: IngestOptions, progress: Progress | None 
 def _prepare_mosaic(scene: Scene, progress: Progress | None = None) -> PreparedIngest:
     """`prepare_ingest` of a scene made from a polarization-camera frame: demosaic its frame
     again with the layout, demosaicing and transfer it was ingested with."""
-    from urd.core.mosaic import Demosaic, MosaicLayout
+    from urd.core.mosaic import Demosaic
 
     options = scene.ingest_options()
     frame = scene.raw_paths()[0]
@@ -389,7 +390,11 @@ def ingest_folder(raw_dir: Path, ds: Dataset, opts: IngestOptions, progress: Pro
     """
     raws, ignored = find_raw_files(raw_dir)
     if not raws:
-        raise DatasetError(f"{raw_dir}: no RAW files (looked for {', '.join(rawio.RAW_SUFFIXES)})")
+        frames = [p for p in ignored if p.suffix.lower() in (".png", ".tif", ".tiff")]
+        hint = (f"; it holds {len(frames)} PNG/TIFF images: polarization-camera frames are ingested with "
+                f"--mosaic {'|'.join(m.value for m in MosaicLayout)} (the sensor's layout), and one image per "
+                "polarizer angle is separated with 'urd separate --images A --images B --images C --angles ...'") if frames else ""
+        raise DatasetError(f"{raw_dir}: no RAW files (looked for {', '.join(rawio.RAW_SUFFIXES)}){hint}")
     known = ds.shot_index()
     digests = {path: sha256_file(path) for path in raws}
     outcomes, fresh, already = [], [], {}

@@ -97,6 +97,39 @@ def field_image(field_deg: np.ndarray) -> tuple[np.ndarray, float, float]:
     return colormap_image((np.asarray(field_deg, np.float32) - lo) / span), lo, hi
 
 
+def map_preview(name: str, values: np.ndarray) -> tuple[np.ndarray, str]:
+    """A polarization map (`separate.maps.MAPS`: H×W, or H×W×C averaged over C) as H×W×3 uint8
+    viridis RGB, and the range it spans in the map's units: DoLP over [0, 1], AoLP over
+    [0, 180) deg, S1 and S2 over ±their 99.5th percentile of |value|, S0 over [0, its 99.5th
+    percentile], φ⊥ and θ over their own range. NaN (dark pixels) is black."""
+    values = np.asarray(values, np.float32)
+    values = values.mean(axis=-1) if values.ndim == 3 else values
+    finite = values[np.isfinite(values)]
+    if name == "DoLP":
+        lo, hi = 0.0, 1.0
+    elif name == "AoLP":
+        lo, hi = 0.0, 180.0
+    elif name in ("S1", "S2"):
+        hi = float(np.percentile(np.abs(finite), EXPOSURE_PERCENTILE)) if finite.size else 1.0
+        lo = -hi
+    elif name == "S0":
+        lo, hi = 0.0, float(np.percentile(finite, EXPOSURE_PERCENTILE)) if finite.size else 1.0
+    else:
+        lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
+    span = hi - lo if hi - lo > 1e-9 else 1.0
+    rgb = colormap_image((values - lo) / span)
+    rgb[~np.isfinite(values)] = 0
+    return rgb, f"{lo:.3g} to {hi:.3g}"
+
+
+def write_png(path: Path, rgb: np.ndarray, long_side: int = 1024) -> None:
+    """An H×W×3 uint8 RGB image as a PNG of at most ``long_side`` px long."""
+    ok, data = cv2.imencode(".png", np.ascontiguousarray(_resize_long_side(rgb, long_side)[..., ::-1]))
+    if not ok:
+        raise DatasetError(f"{path}: PNG encoding failed")
+    path.write_bytes(data.tobytes())
+
+
 # ---------------------------------------------------------------------------------------------
 # Files
 

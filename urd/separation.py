@@ -57,9 +57,7 @@ def write_preview(path: Path, image: np.ndarray, white: float, overwrite: bool =
     if scale < 1:
         image = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
     rgb = to_display(image, 1.0 / white)
-    with atomic_path(path, overwrite) as tmp:
-        if not cv2.imwrite(str(tmp), rgb[..., ::-1]):
-            raise DatasetError(f"cannot write {path}")
+    write_png(path, rgb[..., ::-1], overwrite)
 
 
 def _read_mapped(path: Path, shape: tuple[int, ...], scene: Scene) -> np.ndarray:
@@ -158,9 +156,17 @@ def write_maps(folder: Path, maps: dict[str, np.ndarray], overwrite: bool = Fals
 
 def write_mask(path: Path, mask: np.ndarray, overwrite: bool = False) -> None:
     """A boolean mask as an 8-bit PNG (255 = true), atomically."""
+    write_png(path, mask.astype(np.uint8) * np.uint8(255), overwrite)
+
+
+def write_png(path: Path, image: np.ndarray, overwrite: bool = False) -> None:
+    """An 8-bit image (H×W, or H×W×3 BGR) as a PNG, atomically: encoded in memory and written by
+    Python, so that a full disk is an error naming the file (`urd.core.files.atomic_path`)."""
+    ok, data = cv2.imencode(".png", image)
+    if not ok:
+        raise DatasetError(f"cannot encode {path} as PNG")
     with atomic_path(path, overwrite) as tmp:
-        if not cv2.imwrite(str(tmp), mask.astype(np.uint8) * np.uint8(255)):
-            raise DatasetError(f"cannot write {path}")
+        tmp.write_bytes(data.tobytes())
 
 
 #: The files `write_results` may write (besides ``maps/``).
@@ -295,6 +301,34 @@ def separate_scene(scene: Scene, method: str, run, info: dict, force: bool = Fal
     return separation
 
 
+def add_maps(scene: Scene, method: str, reference: str | float = "auto") -> Separation:
+    """Add the polarization maps to a scene's stored results of ``method`` without separating
+    again: a Stokes fit of the aligned stack, presented at the reference the separation used
+    (its ``reference_deg.tiff``; for a method that sees S0 only, ``reference`` estimated without
+    a trial separation). The maps are staged inside the scene and recorded with their hashes.
+    DatasetError when the results are missing or already hold maps."""
+    with scene.lock():
+        scene.reload()
+        result = scene.result(method)
+        if any(path.parent.name == "maps" for path in result.files.values()):
+            raise DatasetError(f"{scene.name}'s {method} results already have maps ({scene.results_dir(method) / 'maps'}); "
+                               "pass --force to separate again with maps")
+        images, angles = scene.load_stack(codes=True)
+        if "reference_deg.tiff" in result.files:
+            used = tifffile.imread(result.files["reference_deg.tiff"])
+        else:
+            inspection, chosen = resolve_reference(images, angles, reference, None)
+            used = inspection.field if reference == "auto" else chosen
+        polarization = _maps(images, angles, used)
+        del images
+        with scene.staging() as staging:
+            staged = {f"results/{method}/maps/{p.name}": p for p in write_maps(staging / "maps", polarization)}
+            stored = scene.add_result_files(method, staged, f"maps of {method}")
+        scene.reload()
+    files = [path for path in stored.files.values() if path.parent.name == "maps"]
+    return Separation(files, result.reference_deg or 0.0, [], None)
+
+
 def describe_incidence(incidence: dict) -> str:
     """A line on the angle-of-incidence estimate (`separate.reference.Incidence.record`) and
     whether the physics-anchored network used it."""
@@ -340,6 +374,7 @@ def separate_images(paths: list[Path], angles_deg: list[float], out: Path, run, 
     (``reference_deg.tiff``) only for a method that ``sees_polarization``."""
     if len(paths) != len(angles_deg):
         raise ValueError(f"expected one angle per image ({len(paths)} images), got {len(angles_deg)} angles")
+    check_writable(Path(out))
     existing = sorted(p.name for p in Path(out).glob("*") if p.name in RESULT_NAMES or p.name == "maps") \
         if Path(out).is_dir() and not force else []
     if existing:
@@ -360,6 +395,18 @@ def separate_images(paths: list[Path], angles_deg: list[float], out: Path, run, 
         paths += write_maps(Path(out) / "maps", polarization, overwrite=force)
     _remove_replaced(Path(out), paths)
     return Separation(paths, inspection.reference_deg, inspection.warnings)
+
+
+def check_writable(folder: Path) -> None:
+    """Make ``folder`` (and its parents) if needed and check that a file can be written into it,
+    before any work; DatasetError naming the folder and what to do when not."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        raise DatasetError(f"cannot write into the output folder {folder} ({exc.strerror or exc}); nothing was "
+                           "separated. Choose another --out, or make this one writable") from exc
 
 
 def _remove_replaced(out: Path, written: list[Path]) -> None:

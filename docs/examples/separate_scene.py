@@ -27,5 +27,7 @@ maps = urd.polarization_maps(images, angles_deg)
 out.mkdir(parents=True, exist_ok=True)
 for key in ("DoLP", "AoLP", "phi_perp"):
     tifffile.imwrite(out / f"{key}.tiff", maps[key])
-print(f"DoLP median {np.median(maps['DoLP']):.3f}; phi_perp {maps['phi_perp'].min():.1f} to {maps['phi_perp'].max():.1f} deg; "
-      f"theta {maps['theta'][0, 0]:.1f} deg; maps in {out}")
+theta = maps["theta"]                                          # per pixel: the angle of incidence turns across a wide view
+print(f"DoLP median {np.nanmedian(maps['DoLP']):.3f} (NaN: dark pixels); "
+      f"phi_perp {maps['phi_perp'].min():.1f} to {maps['phi_perp'].max():.1f} deg; "
+      f"angle of incidence {np.median(theta):.1f} deg ({theta.min():.1f} to {theta.max():.1f} across the frame); maps in {out}")

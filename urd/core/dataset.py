@@ -748,6 +748,22 @@ class Scene:
         self._commit(staged, change)
         return self.result(method, verify=False)
 
+    def add_result_files(self, method: str, staged: dict[str, Path], step: str) -> Result:
+        """Add staged files (final name → staged path) to a method's stored results, e.g. the
+        polarization maps computed afterwards; files of the same name are replaced, the rest of
+        the record kept. ``step`` names the work in the provenance. Returns the stored entry."""
+        if method not in self.methods():
+            raise DatasetError(f"{self.name} has no results of {method!r} to add to (results: {self.methods()})")
+
+        def change(files: list[dict]) -> None:
+            entry = self._data()["results"][method]
+            added = {_final_name(rec["file"]) for rec in files}
+            entry["files"] = [rec for rec in entry["files"] if rec["file"] not in added] + files
+            self._data()["provenance"].append(provenance(step, {"method": method}))
+
+        self._commit(staged, change)
+        return self.result(method, verify=False)
+
     def set_shot_calibration(self, record: dict, calibrated_deg: list[float] | None) -> None:
         """Store per-shot angle errors; with ``calibrated_deg`` also each shot's calibrated angle."""
         data = self._data()

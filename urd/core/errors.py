@@ -41,6 +41,10 @@ class WeightsError(UrdError):
     """A weights file is missing, corrupt, or does not fit the model."""
 
 
+class DiskFullError(DatasetError):
+    """No room left on the disk for a file urd writes (the message names the file)."""
+
+
 class DatasetBusyError(DatasetError):
     """Another process holds the dataset's write lock."""
 

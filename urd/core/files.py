@@ -8,15 +8,17 @@ Knows nothing of manifests beyond refusing JSON nested deeper than any urd write
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
 import hashlib
 import json
 import os
+import shutil
 import tempfile
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
-from urd.core.errors import DatasetError, ManifestError
+from urd.core.errors import DatasetError, DiskFullError, ManifestError
 
 MAX_DEPTH = 32                          # nesting levels a manifest may have (urd writes at most 5)
 
@@ -38,7 +40,9 @@ def atomic_path(path: Path, overwrite: bool = False) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success rename it onto ``path``.
 
     On any exception the temporary file is removed and ``path`` is untouched. Raises
-    DatasetError if ``path`` exists and ``overwrite`` is false.
+    DatasetError if ``path`` exists and ``overwrite`` is false, and DiskFullError naming
+    ``path`` when writing it failed for want of room on its disk (whatever words the writer
+    used: numpy's "N requested and M written", libpng's "Write Error").
     """
     path = Path(path)
     if path.exists() and not overwrite:
@@ -55,9 +59,28 @@ def atomic_path(path: Path, overwrite: bool = False) -> Iterator[Path]:
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
+        full = isinstance(exc, OSError) and not isinstance(exc, DiskFullError) and _out_of_space(path.parent, exc)
         tmp.unlink(missing_ok=True)
+        if full:
+            raise DiskFullError(f"disk full: cannot write {path} (no room left on its disk); nothing was replaced. "
+                                "Make room there, or write elsewhere, and run the command again") from exc
         raise
+
+
+#: Free bytes on a disk below which a failed write is put down to a full disk.
+LOW_SPACE = 1 << 20
+
+
+def _out_of_space(folder: Path, exc: OSError) -> bool:
+    """Whether a write into ``folder`` that raised ``exc`` failed for want of room (checked
+    before the partial file is removed)."""
+    if exc.errno == errno.ENOSPC or (exc.__cause__ is not None and getattr(exc.__cause__, "errno", None) == errno.ENOSPC):
+        return True
+    try:
+        return shutil.disk_usage(folder).free < LOW_SPACE
+    except OSError:
+        return False
 
 
 def write_bytes_atomic(path: Path, data: bytes, overwrite: bool = False) -> None:

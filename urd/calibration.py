@@ -1,0 +1,65 @@
+"""The calibration sweep, the workflow of ``urd calibrate offset``: it runs a capture (`acquire`)
+and fits it (`calib`), so it lives above both, and neither of them imports the other.
+
+The sweep is a scene under ``calibration/sweep_NN`` whose shots see a polarized target through
+the polarizer at stage angles over 180°; the Malus-law fit of its intensities
+(`calib.polarizer.fit_offset`) gives the mounting offset, stored in ``calibration.json`` with
+the identity of the stage it was measured on (`acquire.rig.stage_identity`); later captures with
+that stage command ``polarizer angle − offset`` (`acquire.rig.offset_for_stage`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from acquire.plan import capture_plan_record, run_capture
+from acquire.rig import open_rig, stage_identity
+from calib.polarizer import fit_offset
+from calib.store import sweep_intensities
+from urd.core.dataset import Dataset, Scene
+from urd.core.errors import CaptureInterrupted, UrdError
+from urd.core.progress import Progress
+
+
+def calibrate_offset(ds: Dataset, sweep: Scene, target_angle_deg: float) -> dict:
+    """Fit the mounting offset to a captured sweep and store it in the dataset, with the
+    identity of the stage the sweep was captured with."""
+    angles, values = sweep_intensities(sweep)
+    fit = fit_offset(np.asarray(angles), np.asarray(values), target_angle_deg)
+    stage = sweep.load(verify=False)["capture"].get("stage")
+    record = fit.record() if stage is None else {**fit.record(), "stage": stage_identity(stage)}
+    return ds.save_calibration(record, target_angle_deg, sweep)
+
+
+def sweep_and_calibrate(root: Path, stage: str, camera: str, step_deg: float, target_angle_deg: float,
+                        address: str = "0", sim=None, progress: Progress | None = None) -> dict:
+    """The workflow of ``urd calibrate offset``: sweep the polarizer over 180° in front of a
+    polarized target, fit Malus's law, store the offset. Returns the calibration record."""
+    angles = [float(a) for a in np.arange(0.0, 180.0, step_deg)]
+    with open_rig(stage, camera, address, sim=sim) as rig:
+        ds = Dataset.open_or_create(root)
+        with ds.lock():
+            sweep = ds.new_sweep(capture_plan_record(angles, 0.0, 0.5, rig.info))
+            counter = iter(range(1, len(angles) + 1))
+            try:
+                run_capture(sweep, rig.stage, rig.camera, angles,
+                            progress=lambda st: progress and st.kind == "record" and progress(next(counter), len(angles), "sweep"))
+            except KeyboardInterrupt:
+                raise CaptureInterrupted(f"calibration sweep interrupted; {_left(sweep)}") from None
+            except (UrdError, OSError) as exc:
+                raise UrdError(f"{exc}\ncalibration sweep stopped; {_left(sweep)}") from exc
+            except BaseException:
+                sweep.discard_if_empty()
+                raise
+            return calibrate_offset(ds, sweep, target_angle_deg)
+
+
+def _left(sweep: Scene) -> str:
+    """What a stopped sweep left: nothing, or its shots (a sweep is not resumed: the next
+    'urd calibrate offset' sweeps anew and the calibration never uses an incomplete one)."""
+    if sweep.discard_if_empty():
+        return "no shot was taken, nothing was kept"
+    return (f"its {len(sweep.shots())} shots are kept in {sweep.path.resolve()} (unused: an incomplete sweep is never "
+            "fitted; delete it if you like); run 'urd calibrate offset' again for a new sweep")
