@@ -22,7 +22,7 @@ import typer
 
 from urd import __version__
 from urd.core.dataset import default_root
-from urd.core.errors import CaptureInterrupted, UrdError
+from urd.core.errors import CaptureInterrupted, DatasetError, UrdError
 from urd.core.progress import TerminalProgress, plural
 
 DATASET_HELP = "Dataset folder (default: the current folder if it holds dataset.json, else ./dataset)."
@@ -458,7 +458,7 @@ def separate(
     from separate.precision import describe, resolve
     from urd.core.images import Transfer
     from urd.core.raw import RAW_SUFFIXES
-    from urd.separation import describe_incidence, sees_polarization_of, separate_images, separate_scene
+    from urd.separation import check_out_folder, describe_incidence, sees_polarization_of, separate_images, separate_scene
 
     if method not in METHODS:
         raise typer.BadParameter(f"unknown method {method!r}; expected one of {sorted(METHODS)}")
@@ -504,6 +504,11 @@ def separate(
     params = parse_params(param or [])
     forced = parse_reference(reference)
     angle_list = parse_angles(angles) if images else None
+    if images:
+        try:
+            check_out_folder(out, method)
+        except DatasetError as exc:
+            raise typer.BadParameter(str(exc), param_hint="--out") from None
     if images and len(images) != len(angle_list):
         raise typer.BadParameter(f"expected one --images file per angle of --angles {angles}, got {len(images)} files")
     if all_scenes:

@@ -25,7 +25,6 @@ import dataclasses
 import datetime as _dt
 import re
 import shutil
-import tempfile
 from pathlib import Path
 from typing import Iterable
 
@@ -204,7 +203,7 @@ def prepare_ingest(scene: Scene, opts: IngestOptions, progress: Progress | None 
         bad = [f"shot {i}: {r.reason}" for i, r in enumerate(results, 1) if not r.ok]
         return PreparedIngest(scene.path, False, alignment, None, {},
                               "alignment failed, no aligned stack written (" + "; ".join(bad) + ")")
-    staging = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=scene.path))
+    staging = scene.new_staging()
     try:
         staged = _write_stack(staging, (images.pop(i) for i in range(len(paths))))    # each freed once written
     except BaseException:
@@ -226,7 +225,7 @@ def _prepare_mosaic(scene: Scene, progress: Progress | None = None) -> PreparedI
         progress(0, 1, f"ingest {scene.name}")
     stack, _ = _demosaiced(frame, MosaicLayout(options["mosaic"]), Demosaic(options["demosaic"]),
                            Transfer(options["transfer"]))
-    staging = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=scene.path))
+    staging = scene.new_staging()
     try:
         staged = _write_stack(staging, stack)
     except BaseException:

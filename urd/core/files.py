@@ -2,16 +2,21 @@
 
 Every write goes to a temporary file beside its target that is renamed into place once
 complete (`atomic_path`), so that a reader, or a run killed half-way, never sees a partial file.
-Knows nothing of manifests beyond refusing JSON nested deeper than any urd writes.
+A folder someone else gave may hold symbolic links that point anywhere: `refuse_links` is the
+one check made before writing or deleting in it, and the lock file is opened without following
+a link (`pid_lock`). Knows nothing of manifests beyond refusing JSON nested deeper than any urd
+writes.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
 import hashlib
 import json
 import os
+import stat
 import tempfile
 from pathlib import Path
 from typing import Any, Callable, Iterator
@@ -55,9 +60,28 @@ def atomic_path(path: Path, overwrite: bool = False) -> Iterator[Path]:
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
         os.replace(tmp, path)
+    except OSError as exc:
+        full = disk_full(exc, path.parent)
+        tmp.unlink(missing_ok=True)
+        if full:
+            raise DatasetError(f"disk full: {path} (nothing was changed; free some space and run the command "
+                               "again)") from exc
+        raise
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def disk_full(exc: OSError, folder: Path) -> bool:
+    """Whether a failed write was a full disk (or quota): ENOSPC/EDQUOT, or a short write
+    without an errno (numpy's "N requested and M written") on a file system with no free block."""
+    if exc.errno is not None:
+        return exc.errno in (errno.ENOSPC, errno.EDQUOT)
+    try:
+        space = os.statvfs(folder)
+    except OSError:
+        return False
+    return space.f_bavail == 0 or space.f_bfree == 0
 
 
 def write_bytes_atomic(path: Path, data: bytes, overwrite: bool = False) -> None:
@@ -103,6 +127,33 @@ def _nesting_within(value: Any, limit: int) -> bool:
     return True
 
 
+# ---------------------------------------------------------------- links
+
+
+def link_error(link: Path) -> DatasetError:
+    """The refusal of a symbolic link found where urd writes or deletes."""
+    return DatasetError(f"{link} is a symbolic link inside the dataset; urd writes and deletes nothing through a "
+                        "link in a dataset (one from someone else can point anywhere). Nothing was changed; replace "
+                        "it by the file or folder itself, or remove it, and run the command again")
+
+
+def refuse_links(path: Path, base: Path | None = None) -> None:
+    """DatasetError (`link_error`) naming the first symbolic link among ``path``, every file
+    and folder below it, and the folders between ``base`` (a trusted folder, not checked) and
+    ``path``; no link is followed. A missing ``path`` has nothing below it."""
+    path = Path(path)
+    above = path.relative_to(base).parts[:-1] if base is not None else ()
+    for i in range(len(above)):
+        if Path(base, *above[: i + 1]).is_symlink():
+            raise link_error(Path(base, *above[: i + 1]))
+    if path.is_symlink():
+        raise link_error(path)
+    for folder, folders, files in os.walk(path):
+        for name in folders + files:
+            if os.path.islink(os.path.join(folder, name)):
+                raise link_error(Path(folder, name))
+
+
 # ---------------------------------------------------------------- locks
 
 
@@ -110,12 +161,25 @@ def _nesting_within(value: Any, limit: int) -> bool:
 def pid_lock(path: Path, busy: Callable[[str], Exception], unopenable: Callable[[OSError], Exception]) -> Iterator[None]:
     """Hold an exclusive lock on the file ``path`` (created if missing), with this process's
     pid written in it while held. Raises ``busy(holder pid)`` when another open of it holds the
-    lock, ``unopenable(error)`` when it cannot be opened."""
+    lock, ``unopenable(error)`` when it cannot be opened or is not a file of its own: a symbolic
+    link (never followed, so that no file elsewhere is created, emptied or written), a hard
+    link (its content is another name's too), a FIFO, device or folder."""
+    flags = os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_NOCTTY | os.O_CLOEXEC
     try:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        fd = os.open(path, flags, 0o644)
     except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise unopenable(OSError(exc.errno, f"its lock file {path} is a symbolic link, which urd does not "
+                                                "follow (it can point anywhere); remove it and run the command "
+                                                "again")) from exc
         raise unopenable(exc) from exc
     try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode) or info.st_nlink > 1:
+            what = "has other hard links (its content is another file's too)" if stat.S_ISREG(info.st_mode) \
+                else "is not a regular file (a FIFO, device or folder)"
+            raise unopenable(OSError(errno.EINVAL, f"its lock file {path} {what}; urd writes no such file. Remove it "
+                                                   "and run the command again"))
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:

@@ -1,0 +1,257 @@
+"""A dataset from someone else (docs/dataset.md, "Threat model"): symbolic and hard links in it
+make no command write, empty or delete anything outside it; an --out inside a dataset is
+refused; a killed batch command leaves no worker alive and nothing written after it."""
+
+import os
+import shutil
+import subprocess
+import sys
+
+import pytest
+from typer.testing import CliRunner
+
+from rig import capture_virtual
+from separate.methods import get_method
+from urd.cli import app
+from urd.core.dataset import Dataset
+from urd.core.errors import DatasetError
+from urd.core.files import atomic_path
+from urd.ingest import IngestOptions, ingest_scene
+from urd.separation import separate_scene
+
+SIM = ("--stage", "sim", "--camera", "virtual", "--sim-size", "96x64")
+LINKED = "is a symbolic link"
+
+
+def invoke(*args):
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+def urd(*args):
+    return subprocess.run([sys.executable, "-m", "urd.cli", *map(str, args)], capture_output=True, text=True, timeout=600)
+
+
+@pytest.fixture(scope="module")
+def base(tmp_path_factory):
+    """scene_01 ingested with results of 'none' and ground truth; scene_02 captured, not ingested."""
+    ds = Dataset.open_or_create(tmp_path_factory.mktemp("base") / "ds")
+    scene, _ = capture_virtual(ds, size=(96, 64), shake_px=1.0, shake_deg=0.1, seed=1)
+    assert ingest_scene(scene, IngestOptions()).error is None
+    run, info = get_method("none")
+    separate_scene(scene, "none", run, info)
+    capture_virtual(ds, size=(96, 64), shake_px=1.0, shake_deg=0.1, seed=2)
+    return ds.root
+
+
+def snapshot(folder):
+    """Every file below ``folder`` (links not followed) → its bytes, every link → its target."""
+    files = {}
+    for parent, folders, names in os.walk(folder):
+        for name in folders + names:
+            path = os.path.join(parent, name)
+            if os.path.islink(path):
+                files[path] = ("link", os.readlink(path))
+            elif os.path.isfile(path):
+                with open(path, "rb") as fh:
+                    files[path] = fh.read()
+    return files
+
+
+def outside_folder(tmp_path):
+    """A folder outside the dataset holding a file someone cares about and a hidden one."""
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (outside / "authorized_keys").write_bytes(b"ssh-ed25519 AAAA keep me\n")
+    (outside / ".secret").write_bytes(b"hidden, keep me too\n")
+    return outside
+
+
+def move_out(folder, outside):
+    """Move ``folder`` (of the dataset) outside, with a hidden file beside its files, and leave a link to it."""
+    target = outside / folder.name
+    shutil.move(folder, target)
+    (target / ".secret").write_bytes(b"hidden, keep me\n")
+    folder.symlink_to(target, target_is_directory=True)
+    return folder
+
+
+LINKS = {
+    "lock": lambda root, out: (root / ".urd.lock").symlink_to(out / "authorized_keys") or root / ".urd.lock",
+    "dangling lock": lambda root, out: (root / ".urd.lock").symlink_to(out / "created") or root / ".urd.lock",
+    "temp file": lambda root, out: (root / "scene_01/aligned/.shot_00.tmp.tiff").symlink_to(out / "authorized_keys")
+    or root / "scene_01/aligned/.shot_00.tmp.tiff",
+    "scene staging folder": lambda root, out: (root / "scene_01/.staging-x").symlink_to(out, target_is_directory=True)
+    or root / "scene_01/.staging-x",
+    "dataset staging folder": lambda root, out: (root / ".staging-x").symlink_to(out, target_is_directory=True)
+    or root / ".staging-x",
+    "raw": lambda root, out: move_out(root / "scene_01/raw", out),
+    "aligned": lambda root, out: move_out(root / "scene_01/aligned", out),
+    "results": lambda root, out: move_out(root / "scene_01/results", out),
+    "truth": lambda root, out: move_out(root / "scene_01/truth", out),
+}
+
+#: Commands (their arguments after the dataset folder's path is put in for ROOT) and whether they
+#: write into scene_01, and so must refuse its links by name.
+COMMANDS = {
+    "capture new": (("capture", "ROOT", *SIM, "--new-scene", "--angles", "0,60,120"), False),
+    "ingest new": (("ingest", "ROOT/scene_02"), False),
+    "ingest --redo": (("ingest", "ROOT/scene_01", "--redo"), True),
+    "separate --force": (("separate", "scene_01", "--dataset", "ROOT", "--method", "none", "--force"), True),
+    "calibrate": (("calibrate", "offset", "ROOT", "--stage", "sim", "--camera", "virtual", "--step", "45"), False),
+    "verify": (("verify", "ROOT"), True),
+}
+SLOW_COMMANDS = {
+    "ingest --jobs": (("ingest", "ROOT", "--redo", "--jobs", "2"), True),
+    "separate --all --jobs": (("separate", "--all", "--jobs", "2", "--force", "--method", "none", "--dataset", "ROOT"), True),
+}
+
+
+def hostile(base, tmp_path, kind):
+    """A copy of the base dataset with the link ``kind``; (its root, the outside folder, the link)."""
+    root = tmp_path / "ds"
+    shutil.copytree(base, root, symlinks=True)
+    (root / ".urd.lock").unlink(missing_ok=True)
+    outside = outside_folder(tmp_path)
+    return root, outside, LINKS[kind](root, outside)
+
+
+def check_refused_or_harmless(base, tmp_path, kind, command, in_process):
+    root, outside, link = hostile(base, tmp_path, kind)
+    before = snapshot(outside)
+    args, writes_scene = command
+    args = [str(a).replace("ROOT", str(root)) for a in args]
+    if in_process:
+        out = invoke(*args)
+        code, text = out.exit_code, out.output
+    else:
+        out = urd(*args)
+        code, text = out.returncode, out.stdout + out.stderr
+    assert snapshot(outside) == before, text
+    assert not (outside / "created").exists()
+    takes_lock = args[0] != "verify"
+    if "lock" in kind and takes_lock or "dataset staging" in kind and takes_lock or writes_scene and "lock" not in kind \
+            and "dataset staging" not in kind:
+        assert code != 0 and f"{link} {LINKED}" in text, text
+    return root, text
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+@pytest.mark.parametrize("kind", LINKS)
+def test_a_link_in_a_dataset_leaves_the_outside_byte_identical(base, tmp_path, kind, command):
+    check_refused_or_harmless(base, tmp_path, kind, COMMANDS[command], in_process=True)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("command", SLOW_COMMANDS)
+@pytest.mark.parametrize("kind", ["lock", "temp file", "aligned", "results"])
+def test_a_link_in_a_dataset_leaves_the_outside_byte_identical_with_worker_processes(base, tmp_path, kind, command):
+    check_refused_or_harmless(base, tmp_path, kind, SLOW_COMMANDS[command], in_process=False)
+
+
+def test_a_hard_linked_lock_or_a_fifo_is_refused_naming_the_file(base, tmp_path):
+    root = tmp_path / "ds"
+    shutil.copytree(base, root, symlinks=True)
+    outside = outside_folder(tmp_path)
+    before = snapshot(outside)
+    (root / ".urd.lock").unlink(missing_ok=True)
+    os.link(outside / "authorized_keys", root / ".urd.lock")
+    out = invoke("separate", "scene_01", "--dataset", root, "--method", "none", "--force")
+    assert out.exit_code == 1 and f"{root / '.urd.lock'} has other hard links" in out.output, out.output
+    assert snapshot(outside) == before
+    (root / ".urd.lock").unlink()
+    os.mkfifo(root / ".urd.lock")
+    out = invoke("separate", "scene_01", "--dataset", root, "--method", "none", "--force")
+    assert out.exit_code == 1 and f"{root / '.urd.lock'} is not a regular file" in out.output, out.output
+    assert "Errno" not in out.output
+
+
+def interrupted_capture(root, monkeypatch):
+    """A capture at 96×64 stopped (Ctrl-C) before its second shot."""
+    from acquire.virtual_camera import VirtualCamera
+
+    capture = VirtualCamera.capture
+
+    def stopping(self, folder, i):
+        if i == 1:
+            raise KeyboardInterrupt
+        return capture(self, folder, i)
+
+    monkeypatch.setattr(VirtualCamera, "capture", stopping)
+    out = invoke("capture", root, *SIM, "--seed", "3", "--angles", "0,60,120")
+    monkeypatch.undo()
+    assert out.exit_code == 130, out.output
+
+
+@pytest.mark.parametrize("folder", ["raw", "aligned"])
+def test_resuming_a_capture_deletes_nothing_outside_through_a_linked_folder(tmp_path, monkeypatch, folder):
+    root = tmp_path / "ds"
+    interrupted_capture(root, monkeypatch)
+    outside = outside_folder(tmp_path)
+    scene = root / "scene_01"
+    (scene / folder).mkdir(exist_ok=True)
+    link = move_out(scene / folder, outside)
+    before = snapshot(outside)
+    out = invoke("capture", root, *SIM, "--seed", "3", "--angles", "0,60,120", "--scene", "scene_01")
+    assert out.exit_code == 1 and f"{link} {LINKED}" in out.output, out.output
+    assert snapshot(outside) == before
+    link.unlink()
+    shutil.move(outside / folder, link)
+    out = invoke("capture", root, *SIM, "--seed", "3", "--angles", "0,60,120", "--scene", "scene_01")
+    assert out.exit_code == 0, out.output
+    assert Dataset.open(root).scene("scene_01").verify() == []
+
+
+def test_a_linked_scene_folder_is_neither_written_nor_recovered_through(base, tmp_path):
+    root, outside, _ = hostile(base, tmp_path, "temp file")
+    (root / "scene_01/aligned/.shot_00.tmp.tiff").unlink()
+    shutil.move(root / "scene_01", outside / "scene_01")
+    (outside / "scene_01/aligned/.shot_01.tmp.tiff").write_bytes(b"a leftover temp file, outside")
+    (root / "scene_01").symlink_to(outside / "scene_01", target_is_directory=True)
+    before = snapshot(outside)
+    out = invoke("separate", "scene_01", "--dataset", root, "--method", "none", "--force")
+    assert out.exit_code == 1 and f"{root / 'scene_01'} {LINKED}" in out.output, out.output
+    out = invoke("verify", root)
+    assert out.exit_code == 1 and f"{root / 'scene_01'} {LINKED}" in out.output, out.output
+    assert snapshot(outside) == before
+
+
+def test_an_out_folder_inside_a_dataset_is_refused_naming_the_dataset_and_the_command(base, tmp_path):
+    root = tmp_path / "ds"
+    shutil.copytree(base, root, symlinks=True)
+    before = snapshot(root)
+    images = sorted((root / "scene_01/aligned").glob("*.tiff"))
+    args = [a for path in images for a in ("--images", path)]
+    out = invoke("separate", *args, "--angles", "0,45,90", "--method", "none", "--force",
+                 "--out", root / "scene_01/results/none")
+    assert out.exit_code == 2, out.output
+    assert str(root) in out.output and "urd separate scene_01 --dataset" in out.output
+    assert snapshot(root) == before
+    out = invoke("verify", root)
+    assert out.exit_code == 0, out.output
+
+
+def test_one_pixel_images_are_refused_with_a_clear_message(tmp_path):
+    import numpy as np
+    import tifffile
+
+    paths = []
+    for i in range(3):
+        paths.append(tmp_path / f"p{i}.tiff")
+        tifffile.imwrite(paths[-1], np.full((1, 1, 3), 1000 * (i + 1), np.uint16), photometric="rgb")
+    out = invoke("separate", *[a for p in paths for a in ("--images", p)], "--method", "none", "--out", tmp_path / "out")
+    assert out.exit_code == 1 and "1×1" in out.output and "gradient" not in out.output, out.output
+
+
+def test_a_full_disk_is_said_as_such_naming_the_file(tmp_path, monkeypatch):
+    import errno
+
+    target = tmp_path / "R.tiff"
+    with pytest.raises(DatasetError, match=f"disk full: {target}"):
+        with atomic_path(target) as tmp:
+            raise OSError(errno.ENOSPC, "No space left on device", str(tmp))
+    short = OSError("147456 requested and 20344 written")
+    monkeypatch.setattr(os, "statvfs", lambda _: os.statvfs_result((4096,) * 3 + (0, 0) + (0,) * 5))
+    with pytest.raises(DatasetError, match=f"disk full: {target}"):
+        with atomic_path(target):
+            raise short
+    assert list(tmp_path.iterdir()) == []
