@@ -4,6 +4,7 @@ refused; a killed batch command leaves no worker alive and nothing written after
 
 import os
 import shutil
+import signal
 import subprocess
 import sys
 
@@ -255,3 +256,134 @@ def test_a_full_disk_is_said_as_such_naming_the_file(tmp_path, monkeypatch):
         with atomic_path(target):
             raise short
     assert list(tmp_path.iterdir()) == []
+
+
+# ---------------------------------------------------------------- a killed command stops whole
+
+SLOWED = '''"""urd's command line with every worker's output writes delayed by {delay} s (a slow scene)."""
+import sys
+import time
+
+import urd.ingest
+import urd.separation
+
+
+def slowed(write):
+    def slow(*args, **kwargs):
+        time.sleep({delay})
+        return write(*args, **kwargs)
+    return slow
+
+
+urd.separation.write_results = slowed(urd.separation.write_results)
+urd.ingest.write_aligned = slowed(urd.ingest.write_aligned)
+
+if __name__ == "__main__":
+    from urd.cli import main
+
+    main()
+'''
+DELAY_S = 3
+
+
+def children(pid):
+    """Every live descendant of ``pid`` (from /proc)."""
+    parents = {}
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat") as fh:
+                    fields = fh.read().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            parents.setdefault(int(fields[1]), []).append(int(entry))
+    result, pending = [], list(parents.get(pid, []))
+    while pending:
+        child = pending.pop()
+        result.append(child)
+        pending += parents.get(child, [])
+    return result
+
+
+def alive(pid):
+    """Whether ``pid`` runs (a zombie nobody reaped does not)."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def tree(root):
+    """Every path below ``root`` with its size and modification time (ns)."""
+    return {path: (path.stat().st_size, path.stat().st_mtime_ns) if path.is_file() else None
+            for path in sorted(root.rglob("*"))}
+
+
+def wait_for(condition, what, limit_s=300):
+    import time
+
+    for _ in range(int(limit_s * 10)):
+        if condition():
+            return
+        time.sleep(0.1)
+    raise AssertionError(f"gave up waiting for {what}")
+
+
+@pytest.fixture
+def two_scenes(tmp_path):
+    """A dataset of two ingested scenes (96×64) with results of 'none'."""
+    ds = Dataset.open_or_create(tmp_path / "ds")
+    run, info = get_method("none")
+    for seed in (1, 2):
+        scene, _ = capture_virtual(ds, size=(96, 64), shake_px=1.0, shake_deg=0.1, seed=seed)
+        assert ingest_scene(scene, IngestOptions()).error is None
+        separate_scene(scene, "none", run, info)
+    return ds.root
+
+
+KILLED = {
+    "separate --all --jobs 2": ("separate", "--all", "--jobs", "2", "--force", "--method", "none", "--dataset"),
+    "ingest --jobs 2": ("ingest", "--redo", "--jobs", "2"),
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGKILL], ids=["SIGTERM", "SIGKILL"])
+@pytest.mark.parametrize("command", KILLED)
+def test_a_killed_batch_leaves_no_process_and_no_late_write_and_the_next_run_completes(two_scenes, tmp_path, command,
+                                                                                         signum):
+    import time
+
+    script = tmp_path / "slowed_urd.py"
+    script.write_text(SLOWED.format(delay=DELAY_S))
+    args = [*KILLED[command], two_scenes] if command.startswith("separate") else [*KILLED[command][:1], two_scenes,
+                                                                                   *KILLED[command][1:]]
+    log = tmp_path / "stderr.txt"
+    with open(log, "w") as stderr:                            # not a pipe: a surviving worker would hold it open
+        main = subprocess.Popen([sys.executable, script, *map(str, args)], stdout=subprocess.DEVNULL, stderr=stderr)
+    workers = []
+    try:
+        wait_for(lambda: list(two_scenes.glob("scene_*/.staging-*")) or main.poll() is not None, "a worker's staging folder")
+        assert main.poll() is None, log.read_text()
+        workers = children(main.pid)
+        assert len(workers) >= 2, workers                     # two workers (and multiprocessing's resource tracker)
+        main.send_signal(signum)
+        main.wait(timeout=5)
+        wait_for(lambda: not any(alive(pid) for pid in workers), "the workers to end", limit_s=5)
+    finally:
+        for pid in [main.pid, *workers]:                      # nothing left behind should the test fail
+            if alive(pid):
+                os.kill(pid, signal.SIGKILL)
+        main.wait()
+    stderr = log.read_text()
+    if signum == signal.SIGTERM:
+        assert main.returncode == 143 and "stopped by SIGTERM" in stderr and "run the same command again" in stderr, stderr
+    settled = tree(two_scenes)
+    time.sleep(DELAY_S + 1)                                   # a surviving worker would write by now
+    assert tree(two_scenes) == settled
+    plain = [str(a) for a in args if a not in ("--jobs", "2")]
+    out = invoke(*plain)
+    assert out.exit_code == 0, out.output
+    assert not list(two_scenes.glob("**/.staging-*"))
+    assert invoke("verify", two_scenes).exit_code == 0

@@ -23,6 +23,7 @@ import typer
 from urd import __version__
 from urd.core.dataset import default_root
 from urd.core.errors import CaptureInterrupted, DatasetError, UrdError
+from urd.core.processes import Terminated, terminate_on_sigterm
 from urd.core.progress import TerminalProgress, plural
 
 DATASET_HELP = "Dataset folder (default: the current folder if it holds dataset.json, else ./dataset)."
@@ -116,9 +117,11 @@ def run_guarded(func, *args, **kwargs):
     except (UrdError, ValueError, OSError) as exc:
         end_line(bar)
         fail(str(exc))
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         end_line(bar)
-        fail("interrupted; completed files are kept, unfinished outputs were discarded", 130)
+        stopped = "stopped by SIGTERM" if isinstance(exc, Terminated) else "interrupted"
+        kept = "; ".join(getattr(exc, "__notes__", [])) or "completed files are kept, unfinished outputs were discarded"
+        fail(f"{stopped}; {kept}", 143 if isinstance(exc, Terminated) else 130)
     finally:
         end_line(bar)
 
@@ -814,6 +817,7 @@ def show_previews(files: list) -> None:
 
 
 def main() -> None:
+    terminate_on_sigterm()                  # SIGTERM stops worker pools and says what was kept, as Ctrl-C does
     app(prog_name="urd")
 
 
