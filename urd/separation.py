@@ -332,7 +332,7 @@ def _reference_kind(reference: str | float) -> str:
 
 
 #: The smallest image side `separate_images` takes (px): the reference field needs gradients.
-MIN_SIDE_PX = 3
+MIN_SIDE_PX = 2
 
 
 def check_out_folder(out: Path, method: str = "METHOD") -> None:

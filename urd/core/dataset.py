@@ -79,6 +79,7 @@ TRUTH_FILE = "truth.json"
 STAGING_PREFIX = ".staging-"
 TEMPORARY = re.compile(r"^\..+(\.tmp(\.[^.]+)?|\.\d+\.link)$")   # `urd.core.files.atomic_path` and `_place` leftovers
 SCENE_NAME = re.compile(r"^scene_(\d{2,})$")
+VERIFY_TRIES = 5                        # checks of a scene whose manifest a concurrent command keeps changing
 
 
 # ---------------------------------------------------------------- staged swap
@@ -470,7 +471,24 @@ class Scene:
 
     def verify(self) -> list[str]:
         """Problems of this scene (empty when every listed file is present and intact), every
-        file hashed in full: shots, aligned stack, results and the virtual camera's ground truth."""
+        file hashed in full: shots, aligned stack, results and the virtual camera's ground truth.
+        Takes no lock: when the manifest changed while it checked (a command swapping in new
+        files meanwhile), it checks again against the new one, up to `VERIFY_TRIES` times."""
+        for _ in range(VERIFY_TRIES):
+            before = self._manifest_bytes()
+            problems = self._verify_once()
+            if not problems or self._manifest_bytes() == before:
+                break
+        return problems
+
+    def _manifest_bytes(self) -> bytes | None:
+        try:
+            return self.manifest_path.read_bytes()
+        except OSError:
+            return None
+
+    def _verify_once(self) -> list[str]:
+        """`verify` against the manifest as it is now."""
         try:
             data = self.reload()._data()
         except (ManifestError, OSError) as exc:
