@@ -7,6 +7,7 @@ import shutil
 import signal
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
@@ -76,20 +77,30 @@ def move_out(folder, outside):
     return folder
 
 
+#: Links someone else's dataset may hold: kind → (the link, in the dataset; its target in the
+#: outside folder, or None: the dataset's folder itself moved outside).
 LINKS = {
-    "lock": lambda root, out: (root / ".urd.lock").symlink_to(out / "authorized_keys") or root / ".urd.lock",
-    "dangling lock": lambda root, out: (root / ".urd.lock").symlink_to(out / "created") or root / ".urd.lock",
-    "temp file": lambda root, out: (root / "scene_01/aligned/.shot_00.tmp.tiff").symlink_to(out / "authorized_keys")
-    or root / "scene_01/aligned/.shot_00.tmp.tiff",
-    "scene staging folder": lambda root, out: (root / "scene_01/.staging-x").symlink_to(out, target_is_directory=True)
-    or root / "scene_01/.staging-x",
-    "dataset staging folder": lambda root, out: (root / ".staging-x").symlink_to(out, target_is_directory=True)
-    or root / ".staging-x",
-    "raw": lambda root, out: move_out(root / "scene_01/raw", out),
-    "aligned": lambda root, out: move_out(root / "scene_01/aligned", out),
-    "results": lambda root, out: move_out(root / "scene_01/results", out),
-    "truth": lambda root, out: move_out(root / "scene_01/truth", out),
+    "lock": (".urd.lock", "authorized_keys"),
+    "dangling lock": (".urd.lock", "created"),
+    "temp file": ("scene_01/aligned/.shot_00.tmp.tiff", "authorized_keys"),
+    "scene staging folder": ("scene_01/.staging-x", "."),
+    "dataset staging folder": (".staging-x", "."),
+    "raw": ("scene_01/raw", None),
+    "aligned": ("scene_01/aligned", None),
+    "results": ("scene_01/results", None),
+    "truth": ("scene_01/truth", None),
 }
+DATASET_WIDE = ("lock", "dangling lock", "dataset staging folder")
+
+
+def make_link(root, outside, kind):
+    """The link ``kind`` (`LINKS`) in the dataset at ``root``; returns its path."""
+    name, target = LINKS[kind]
+    if target is None:
+        return move_out(root / name, outside)
+    (root / name).symlink_to(outside / target)
+    return root / name
+
 
 #: Commands (their arguments after the dataset folder's path is put in for ROOT) and whether they
 #: write into scene_01, and so must refuse its links by name.
@@ -113,7 +124,7 @@ def hostile(base, tmp_path, kind):
     shutil.copytree(base, root, symlinks=True)
     (root / ".urd.lock").unlink(missing_ok=True)
     outside = outside_folder(tmp_path)
-    return root, outside, LINKS[kind](root, outside)
+    return root, outside, make_link(root, outside, kind)
 
 
 def check_refused_or_harmless(base, tmp_path, kind, command, in_process):
@@ -129,9 +140,7 @@ def check_refused_or_harmless(base, tmp_path, kind, command, in_process):
         code, text = out.returncode, out.stdout + out.stderr
     assert snapshot(outside) == before, text
     assert not (outside / "created").exists()
-    takes_lock = args[0] != "verify"
-    if "lock" in kind and takes_lock or "dataset staging" in kind and takes_lock or writes_scene and "lock" not in kind \
-            and "dataset staging" not in kind:
+    if kind in DATASET_WIDE and args[0] != "verify" or kind not in DATASET_WIDE and writes_scene:
         assert code != 0 and f"{link} {LINKED}" in text, text
     return root, text
 
@@ -203,8 +212,9 @@ def test_resuming_a_capture_deletes_nothing_outside_through_a_linked_folder(tmp_
 
 
 def test_a_linked_scene_folder_is_neither_written_nor_recovered_through(base, tmp_path):
-    root, outside, _ = hostile(base, tmp_path, "temp file")
-    (root / "scene_01/aligned/.shot_00.tmp.tiff").unlink()
+    root = tmp_path / "ds"
+    shutil.copytree(base, root, symlinks=True)
+    outside = outside_folder(tmp_path)
     shutil.move(root / "scene_01", outside / "scene_01")
     (outside / "scene_01/aligned/.shot_01.tmp.tiff").write_bytes(b"a leftover temp file, outside")
     (root / "scene_01").symlink_to(outside / "scene_01", target_is_directory=True)
@@ -408,3 +418,18 @@ def test_verify_during_a_swap_checks_the_new_manifest_again(base, tmp_path, monk
     monkeypatch.setattr(dataset_module, "_hash", hash_while_another_command_swaps)
     assert Dataset.open(root).scene("scene_01").verify() == []
     assert swapped and not (root / "scene_01/results/none/T.tiff").exists()
+
+
+def test_a_hard_link_in_a_scene_is_replaced_never_written_through(base, tmp_path):
+    root = tmp_path / "ds"
+    shutil.copytree(base, root, symlinks=True)
+    outside = outside_folder(tmp_path)
+    for name in ("scene_01/aligned/shot_00.tiff", "scene_01/results/none/T.tiff", "scene_01/scene.json"):
+        shutil.copy(root / name, outside / Path(name).name)
+        (root / name).unlink()
+        os.link(outside / Path(name).name, root / name)
+    before = snapshot(outside)
+    assert invoke("ingest", root / "scene_01", "--redo").exit_code == 0
+    assert invoke("separate", "scene_01", "--dataset", root, "--method", "none", "--force").exit_code == 0
+    assert snapshot(outside) == before
+    assert invoke("verify", root).exit_code == 0

@@ -21,6 +21,7 @@ import os
 import signal
 import sys
 import threading
+import time
 from typing import Iterator
 
 from urd.core.progress import plural
@@ -55,10 +56,9 @@ def die_with_parent(parent: int) -> None:
 
 def _watch(parent: int) -> None:
     """End this process once it is no longer ``parent``'s child (checked every `WATCH_S` s)."""
-    stop = threading.Event()
-    while not stop.wait(WATCH_S):
-        if os.getppid() != parent:
-            os._exit(1)
+    while os.getppid() == parent:
+        time.sleep(WATCH_S)
+    os._exit(1)
 
 
 @contextlib.contextmanager
