@@ -106,7 +106,6 @@ def separate_all(root: Path, method: str, options: dict, force: bool = False, re
     return sorted(outcomes, key=lambda o: o.scene)
 
 
-
 def _prepared(scenes: list[Scene], method: str, options: dict, reference: str | float, maps: bool, jobs: int,
               threads: int) -> Iterator[tuple[Scene, object]]:
     """(scene, its `urd.separation.Prepared` or the exception that stopped it), one at a time in

@@ -33,7 +33,7 @@ from separate import metrics, optics
 from separate.reference import Inspection, resolve_reference
 from urd.core.dataset import SCENE_NAME, Scene, enclosing_dataset
 from urd.core.errors import DatasetError
-from urd.core.files import atomic_path
+from urd.core.files import atomic_path, write_error
 from urd.core.images import Transfer, linear_to_u16, read_image, to_display
 
 FULL_SCALE = 2.0
@@ -58,7 +58,7 @@ def write_preview(path: Path, image: np.ndarray, white: float, overwrite: bool =
     rgb = to_display(image, 1.0 / white)
     with atomic_path(path, overwrite) as tmp:
         if not cv2.imwrite(str(tmp), rgb[..., ::-1]):
-            raise DatasetError(f"cannot write {path}")
+            raise write_error(path, None)
 
 
 def _read_mapped(path: Path, shape: tuple[int, ...], scene: Scene) -> np.ndarray:
@@ -159,7 +159,7 @@ def write_mask(path: Path, mask: np.ndarray, overwrite: bool = False) -> None:
     """A boolean mask as an 8-bit PNG (255 = true), atomically."""
     with atomic_path(path, overwrite) as tmp:
         if not cv2.imwrite(str(tmp), mask.astype(np.uint8) * np.uint8(255)):
-            raise DatasetError(f"cannot write {path}")
+            raise write_error(path, None)
 
 
 #: The files `write_results` may write (besides ``maps/``).

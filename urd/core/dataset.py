@@ -482,6 +482,7 @@ class Scene:
         return problems
 
     def _manifest_bytes(self) -> bytes | None:
+        """The manifest as stored (None when unreadable), to tell whether it changed."""
         try:
             return self.manifest_path.read_bytes()
         except OSError:

@@ -24,6 +24,7 @@ from typing import Any, Callable, Iterator
 from urd.core.errors import DatasetError, ManifestError
 
 MAX_DEPTH = 32                          # nesting levels a manifest may have (urd writes at most 5)
+MIN_FREE_BYTES = 1 << 20                # less free space than this after a failed write: the disk was full
 
 
 def sha256_file(path: Path) -> str:
@@ -60,28 +61,34 @@ def atomic_path(path: Path, overwrite: bool = False) -> Iterator[Path]:
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
         os.replace(tmp, path)
-    except OSError as exc:
-        full = disk_full(exc, path.parent)
+    except BaseException as exc:
+        full = isinstance(exc, OSError) and not isinstance(exc, DatasetError) and disk_full(exc, path.parent)
         tmp.unlink(missing_ok=True)
         if full:
-            raise DatasetError(f"disk full: {path} (nothing was changed; free some space and run the command "
-                               "again)") from exc
-        raise
-    except BaseException:
-        tmp.unlink(missing_ok=True)
+            raise write_error(path, exc, full=True) from exc
         raise
 
 
-def disk_full(exc: OSError, folder: Path) -> bool:
-    """Whether a failed write was a full disk (or quota): ENOSPC/EDQUOT, or a short write
-    without an errno (numpy's "N requested and M written") on a file system with no free block."""
-    if exc.errno is not None:
+def disk_full(exc: OSError | None, folder: Path) -> bool:
+    """Whether a failed write in ``folder`` was a full disk (or quota): ENOSPC or EDQUOT, or a
+    failure without an errno (numpy's short write "N requested and M written", an image
+    library's "write error") with less than `MIN_FREE_BYTES` left there. Ask before removing
+    the partial file."""
+    if exc is not None and exc.errno is not None:
         return exc.errno in (errno.ENOSPC, errno.EDQUOT)
     try:
         space = os.statvfs(folder)
     except OSError:
         return False
-    return space.f_bavail == 0 or space.f_bfree == 0
+    return space.f_bavail * space.f_frsize < MIN_FREE_BYTES
+
+
+def write_error(path: Path, exc: OSError | None, full: bool | None = None) -> DatasetError:
+    """The error of a failed write of ``path``: "disk full: PATH" when it was (``full``, else
+    `disk_full`), else "cannot write PATH" with the reason."""
+    if disk_full(exc, path.parent) if full is None else full:
+        return DatasetError(f"disk full: {path} (nothing was changed; free some space and run the command again)")
+    return DatasetError(f"cannot write {path}" + (f": {exc.strerror or exc}" if exc is not None else ""))
 
 
 def write_bytes_atomic(path: Path, data: bytes, overwrite: bool = False) -> None:
@@ -90,7 +97,7 @@ def write_bytes_atomic(path: Path, data: bytes, overwrite: bool = False) -> None
         try:
             tmp.write_bytes(data)
         except OSError as exc:
-            raise DatasetError(f"cannot write {path}: {exc.strerror or exc}") from exc
+            raise write_error(path, exc) from exc
 
 
 def write_json_atomic(path: Path, record: dict, overwrite: bool = True) -> None:
