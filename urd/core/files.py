@@ -155,10 +155,14 @@ def refuse_links(path: Path, base: Path | None = None) -> None:
             raise link_error(Path(base, *above[: i + 1]))
     if path.is_symlink():
         raise link_error(path)
-    for folder, folders, files in os.walk(path):
-        for name in folders + files:
-            if os.path.islink(os.path.join(folder, name)):
-                raise link_error(Path(folder, name))
+    pending = [path] if path.is_dir() else []
+    while pending:
+        with os.scandir(pending.pop()) as entries:          # types from the directory itself: no stat per file
+            for entry in entries:
+                if entry.is_symlink():
+                    raise link_error(Path(entry.path))
+                if entry.is_dir(follow_symlinks=False):
+                    pending.append(entry.path)
 
 
 # ---------------------------------------------------------------- locks
