@@ -82,6 +82,7 @@ def process_pool(jobs: int) -> Iterator[concurrent.futures.ProcessPoolExecutor]:
 def kept_note(names: list[str], what: str) -> str:
     """What an interrupted command with workers kept: the scenes it recorded (``what``:
     separated, ingested) before it was stopped; the others are unchanged."""
-    kept = f"{plural(len(names), 'scene')} {what} before it ({', '.join(names)}) kept" if names else \
-        f"no scene {what} before it"
-    return f"{kept}; the others are unchanged: run the same command again to do them"
+    if not names:
+        return f"no scene {what} before it and none changed: run the same command again"
+    return (f"{plural(len(names), 'scene')} {what} before it ({', '.join(names)}) kept, the others unchanged: "
+            "run the same command again to do them")
