@@ -42,6 +42,9 @@ def base(tmp_path_factory):
     run, info = get_method("none")
     separate_scene(scene, "none", run, info)
     capture_virtual(ds, size=(96, 64), shake_px=1.0, shake_deg=0.1, seed=2)
+    other, _ = capture_virtual(Dataset.open_or_create(ds.root.parent / "other"), size=(96, 64), shake_px=1.0,
+                               shake_deg=0.1, seed=3)
+    shutil.copytree(other.path / "raw", ds.root.parent / "new_raw")              # RAW files the dataset has not
     return ds.root
 
 
@@ -106,7 +109,8 @@ def make_link(root, outside, kind):
 #: write into scene_01, and so must refuse its links by name.
 COMMANDS = {
     "capture new": (("capture", "ROOT", *SIM, "--new-scene", "--angles", "0,60,120"), False),
-    "ingest new": (("ingest", "ROOT/scene_02"), False),
+    "ingest new": (("ingest", "RAW", "ROOT"), False),
+    "ingest captured": (("ingest", "ROOT/scene_02"), False),
     "ingest --redo": (("ingest", "ROOT/scene_01", "--redo"), True),
     "separate --force": (("separate", "scene_01", "--dataset", "ROOT", "--method", "none", "--force"), True),
     "calibrate": (("calibrate", "offset", "ROOT", "--stage", "sim", "--camera", "virtual", "--step", "45"), False),
@@ -131,7 +135,7 @@ def check_refused_or_harmless(base, tmp_path, kind, command, in_process):
     root, outside, link = hostile(base, tmp_path, kind)
     before = snapshot(outside)
     args, writes_scene = command
-    args = [str(a).replace("ROOT", str(root)) for a in args]
+    args = [str(a).replace("ROOT", str(root)).replace("RAW", str(base.parent / "new_raw")) for a in args]
     if in_process:
         out = invoke(*args)
         code, text = out.exit_code, out.output
@@ -192,21 +196,26 @@ def interrupted_capture(root, monkeypatch):
     assert out.exit_code == 130, out.output
 
 
-@pytest.mark.parametrize("folder", ["raw", "aligned"])
-def test_resuming_a_capture_deletes_nothing_outside_through_a_linked_folder(tmp_path, monkeypatch, folder):
+@pytest.mark.parametrize("kind", ["lock", "dangling lock", "temp file", "scene staging folder", "dataset staging folder",
+                                  "raw", "aligned", "truth"])
+def test_resuming_a_capture_writes_and_deletes_nothing_outside_through_a_link(tmp_path, monkeypatch, kind):
     root = tmp_path / "ds"
     interrupted_capture(root, monkeypatch)
     outside = outside_folder(tmp_path)
-    scene = root / "scene_01"
-    (scene / folder).mkdir(exist_ok=True)
-    link = move_out(scene / folder, outside)
+    for folder in ("aligned", "truth"):
+        (root / "scene_01" / folder).mkdir(exist_ok=True)
+    (root / ".urd.lock").unlink()
+    link = make_link(root, outside, kind)
     before = snapshot(outside)
-    out = invoke("capture", root, *SIM, "--seed", "3", "--angles", "0,60,120", "--scene", "scene_01")
+    resume = ("capture", root, *SIM, "--seed", "3", "--angles", "0,60,120", "--scene", "scene_01")
+    out = invoke(*resume)
     assert out.exit_code == 1 and f"{link} {LINKED}" in out.output, out.output
-    assert snapshot(outside) == before
+    assert snapshot(outside) == before and not (outside / "created").exists()
     link.unlink()
-    shutil.move(outside / folder, link)
-    out = invoke("capture", root, *SIM, "--seed", "3", "--angles", "0,60,120", "--scene", "scene_01")
+    if LINKS[kind][1] is None:
+        shutil.move(outside / link.name, link)
+    shutil.rmtree(root / "scene_01" / "truth")
+    out = invoke(*resume)
     assert out.exit_code == 0, out.output
     assert Dataset.open(root).scene("scene_01").verify() == []
 
