@@ -280,7 +280,6 @@ def test_a_full_disk_is_said_as_such_naming_the_file(tmp_path, monkeypatch):
 # ---------------------------------------------------------------- a killed command stops whole
 
 SLOWED = '''"""urd's command line with every worker's output writes delayed by {delay} s (a slow scene)."""
-import sys
 import time
 
 import urd.ingest
