@@ -14,12 +14,12 @@ from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
-import multiprocessing
 import os
 from pathlib import Path
 from typing import Iterator
 
 from urd.core.dataset import Dataset, Scene
+from urd.core.processes import kept_note, process_pool
 from urd.core.progress import Progress, plural
 
 
@@ -94,16 +94,20 @@ def separate_all(root: Path, method: str, options: dict, force: bool = False, re
         label = f"separate --all ({method}, {plural(jobs, 'job')})"
         if progress:
             progress(0, len(chosen), label)
-        for done, (scene, prepared) in enumerate(_prepared(chosen, method, options, reference, maps, jobs, threads), 1):
-            try:
-                if isinstance(prepared, BaseException):
-                    raise prepared
-                commit_scene(prepared, force)
-                outcomes.append(BatchOutcome(scene.name, "separated"))
-            except Exception as exc:  # noqa: BLE001 - one scene's failure, whatever it is, must not stop the others
-                outcomes.append(BatchOutcome(scene.name, "failed", f"{type(exc).__name__}: {exc}"))
-            if progress:
-                progress(done, len(chosen), label)
+        try:
+            for done, (scene, prepared) in enumerate(_prepared(chosen, method, options, reference, maps, jobs, threads), 1):
+                try:
+                    if isinstance(prepared, BaseException):
+                        raise prepared
+                    commit_scene(prepared, force)
+                    outcomes.append(BatchOutcome(scene.name, "separated"))
+                except Exception as exc:  # noqa: BLE001 - one scene's failure, whatever it is, must not stop the others
+                    outcomes.append(BatchOutcome(scene.name, "failed", f"{type(exc).__name__}: {exc}"))
+                if progress:
+                    progress(done, len(chosen), label)
+        except KeyboardInterrupt as exc:
+            exc.add_note(kept_note([o.scene for o in outcomes if o.state == "separated"], "separated"))
+            raise
     return sorted(outcomes, key=lambda o: o.scene)
 
 
@@ -133,13 +137,9 @@ def _prepared(scenes: list[Scene], method: str, options: dict, reference: str | 
             except Exception as exc:  # noqa: BLE001 - reported as the scene's failure by separate_all
                 yield scene, exc
         return
-    context = multiprocessing.get_context("spawn")                  # fresh interpreters: no forked torch state
-    pool = concurrent.futures.ProcessPoolExecutor(jobs, mp_context=context)
-    try:
+    with process_pool(jobs) as pool:                    # workers die with this process; an interrupt kills them
         futures = {pool.submit(_prepare, str(scene.path), method, options, reference, maps, threads): scene
                    for scene in scenes}
         for future in concurrent.futures.as_completed(futures):
             error = future.exception()
             yield futures[future], error if error is not None else future.result()
-    finally:
-        pool.shutdown(cancel_futures=True)              # an interrupt does not wait for the queued scenes

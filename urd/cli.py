@@ -23,7 +23,8 @@ import typer
 
 from urd import __version__
 from urd.core.dataset import default_root
-from urd.core.errors import CaptureInterrupted, UrdError
+from urd.core.errors import CaptureInterrupted, DatasetError, UrdError
+from urd.core.processes import Terminated, terminate_on_sigterm
 from urd.core.progress import TerminalProgress, plural
 
 DATASET_HELP = "Dataset folder (default: the current folder if it holds dataset.json, else ./dataset)."
@@ -154,9 +155,11 @@ def run_guarded(func, *args, **kwargs):
     except (UrdError, ValueError, OSError) as exc:
         end_line(bar)
         fail(str(exc))
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         end_line(bar)
-        fail("interrupted; completed files are kept, unfinished outputs were discarded", 130)
+        stopped = "stopped by SIGTERM" if isinstance(exc, Terminated) else "interrupted"
+        kept = "; ".join(getattr(exc, "__notes__", [])) or "completed files are kept, unfinished outputs were discarded"
+        fail(f"{stopped}; {kept}", 143 if isinstance(exc, Terminated) else 130)
     finally:
         end_line(bar)
 
@@ -501,7 +504,7 @@ def separate(
     from separate.precision import describe, resolve
     from urd.core.images import Transfer
     from urd.core.raw import RAW_SUFFIXES
-    from urd.separation import add_maps, describe_incidence, sees_polarization_of, separate_images, separate_scene
+    from urd.separation import add_maps, check_out_folder, describe_incidence, sees_polarization_of, separate_images, separate_scene
 
     if method not in METHODS:
         raise bad("--method", f"expected one of {', '.join(sorted(METHODS))}, got {method!r}")
@@ -550,6 +553,11 @@ def separate(
     params = parse_params(param or [])
     forced = parse_reference(reference)
     angle_list = parse_angles(angles) if images else None
+    if images:
+        try:
+            check_out_folder(out, method)
+        except DatasetError as exc:
+            raise typer.BadParameter(str(exc), param_hint="--out") from None
     if images and len(images) != len(angle_list):
         raise usage(f"expected one --images file per angle of --angles {angles}, got {len(images)} files")
     if all_scenes:
@@ -892,6 +900,7 @@ def show_previews(files: list) -> None:
 
 
 def main() -> None:
+    terminate_on_sigterm()                  # SIGTERM stops worker pools and says what was kept, as Ctrl-C does
     app(prog_name="urd")
 
 

@@ -25,7 +25,6 @@ import dataclasses
 import datetime as _dt
 import re
 import shutil
-import tempfile
 from pathlib import Path
 from typing import Iterable
 
@@ -37,6 +36,7 @@ from urd.core.align import Motion, align, apply_warp
 from urd.core.dataset import DATASET_MANIFEST, STAGING_PREFIX, Dataset, Scene
 from urd.core.errors import AlignmentError, DatasetError, RawFormatError, UrdError
 from urd.core.files import atomic_path, sha256_file
+from urd.core.processes import kept_note, process_pool
 from urd.core.images import IMAGE_SUFFIXES, Transfer, codes_to_linear, linear_to_u16, read_raw_codes
 from urd.core.mosaic import MosaicLayout
 from urd.core.progress import Progress
@@ -205,7 +205,7 @@ def prepare_ingest(scene: Scene, opts: IngestOptions, progress: Progress | None 
         bad = [f"shot {i}: {r.reason}" for i, r in enumerate(results, 1) if not r.ok]
         return PreparedIngest(scene.path, False, alignment, None, {},
                               "alignment failed, no aligned stack written (" + "; ".join(bad) + ")")
-    staging = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=scene.path))
+    staging = scene.new_staging()
     try:
         staged = _write_stack(staging, (images.pop(i) for i in range(len(paths))))    # each freed once written
     except BaseException:
@@ -227,7 +227,7 @@ def _prepare_mosaic(scene: Scene, progress: Progress | None = None) -> PreparedI
         progress(0, 1, f"ingest {scene.name}")
     stack, _ = _demosaiced(frame, MosaicLayout(options["mosaic"]), Demosaic(options["demosaic"]),
                            Transfer(options["transfer"]))
-    staging = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=scene.path))
+    staging = scene.new_staging()
     try:
         staged = _write_stack(staging, stack)
     except BaseException:
@@ -321,7 +321,6 @@ def ingest_scenes(scenes: list[Scene], opts: IngestOptions, jobs: int, progress:
     scene as it is done, so a kill leaves every recorded scene intact; a failing scene is reported
     and the others go on. Progress counts scenes."""
     import concurrent.futures
-    import multiprocessing
 
     outcomes, todo = [], []
     for scene in scenes:
@@ -333,22 +332,23 @@ def ingest_scenes(scenes: list[Scene], opts: IngestOptions, jobs: int, progress:
     label = f"ingest ({jobs} jobs)"
     if progress:
         progress(0, len(todo), label)
-    context = multiprocessing.get_context("spawn")               # fresh interpreters, as urd.batch
-    pool = concurrent.futures.ProcessPoolExecutor(jobs, mp_context=context)
     try:
-        futures = {pool.submit(_prepare_worker, str(scene.path), opts): scene for scene in todo}
-        for done, future in enumerate(concurrent.futures.as_completed(futures), 1):
-            scene = futures[future]
-            try:
-                commit_ingest(scene, future.result(), opts)
-                outcomes.append(_outcome(scene))
-            except Exception as exc:  # noqa: BLE001 - one scene's failure, whatever it is, must not stop the others
-                outcomes.append(SceneOutcome(scene.name, [], str(exc) if isinstance(exc, UrdError)
-                                             else f"{type(exc).__name__}: {exc}", "failed"))
-            if progress:
-                progress(done, len(todo), label)
-    finally:
-        pool.shutdown(cancel_futures=True)                       # an interrupt does not wait for the queued scenes
+        with process_pool(jobs) as pool:                          # workers die with this process; an interrupt kills them
+            futures = {pool.submit(_prepare_worker, str(scene.path), opts): scene for scene in todo}
+            for done, future in enumerate(concurrent.futures.as_completed(futures), 1):
+                scene = futures[future]
+                try:
+                    commit_ingest(scene, future.result(), opts)
+                    outcomes.append(_outcome(scene))
+                except Exception as exc:  # noqa: BLE001 - one scene's failure, whatever it is, must not stop the others
+                    outcomes.append(SceneOutcome(scene.name, [], str(exc) if isinstance(exc, UrdError)
+                                                 else f"{type(exc).__name__}: {exc}", "failed"))
+                if progress:
+                    progress(done, len(todo), label)
+    except KeyboardInterrupt as exc:
+        names = {scene.name for scene in todo}
+        exc.add_note(kept_note([o.name for o in outcomes if o.name in names and o.state == "ingested"], "ingested"))
+        raise
     order = {scene.name: k for k, scene in enumerate(scenes)}
     return sorted(outcomes, key=lambda o: order.get(o.name, len(order)))
 

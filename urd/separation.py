@@ -32,7 +32,7 @@ import tifffile
 
 from separate import metrics, optics
 from separate.reference import Inspection, resolve_reference
-from urd.core.dataset import STAGING_PREFIX, Scene
+from urd.core.dataset import SCENE_NAME, Scene, enclosing_dataset
 from urd.core.errors import DatasetError
 from urd.core.files import atomic_path
 from urd.core.images import Transfer, linear_to_u16, read_image, to_display
@@ -258,7 +258,7 @@ def prepare_scene(scene: Scene, method: str, run, info: dict, reference: str | f
     metrics_truth = truth_metrics(scene, r_hat, t_hat, images, angles)
     del images                                            # the largest array: free it before writing
     reference_deg, warnings = inspection.reference_deg, inspection.warnings
-    staging = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=scene.path))
+    staging = scene.new_staging()
     try:
         paths = write_results(staging, r_hat, t_hat, overwrite=False, confidence=inspection.presence_at(r_hat.shape[:2]),
                               clipped=inspection.clipped,
@@ -366,6 +366,23 @@ def _reference_kind(reference: str | float) -> str:
     return "estimated (one angle)" if reference == "global" else "given"
 
 
+#: The smallest image side `separate_images` takes (px): the reference field needs gradients.
+MIN_SIDE_PX = 2
+
+
+def check_out_folder(out: Path, method: str = "METHOD") -> None:
+    """DatasetError when ``out`` lies inside an urd dataset: a scene's results are recorded by its
+    manifest (`separate_scene`), so the message names the dataset and the command to run."""
+    root = enclosing_dataset(out)
+    if root is None:
+        return
+    parts = Path(out).resolve().relative_to(root).parts
+    scene = parts[0] if parts and SCENE_NAME.match(parts[0]) else "SCENE"
+    raise DatasetError(f"{out} is inside the dataset {root}, whose scenes' results only their manifests record; "
+                       f"to separate a scene of it again run 'urd separate {scene} --dataset {root} --method {method} "
+                       "--force', or pass an --out outside the dataset")
+
+
 def separate_images(paths: list[Path], angles_deg: list[float], out: Path, run, transfer: Transfer = Transfer.LINEAR,
                     force: bool = False, reference: str | float = "auto", maps: bool = False,
                     sees_polarization: bool = True) -> Separation:
@@ -374,6 +391,7 @@ def separate_images(paths: list[Path], angles_deg: list[float], out: Path, run, 
     (``reference_deg.tiff``) only for a method that ``sees_polarization``."""
     if len(paths) != len(angles_deg):
         raise ValueError(f"expected one angle per image ({len(paths)} images), got {len(angles_deg)} angles")
+    check_out_folder(Path(out))
     check_writable(Path(out))
     existing = sorted(p.name for p in Path(out).glob("*") if p.name in RESULT_NAMES or p.name == "maps") \
         if Path(out).is_dir() and not force else []
@@ -383,6 +401,9 @@ def separate_images(paths: list[Path], angles_deg: list[float], out: Path, run, 
     loaded = [read_image(p, transfer) for p in paths]
     if len({im.shape for im in loaded}) > 1:
         raise ValueError(f"expected images of one size, got {[im.shape[:2] for im in loaded]}")
+    height, width = loaded[0].shape[:2]
+    if min(height, width) < MIN_SIDE_PX:
+        raise ValueError(f"expected images of at least {MIN_SIDE_PX}×{MIN_SIDE_PX} pixels, got {width}×{height}")
     stack = np.stack(loaded)
     del loaded
     r_hat, t_hat, inspection, used = separate_inspected(stack, angles_deg, run, reference, sees_polarization)

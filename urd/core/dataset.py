@@ -29,7 +29,10 @@ Guarantees, all kept here:
   ones, then the new ones under their final names, never a missing file; old files go only
   after that. A run killed in between is rolled forward when the dataset's lock is next taken
   (`Dataset.recover`).
-* **confined**: file paths in a manifest are relative and stay inside their scene folder.
+* **confined**: file paths in a manifest are relative and stay inside their scene folder;
+  nothing is written or deleted in a scene that holds a symbolic link, or whose folder is one
+  (`Scene.refuse_links`, checked before every write: manifest, staging, swap, recovery), and
+  the lock file is opened without following a link (`urd.core.files.pid_lock`).
 * **verified**: files are checked against their size and SHA-256 before use (a cache keyed by
   size, mtime, ctime and inode avoids re-hashing unchanged files); `Scene.verify` hashes
   everything in full, ground truth included.
@@ -53,7 +56,7 @@ from typing import Any, Callable, Iterator
 
 from urd.core import __version__
 from urd.core.errors import DatasetBusyError, DatasetError, ManifestError, UrdError
-from urd.core.files import pid_lock, read_json, sha256_file, write_json_atomic
+from urd.core.files import link_error, pid_lock, read_json, refuse_links, sha256_file, write_json_atomic
 from urd.core.manifest import (
     DATASET_SCHEMA,
     DATASET_SCHEMA_ALIASES,
@@ -76,6 +79,7 @@ TRUTH_FILE = "truth.json"
 STAGING_PREFIX = ".staging-"
 TEMPORARY = re.compile(r"^\..+(\.tmp(\.[^.]+)?|\.\d+\.link)$")   # `urd.core.files.atomic_path` and `_place` leftovers
 SCENE_NAME = re.compile(r"^scene_(\d{2,})$")
+VERIFY_TRIES = 5                        # checks of a scene whose manifest a concurrent command keeps changing
 
 
 # ---------------------------------------------------------------- staged swap
@@ -371,12 +375,25 @@ class Scene:
     def results_dir(self, method: str) -> Path:
         return self.path / "results" / method
 
+    def _dataset_root(self) -> Path | None:
+        """The dataset folder holding this scene (its parent, or a calibration sweep's
+        grandparent), or None."""
+        return next((root for root in (self.path.parent, self.path.parent.parent)
+                     if (root / DATASET_MANIFEST).is_file()), None)
+
     def lock(self) -> contextlib.AbstractContextManager:
         """The write lock of the dataset holding this scene (see `Dataset.lock`)."""
-        for root in (self.path.parent, self.path.parent.parent):
-            if (root / DATASET_MANIFEST).is_file():
-                return Dataset(root).lock()
-        raise DatasetError(f"{self.path} is not inside an urd dataset (no {DATASET_MANIFEST} above it)")
+        root = self._dataset_root()
+        if root is None:
+            raise DatasetError(f"{self.path} is not inside an urd dataset (no {DATASET_MANIFEST} above it)")
+        return Dataset(root).lock()
+
+    def refuse_links(self) -> None:
+        """DatasetError naming a symbolic link in the scene: its folder, a folder between it and
+        its dataset, or any file or folder below it. Checked before urd writes or deletes in a
+        scene, so that a dataset from someone else cannot make it write, empty or delete a file
+        outside (`urd.core.files.refuse_links`)."""
+        refuse_links(self.path, self._dataset_root() or self.path.parent)
 
     def status(self) -> SceneStatus:
         """Where the scene stands; a scene whose manifest cannot be read is 'broken'."""
@@ -409,7 +426,8 @@ class Scene:
         return cache if isinstance(cache, dict) else {}
 
     def _save_cache(self, cache: dict) -> None:
-        with contextlib.suppress(DatasetError, OSError):          # a read-only dataset still verifies
+        with contextlib.suppress(DatasetError, OSError):          # a read-only dataset (or one with links) still verifies
+            self.refuse_links()
             write_json_atomic(self.path / HASH_CACHE, cache)
 
     def _check_intact(self, rec: dict, cache: dict, full: bool, hint: bool = True) -> None:
@@ -453,13 +471,35 @@ class Scene:
 
     def verify(self) -> list[str]:
         """Problems of this scene (empty when every listed file is present and intact), every
-        file hashed in full: shots, aligned stack, results and the virtual camera's ground truth."""
+        file hashed in full: shots, aligned stack, results and the virtual camera's ground truth.
+        Takes no lock: when the manifest changed while it checked (a command swapping in new
+        files meanwhile), it checks again against the new one, up to `VERIFY_TRIES` times."""
+        for _ in range(VERIFY_TRIES):
+            before = self._manifest_bytes()
+            problems = self._verify_once()
+            if not problems or self._manifest_bytes() == before:
+                break
+        return problems
+
+    def _manifest_bytes(self) -> bytes | None:
+        """The manifest as stored (None when unreadable), to tell whether it changed."""
+        try:
+            return self.manifest_path.read_bytes()
+        except OSError:
+            return None
+
+    def _verify_once(self) -> list[str]:
+        """`verify` against the manifest as it is now."""
         try:
             data = self.reload()._data()
         except (ManifestError, OSError) as exc:
             return [str(exc)]
         records = self._listed_records(data)
         problems = []
+        try:
+            self.refuse_links()
+        except DatasetError as exc:
+            problems.append(str(exc))
         try:
             records += self._truth_records()
         except (ManifestError, DatasetError) as exc:
@@ -539,6 +579,7 @@ class Scene:
 
     def _save(self) -> None:
         validate_scene(self._record, str(self.manifest_path), self.path)
+        self.refuse_links()
         write_json_atomic(self.manifest_path, self._record)
 
     def file_record(self, path: Path) -> dict:
@@ -573,11 +614,18 @@ class Scene:
         self._data()["provenance"].append(provenance(step, parameters))
         self._save()
 
+    def new_staging(self) -> Path:
+        """A new hidden folder inside the scene for outputs being computed (the dataset's
+        recovery removes it should the process die before they are recorded); DatasetError
+        for a scene holding a symbolic link (`refuse_links`)."""
+        self.refuse_links()
+        return Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=self.path))
+
     @contextlib.contextmanager
     def staging(self) -> Iterator[Path]:
-        """A hidden folder inside the scene for outputs being computed; removed afterwards
-        (files handed to `set_ingest` / `add_result` / ... have been moved out of it)."""
-        folder = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=self.path))
+        """A hidden folder inside the scene for outputs being computed (`new_staging`); removed
+        afterwards (files handed to `set_ingest` / `add_result` / ... have been moved out of it)."""
+        folder = self.new_staging()
         try:
             yield folder
         finally:
@@ -615,7 +663,7 @@ class Scene:
             self._output_path(relative)
         data = self._data()
         before = {rec["file"] for rec in _file_records(data)}
-        folder = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=self.path))
+        folder = self.new_staging()
         try:
             records = []
             for relative, path in staged.items():
@@ -779,7 +827,9 @@ class Scene:
         rolled forward (`_finish_swap`); staging folders and temporary files that the manifest
         does not name are removed; a truth folder left incomplete is moved aside to
         ``truth-incomplete-N`` (so that resuming the capture writes it again). A scene whose
-        manifest cannot be read is left as it is. Returns what was removed or moved."""
+        manifest cannot be read is left as it is. Returns what was removed or moved. DatasetError,
+        before anything changes, for a scene holding a symbolic link (`refuse_links`)."""
+        self.refuse_links()
         inside = self.path.resolve()
         folders = [self.path, self.path / "raw", self.path / "aligned", self.truth_dir()]
         folders += [p for p in (self.path / "results").glob("*") if p.resolve().is_relative_to(inside)]
@@ -865,6 +915,12 @@ def _is_dataset(folder: Path) -> bool:
         return read_json(folder / DATASET_MANIFEST).get("schema") in (DATASET_SCHEMA, *DATASET_SCHEMA_ALIASES)
     except (ManifestError, OSError, AttributeError):
         return False
+
+
+def enclosing_dataset(path: Path) -> Path | None:
+    """The urd dataset folder that ``path`` is or lies in (links resolved), or None."""
+    path = Path(path).resolve()
+    return next((folder for folder in (path, *path.parents) if _is_dataset(folder)), None)
 
 
 class Dataset:
@@ -1016,8 +1072,13 @@ class Dataset:
             shutil.rmtree(folder, ignore_errors=True)
 
     def remove_stale(self) -> None:
-        """Remove staging folders (scenes being assembled) left by killed runs (call with the lock held)."""
-        for path in self.root.glob(f"{STAGING_PREFIX}*"):
+        """Remove staging folders (scenes being assembled) left by killed runs (call with the lock
+        held); DatasetError, before anything is removed, when one is a symbolic link."""
+        staging = list(self.root.glob(f"{STAGING_PREFIX}*"))
+        for path in staging:
+            if path.is_symlink():
+                raise link_error(path)
+        for path in staging:
             shutil.rmtree(path, ignore_errors=True)
 
     def shot_index(self) -> dict[str, str]:
@@ -1081,12 +1142,15 @@ class Dataset:
                   "target_angle_deg": float(target_angle_deg), "sweep": sweep.path.relative_to(self.root).as_posix(),
                   "history": (old["history"] + [{k: v for k, v in old.items() if k != "history"}]) if old else []}
         validate_calibration(record, str(self.calibration_path))
+        refuse_links(self.calibration_path)
         write_json_atomic(self.calibration_path, record)
         return self.calibration()
 
     def new_sweep(self, capture: dict) -> Scene:
         """A new calibration sweep scene under ``calibration/sweep_NN``."""
         folder = self.root / "calibration"
+        if folder.is_symlink():
+            raise link_error(folder)
         folder.mkdir(exist_ok=True)
         n = 1
         while (folder / f"sweep_{n:02d}").exists():

@@ -2,7 +2,10 @@
 
 Every write goes to a temporary file beside its target that is renamed into place once
 complete (`atomic_path`), so that a reader, or a run killed half-way, never sees a partial file.
-Knows nothing of manifests beyond refusing JSON nested deeper than any urd writes.
+A folder someone else gave may hold symbolic links that point anywhere: `refuse_links` is the
+one check made before writing or deleting in it, and the lock file is opened without following
+a link (`pid_lock`). Knows nothing of manifests beyond refusing JSON nested deeper than any urd
+writes.
 """
 
 from __future__ import annotations
@@ -13,7 +16,7 @@ import fcntl
 import hashlib
 import json
 import os
-import shutil
+import stat
 import tempfile
 from pathlib import Path
 from typing import Any, Callable, Iterator
@@ -21,6 +24,7 @@ from typing import Any, Callable, Iterator
 from urd.core.errors import DatasetError, DiskFullError, ManifestError
 
 MAX_DEPTH = 32                          # nesting levels a manifest may have (urd writes at most 5)
+MIN_FREE_BYTES = 1 << 20                # less free space than this after a failed write: the disk was full
 
 
 def sha256_file(path: Path) -> str:
@@ -60,27 +64,33 @@ def atomic_path(path: Path, overwrite: bool = False) -> Iterator[Path]:
             os.fsync(fh.fileno())
         os.replace(tmp, path)
     except BaseException as exc:
-        full = isinstance(exc, OSError) and not isinstance(exc, DiskFullError) and _out_of_space(path.parent, exc)
+        full = isinstance(exc, OSError) and not isinstance(exc, DatasetError) and disk_full(exc, path.parent)
         tmp.unlink(missing_ok=True)
         if full:
-            raise DiskFullError(f"disk full: cannot write {path} (no room left on its disk); nothing was replaced. "
-                                "Make room there, or write elsewhere, and run the command again") from exc
+            raise write_error(path, exc, full=True) from exc
         raise
 
 
-#: Free bytes on a disk below which a failed write is put down to a full disk.
-LOW_SPACE = 1 << 20
-
-
-def _out_of_space(folder: Path, exc: OSError) -> bool:
-    """Whether a write into ``folder`` that raised ``exc`` failed for want of room (checked
-    before the partial file is removed)."""
-    if exc.errno == errno.ENOSPC or (exc.__cause__ is not None and getattr(exc.__cause__, "errno", None) == errno.ENOSPC):
-        return True
+def disk_full(exc: OSError | None, folder: Path) -> bool:
+    """Whether a failed write in ``folder`` was a full disk (or quota): ENOSPC or EDQUOT, or a
+    failure without an errno (numpy's short write "N requested and M written", an image
+    library's "write error") with less than `MIN_FREE_BYTES` left there. Ask before removing
+    the partial file."""
+    if exc is not None and exc.errno is not None:
+        return exc.errno in (errno.ENOSPC, errno.EDQUOT)
     try:
-        return shutil.disk_usage(folder).free < LOW_SPACE
+        space = os.statvfs(folder)
     except OSError:
         return False
+    return space.f_bavail * space.f_frsize < MIN_FREE_BYTES
+
+
+def write_error(path: Path, exc: OSError | None, full: bool | None = None) -> DatasetError:
+    """The error of a failed write of ``path``: "disk full: PATH" when it was (``full``, else
+    `disk_full`), else "cannot write PATH" with the reason."""
+    if disk_full(exc, path.parent) if full is None else full:
+        return DiskFullError(f"disk full: {path} (nothing was changed; free some space and run the command again)")
+    return DatasetError(f"cannot write {path}" + (f": {exc.strerror or exc}" if exc is not None else ""))
 
 
 def write_bytes_atomic(path: Path, data: bytes, overwrite: bool = False) -> None:
@@ -89,7 +99,7 @@ def write_bytes_atomic(path: Path, data: bytes, overwrite: bool = False) -> None
         try:
             tmp.write_bytes(data)
         except OSError as exc:
-            raise DatasetError(f"cannot write {path}: {exc.strerror or exc}") from exc
+            raise write_error(path, exc) from exc
 
 
 def write_json_atomic(path: Path, record: dict, overwrite: bool = True) -> None:
@@ -126,6 +136,37 @@ def _nesting_within(value: Any, limit: int) -> bool:
     return True
 
 
+# ---------------------------------------------------------------- links
+
+
+def link_error(link: Path) -> DatasetError:
+    """The refusal of a symbolic link found where urd writes or deletes."""
+    return DatasetError(f"{link} is a symbolic link inside the dataset; urd writes and deletes nothing through a "
+                        "link in a dataset (one from someone else can point anywhere). Nothing was changed; replace "
+                        "it by the file or folder itself, or remove it, and run the command again")
+
+
+def refuse_links(path: Path, base: Path | None = None) -> None:
+    """DatasetError (`link_error`) naming the first symbolic link among ``path``, every file
+    and folder below it, and the folders between ``base`` (a trusted folder, not checked) and
+    ``path``; no link is followed. A missing ``path`` has nothing below it."""
+    path = Path(path)
+    above = path.relative_to(base).parts[:-1] if base is not None else ()
+    for i in range(len(above)):
+        if Path(base, *above[: i + 1]).is_symlink():
+            raise link_error(Path(base, *above[: i + 1]))
+    if path.is_symlink():
+        raise link_error(path)
+    pending = [path] if path.is_dir() else []
+    while pending:
+        with os.scandir(pending.pop()) as entries:          # types from the directory itself: no stat per file
+            for entry in entries:
+                if entry.is_symlink():
+                    raise link_error(Path(entry.path))
+                if entry.is_dir(follow_symlinks=False):
+                    pending.append(entry.path)
+
+
 # ---------------------------------------------------------------- locks
 
 
@@ -133,12 +174,25 @@ def _nesting_within(value: Any, limit: int) -> bool:
 def pid_lock(path: Path, busy: Callable[[str], Exception], unopenable: Callable[[OSError], Exception]) -> Iterator[None]:
     """Hold an exclusive lock on the file ``path`` (created if missing), with this process's
     pid written in it while held. Raises ``busy(holder pid)`` when another open of it holds the
-    lock, ``unopenable(error)`` when it cannot be opened."""
+    lock, ``unopenable(error)`` when it cannot be opened or is not a file of its own: a symbolic
+    link (never followed, so that no file elsewhere is created, emptied or written), a hard
+    link (its content is another name's too), a FIFO, device or folder."""
+    flags = os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_NOCTTY | os.O_CLOEXEC
     try:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        fd = os.open(path, flags, 0o644)
     except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise unopenable(OSError(exc.errno, f"its lock file {path} is a symbolic link, which urd does not "
+                                                "follow (it can point anywhere); remove it and run the command "
+                                                "again")) from exc
         raise unopenable(exc) from exc
     try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode) or info.st_nlink > 1:
+            what = "has other hard links (its content is another file's too)" if stat.S_ISREG(info.st_mode) \
+                else "is not a regular file (a FIFO, device or folder)"
+            raise unopenable(OSError(errno.EINVAL, f"its lock file {path} {what}; urd writes no such file. Remove it "
+                                                   "and run the command again"))
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:

@@ -103,7 +103,10 @@ def confined_path(base: Path, relative: Any, where: str) -> Path:
                             "(manifest paths must be relative, without '..')")
     path = Path(base) / pure
     if not path.resolve().is_relative_to(Path(base).resolve()):
-        raise ManifestError(f"{where}: file path {relative!r} is a link that leads outside the scene folder")
+        chain = [Path(base).joinpath(*pure.parts[: i + 1]) for i in range(len(pure.parts))]
+        link = next((p for p in chain if p.is_symlink()), path)
+        raise ManifestError(f"{where}: file path {relative!r} leads outside the scene folder: {link} is a symbolic "
+                            "link")
     return path
 
 

@@ -1,0 +1,88 @@
+"""Worker processes that do not outlive the command that started them, and SIGTERM as an interrupt.
+
+A scheduler's ``timeout``, ``kill`` or a closed SSH session signals the main process alone (Ctrl-C
+in a terminal signals the whole group). So that no worker goes on writing into a dataset whose
+lock its parent no longer holds:
+
+* the main process turns SIGTERM into `Terminated` (a KeyboardInterrupt: every ``finally`` runs),
+  and `process_pool` kills its workers on any exception instead of waiting for their tasks;
+* each worker asks Linux to SIGKILL it when its parent dies (``PR_SET_PDEATHSIG``, which also
+  covers a SIGKILL of the parent), and a watchdog thread ends it within `WATCH_S` once it is
+  re-parented (other systems, or a parent gone before the request took effect).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import contextlib
+import ctypes
+import multiprocessing
+import os
+import signal
+import sys
+import threading
+import time
+from typing import Iterator
+
+from urd.core.progress import plural
+
+PR_SET_PDEATHSIG = 1                    # linux/prctl.h
+WATCH_S = 1.0                           # how often a worker checks that its parent lives (s)
+
+
+class Terminated(KeyboardInterrupt):
+    """The process was sent SIGTERM (raised in the main thread by `terminate_on_sigterm`)."""
+
+
+def _raise_terminated(signum: int, frame) -> None:
+    raise Terminated(f"stopped by signal {signal.Signals(signum).name}")
+
+
+def terminate_on_sigterm() -> None:
+    """Raise `Terminated` in the main thread on SIGTERM (call once, from the main thread)."""
+    signal.signal(signal.SIGTERM, _raise_terminated)
+
+
+def die_with_parent(parent: int) -> None:
+    """Worker initializer: end this process when its parent ``parent`` (pid) ends (module
+    docstring); at once if it has already."""
+    if sys.platform.startswith("linux"):
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+    if os.getppid() != parent:
+        os._exit(1)
+    threading.Thread(target=_watch, args=(parent,), name="urd-parent-watchdog", daemon=True).start()
+
+
+def _watch(parent: int) -> None:
+    """End this process once it is no longer ``parent``'s child (checked every `WATCH_S` s)."""
+    while os.getppid() == parent:
+        time.sleep(WATCH_S)
+    os._exit(1)
+
+
+@contextlib.contextmanager
+def process_pool(jobs: int) -> Iterator[concurrent.futures.ProcessPoolExecutor]:
+    """A pool of ``jobs`` fresh worker interpreters (spawned: no forked torch state) that die with
+    this process. On leaving, queued tasks are cancelled; on an exception (an interrupt, SIGTERM)
+    the workers are killed at once rather than left to finish their tasks."""
+    context = multiprocessing.get_context("spawn")
+    pool = concurrent.futures.ProcessPoolExecutor(jobs, mp_context=context, initializer=die_with_parent,
+                                                  initargs=(os.getpid(),))
+    try:
+        yield pool
+    except BaseException:
+        for process in list(pool._processes.values()):     # no public way before Python 3.14's kill_workers
+            process.kill()
+        raise
+    finally:
+        pool.shutdown(cancel_futures=True)
+
+
+def kept_note(names: list[str], what: str) -> str:
+    """What an interrupted command with workers kept: the scenes it recorded (``what``:
+    separated, ingested) before it was stopped; the others are unchanged."""
+    if not names:
+        return f"no scene {what} before it and none changed: run the same command again"
+    return (f"{plural(len(names), 'scene')} {what} before it ({', '.join(names)}) kept, the others unchanged: "
+            "run the same command again to do them")
