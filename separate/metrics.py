@@ -53,9 +53,10 @@ def mutual_information_rows(a: np.ndarray, b: np.ndarray, bins: int = 32) -> np.
     a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
     if a.ndim != 2 or a.shape != b.shape:
         raise ValueError(f"expected two (K, n) arrays of equal shape, got {a.shape} and {b.shape}")
+    ranges_a, ranges_b = np.percentile(a, [1, 99], axis=1).T, np.percentile(b, [1, 99], axis=1).T   # one call per side
     scores = np.empty(a.shape[0])
     for k, (row_a, row_b) in enumerate(zip(a, b)):
-        index_a, index_b = _bin_index(row_a, bins), _bin_index(row_b, bins)
+        index_a, index_b = _bin_index(row_a, *ranges_a[k], bins), _bin_index(row_b, *ranges_b[k], bins)
         inside = (index_a >= 0) & (index_a < bins) & (index_b >= 0) & (index_b < bins)
         joint = np.bincount(index_a[inside] * bins + index_b[inside], minlength=bins * bins)
         p = joint.reshape(bins, bins) / max(int(joint.sum()), 1)
@@ -65,11 +66,10 @@ def mutual_information_rows(a: np.ndarray, b: np.ndarray, bins: int = 32) -> np.
     return scores
 
 
-def _bin_index(values: np.ndarray, bins: int) -> np.ndarray:
-    """Each value's bin (n,) intp among ``bins`` equal bins over the values' 1–99% range, as
-    ``np.histogram2d`` assigns it (edges ``np.linspace(lo, hi + 1e-9, bins + 1)``, the top edge in
-    the last bin): −1 below the range, ``bins`` above it."""
-    lo, hi = np.percentile(values, [1, 99])
+def _bin_index(values: np.ndarray, lo: float, hi: float, bins: int) -> np.ndarray:
+    """Each value's bin (n,) intp among ``bins`` equal bins over [lo, hi] (the values' 1–99%
+    range), as ``np.histogram2d`` assigns it (edges ``np.linspace(lo, hi + 1e-9, bins + 1)``, the
+    top edge in the last bin): −1 below the range, ``bins`` above it."""
     edges = np.linspace(lo, hi + 1e-9, bins + 1)
     if not np.isfinite(edges).all():
         raise ValueError(f"expected finite values, got the range [{lo}, {hi}]")
