@@ -46,7 +46,7 @@ STEPS = [
 
 def scene_stack(width: int, height: int, strong: bool) -> tuple[np.ndarray, list[float]]:
     """Three shots (3, H, W, 3) uint16 codes of the window scene at 0/45/90°."""
-    scene = make_glass_scene(width, height, theta_center_deg=50.0 if strong else 25.0)
+    scene = make_glass_scene(width, height, theta_center_deg=50.0 if strong else 20.0)
     if not strong:
         scene = GlassScene(scene.reflection * 0.1, scene.transmission, scene.theta, scene.phi_perp)
     angles = [0.0, 45.0, 90.0]
