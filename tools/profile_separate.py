@@ -33,7 +33,7 @@ STEPS = [
     ("  inspection of the stack (inspect_stack)", "separate/reference.py", "inspect_stack"),
     ("  side trial: both sides separated (decide_side)", "separate/reference.py", "decide_side"),
     ("θ estimate (estimate_incidence)", "separate/reference.py", "estimate_incidence"),
-    ("  mutual information (all θ searches)", "separate/metrics.py", "mutual_information_rows"),
+    ("θ searches, every one (information_by_incidence)", "separate/reference.py", "information_by_incidence"),
     ("network run, tiled (separate_stack)", "separate/infer.py", "separate_stack"),
     ("  tiles presented at the reference (patch)", "separate/infer.py", "patch"),
     ("  network input (FusedNet._network_input)", "separate/infer.py", "_network_input"),
@@ -48,7 +48,7 @@ def scene_stack(width: int, height: int, strong: bool) -> tuple[np.ndarray, list
     """Three shots (3, H, W, 3) uint16 codes of the window scene at 0/45/90°."""
     scene = make_glass_scene(width, height, theta_center_deg=50.0 if strong else 20.0)
     if not strong:
-        scene = GlassScene(scene.reflection * 0.1, scene.transmission, scene.theta, scene.phi_perp)
+        scene = GlassScene(scene.reflection * 0.03, scene.transmission, scene.theta, scene.phi_perp)
     angles = [0.0, 45.0, 90.0]
     shots = np.empty((3, height, width, 3), np.uint16)
     for k, angle in enumerate(angles):

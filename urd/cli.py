@@ -487,8 +487,8 @@ def separate(
         raise typer.BadParameter(f"{', '.join(unused)}: for --images; a scene's angles come from its manifest and its "
                                  "results go into the scene's results/METHOD/")
     try:
-        target = resolve_device(device) if method in networks else None
-        chosen = resolve(precision, target or "cpu")
+        network_device = resolve_device(device) if method in networks else None
+        chosen = resolve(precision, network_device or "cpu")
         if tile is not None and method in networks:
             check_tiling(tile, OVERLAP)
     except ValueError as exc:
@@ -511,7 +511,7 @@ def separate(
         raise typer.BadParameter(f"expected one --images file per angle of --angles {angles}, got {len(images)} files")
     if all_scenes:
         separate_dataset(dataset, method, weights, tile, chosen, colour_match, return_copies, incidence, params, force,
-                         forced, maps, jobs, target)
+                         forced, maps, jobs, network_device)
         return
     target = None if images else run_guarded(resolve_scene, scene, dataset)
     if target is not None and not force:
@@ -522,10 +522,10 @@ def separate(
         bar(done, total, f"separate ({method})")
 
     if method in networks:
-        options = {"weights": weights, "tile": tile, "precision": chosen.value, "device": target.type,
+        options = {"weights": weights, "tile": tile, "precision": chosen.value, "device": network_device.type,
                    "colour_match": colour_match, "progress": show,
                    **({"return_copies": return_copies, "incidence_deg": incidence} if method == "network" else {})}
-        typer.echo(f"precision: {describe(chosen, target)}" + (f" on {target.type}" if target.type != "cpu" else ""), err=True)
+        typer.echo(f"precision: {describe(chosen, network_device)}" + (f" on {network_device.type}" if network_device.type != "cpu" else ""), err=True)
     else:
         options = {**params, "progress": show} if method in PROGRESS_BASELINES else params
     run, info = run_guarded(get_method, method, **options)
@@ -552,13 +552,13 @@ def separate(
 
 def separate_dataset(dataset: Optional[Path], method: str, weights: Optional[Path], tile: Optional[int], chosen,
                      colour_match: bool, return_copies: bool, incidence: Optional[float], params: dict, force: bool,
-                     reference, maps: bool, jobs: int, target=None) -> None:
+                     reference, maps: bool, jobs: int, network_device=None) -> None:
     """``urd separate --all``: every scene that needs it (`urd.batch.separate_all`), one line per
-    scene; exit 1 when any failed. ``target``: the networks' torch device."""
+    scene; exit 1 when any failed. ``network_device``: the networks' torch device."""
     from urd.batch import separate_all
 
     root = existing_dataset(dataset)
-    options = ({"weights": weights, "tile": tile, "precision": chosen.value, "device": target.type,
+    options = ({"weights": weights, "tile": tile, "precision": chosen.value, "device": network_device.type,
                 "colour_match": colour_match, **({"return_copies": return_copies, "incidence_deg": incidence} if method == "network" else {})}
                if method in ("network", "ceilnet") else params)
     outcomes = run_guarded(separate_all, root, method, options, force, reference, maps, jobs, progress=TerminalProgress())
