@@ -53,7 +53,7 @@ import torch
 from separate import optics
 from separate.model import TARGET_MEAN, ResBlock, ResizeUp, SeparationNet, canonical_inputs
 from separate.networks import build_model
-from separate.precision import Precision, resolve
+from separate.precision import Precision, gpu_tile, resolve
 from urd.core.errors import WeightsError
 
 if TYPE_CHECKING:
@@ -314,26 +314,35 @@ class FusedNet:
 ANCHOR_HALO = 32
 
 
-def runner(model: torch.nn.Module, precision: str | Precision = "auto") -> Callable:
+def runner(model: torch.nn.Module, precision: str | Precision = "auto", device: torch.device | str = "cpu") -> Callable:
     """The fastest way to run ``model(obs, angles, scale)`` for inference at ``precision``
-    (`separate.precision.resolve`), returning float32 (R̂, T̂): `FusedNet` for a SeparationNet
-    where oneDNN is there, the module itself (under bf16 autocast where chosen) otherwise."""
-    bf16 = resolve(precision) is Precision.BF16
-    if isinstance(model, SeparationNet) and FusedNet.available():
+    (`separate.precision.resolve`) on ``device``, returning float32 (R̂, T̂) on the CPU: on the
+    CPU `FusedNet` for a SeparationNet where oneDNN is there, the module itself (under bf16
+    autocast where chosen) otherwise; on a GPU the module, moved there, each tile moved in and out."""
+    device = torch.device(device)
+    bf16 = resolve(precision, device) is Precision.BF16
+    if device.type == "cpu" and isinstance(model, SeparationNet) and FusedNet.available():
         return FusedNet(model, torch.bfloat16 if bf16 else torch.float32)
+    model = model.to(device)
 
     def run(obs: torch.Tensor, angles: Sequence[float], scale: torch.Tensor,
             theta: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        extra = {} if theta is None else {"theta": theta}
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-            r_hat, t_hat = model(obs, angles, scale, **extra)[:2]
-        return r_hat.float(), t_hat.float()
+        extra = {} if theta is None else {"theta": theta.to(device)}
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
+            r_hat, t_hat = model(obs.to(device), angles, scale.to(device), **extra)[:2]
+        return r_hat.float().cpu(), t_hat.float().cpu()
 
     return run
 
 
-def default_tile(model: torch.nn.Module) -> int:
-    """The default tile (px): `TILE` for a network `runner` runs through `FusedNet`, else `MODULE_TILE`."""
+def default_tile(model: torch.nn.Module, device: torch.device | str = "cpu", precision: str | Precision = "auto") -> int:
+    """The default tile (px): on the CPU `TILE` for a network `runner` runs through `FusedNet`,
+    else `MODULE_TILE`; on a GPU the tile that fits its free memory
+    (`separate.precision.gpu_tile`), at least `MODULE_TILE`."""
+    device = torch.device(device)
+    if device.type == "cuda":
+        free, _ = torch.cuda.mem_get_info(device)
+        return max(MODULE_TILE, gpu_tile(free, resolve(precision, device) is Precision.BF16))
     return TILE if isinstance(model, SeparationNet) and FusedNet.available() else MODULE_TILE
 
 
@@ -395,7 +404,8 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
                    overlap: int = OVERLAP, precision: str = "auto",
                    progress: Callable[[int, int], None] | None = None,
                    reference_deg: float | np.ndarray | None = None,
-                   theta_deg: float | np.ndarray | Incidence | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   theta_deg: float | np.ndarray | Incidence | None = None,
+                   device: torch.device | str = "cpu") -> tuple[np.ndarray, np.ndarray]:
     """Separate an aligned stack into (R̂, T̂), each H×W×C float32 linear.
 
     Args:
@@ -421,6 +431,8 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
             the reference when None (`separate.reference.estimate_incidence`). Where an estimate
             is not clear (`separate.reference.Incidence.clear`) the network runs without its
             gate. Ignored by other networks.
+        device: where the network runs (`runner`; `separate.precision.resolve_device` chooses
+            it); the tiles are built and blended on the CPU.
     """
     check_inputs(images, angles_deg)
     tile, overlap = check_tiling(tile, overlap)
@@ -451,7 +463,7 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
         else:
             full = np.full((h, w), theta_deg, np.float32) if np.ndim(theta_deg) == 0 else field_at(theta_deg, (h, w))
             theta = torch.from_numpy(np.radians(full))
-    run = runner(model, precision)
+    run = runner(model, precision, device)
     mono = c == 1 or _equal_channels(images)
     angles = [float(a) for a in np.radians(angles_deg)]
     unit = optics.code_scale(images)

@@ -86,9 +86,10 @@ def present_at(images: np.ndarray, angles_deg: list[float], reference: float | n
 
 def network(weights: Path | None = None, tile: int | None = None, precision: str = "auto", colour_match: bool = False,
             progress=None, reference: Reference = "auto", uses_reference: bool = True,
-            return_copies: bool = True, incidence_deg: float | None = None) -> tuple[Run, dict]:
+            return_copies: bool = True, incidence_deg: float | None = None, device: str = "auto") -> tuple[Run, dict]:
     """The paper's network (`separate.model`) with shipped or given weights, tiled
-    (`separate.infer.separate_stack`, ``tile`` px, default `separate.infer.default_tile`); the
+    (`separate.infer.separate_stack`, ``tile`` px, default `separate.infer.default_tile`) on
+    ``device`` (auto, cpu or cuda: `separate.precision.resolve_device`); the
     shots presented at the reference unless ``uses_reference`` is False (a network that sees only S0);
     with ``return_copies`` the part of R̂ that copies T̂ moved back into T̂ (`separate.copies`).
     A physics-anchored network takes the angle of incidence ``incidence_deg`` (deg) where given,
@@ -99,8 +100,9 @@ def network(weights: Path | None = None, tile: int | None = None, precision: str
     against 31.78 with its own backbone's (bsds500-test: 33.89 against 33.38)."""
     from separate.copies import return_copies as returned
     from separate.infer import OVERLAP, default_tile, load_model, match_histograms, separate_stack
-    from separate.precision import resolve
+    from separate.precision import resolve, resolve_device
 
+    target = resolve_device(device)
     model, weights_info = load_model(weights)
     anchored = getattr(model, "base", "canonical") == "fresnel"
     if incidence_deg is not None and not anchored:
@@ -108,8 +110,8 @@ def network(weights: Path | None = None, tile: int | None = None, precision: str
                          f"{Path(weights_info['file']).name}")
     if incidence_deg is not None and not 0 < incidence_deg < 90:
         raise ValueError(f"expected an angle of incidence in (0, 90) deg, got {incidence_deg}")
-    tile = default_tile(model) if tile is None else tile
-    chosen = resolve(precision).value
+    tile = default_tile(model, target, precision) if tile is None else tile
+    chosen = resolve(precision, target).value
     choose = chooser(reference)
     side_trial = METHODS["schechner"]()[0]
 
@@ -127,7 +129,7 @@ def network(weights: Path | None = None, tile: int | None = None, precision: str
             info["incidence"] = {"median_deg": incidence_deg, "range_deg": [incidence_deg, incidence_deg],
                                  "given": True, "gate": True}
         r_hat, t_hat = separate_stack(model, images, list(angles_deg), tile, OVERLAP, chosen, progress,
-                                      reference_deg=chosen_deg, theta_deg=incidence)
+                                      reference_deg=chosen_deg, theta_deg=incidence, device=target)
         if return_copies:
             r_hat, t_hat = returned(r_hat, t_hat)
         if colour_match:
@@ -138,7 +140,8 @@ def network(weights: Path | None = None, tile: int | None = None, precision: str
     info = {"weights": {"file": Path(weights_info["file"]).name, "sha256": weights_info["sha256"],
                         "config": weights_info["config"]},
             "parameters": {"tile": tile, "overlap": OVERLAP, "precision": chosen, "colour_match": colour_match,
-                           "return_copies": return_copies, **({"incidence_deg": incidence_deg} if anchored else {})},
+                           "return_copies": return_copies, **({"incidence_deg": incidence_deg} if anchored else {}),
+                           **({"device": target.type} if target.type != "cpu" else {})},
             "reference_policy": reference_policy(check_reference(reference)) if uses_reference else "not used: S0 only"}
     return run, info
 

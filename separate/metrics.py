@@ -40,10 +40,49 @@ def ssim(estimate: np.ndarray, truth: np.ndarray) -> float:
 
 def mutual_information(a: np.ndarray, b: np.ndarray, bins: int = 32) -> float:
     """Mutual information (nats) of two images' values from a joint histogram (1–99% range)."""
-    lo_a, hi_a = np.percentile(a, [1, 99])
-    lo_b, hi_b = np.percentile(b, [1, 99])
-    joint, _, _ = np.histogram2d(a.ravel(), b.ravel(), bins=bins, range=[[lo_a, hi_a + 1e-9], [lo_b, hi_b + 1e-9]])
-    p = joint / max(joint.sum(), 1)
-    pa, pb = p.sum(axis=1, keepdims=True), p.sum(axis=0, keepdims=True)
-    nz = p > 0
-    return float((p[nz] * np.log(p[nz] / (pa @ pb)[nz])).sum())
+    return float(mutual_information_rows(np.reshape(a, (1, -1)), np.reshape(b, (1, -1)), bins)[0])
+
+
+def mutual_information_rows(a: np.ndarray, b: np.ndarray, bins: int = 32) -> np.ndarray:
+    """`mutual_information` of each row pair of (K, n) ``a`` and ``b``: (K,) float64 nats.
+
+    Each row's values are binned over its own 1–99% range exactly as ``np.histogram2d`` bins
+    them (`_bin_index`), and its joint histogram is one ``np.bincount`` of the combined indices:
+    the same figures as ``np.histogram2d``, in a fraction of the time (no ``searchsorted``).
+    """
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    if a.ndim != 2 or a.shape != b.shape:
+        raise ValueError(f"expected two (K, n) arrays of equal shape, got {a.shape} and {b.shape}")
+    ranges_a, ranges_b = np.percentile(a, [1, 99], axis=1).T, np.percentile(b, [1, 99], axis=1).T   # one call per side
+    scores = np.empty(a.shape[0])
+    for k, (row_a, row_b) in enumerate(zip(a, b)):
+        index_a, index_b = _bin_index(row_a, *ranges_a[k], bins), _bin_index(row_b, *ranges_b[k], bins)
+        inside = (index_a >= 0) & (index_a < bins) & (index_b >= 0) & (index_b < bins)
+        joint = np.bincount(index_a[inside] * bins + index_b[inside], minlength=bins * bins)
+        p = joint.reshape(bins, bins) / max(int(joint.sum()), 1)
+        pa, pb = p.sum(axis=1, keepdims=True), p.sum(axis=0, keepdims=True)
+        nz = p > 0
+        scores[k] = (p[nz] * np.log(p[nz] / (pa @ pb)[nz])).sum()
+    return scores
+
+
+def _bin_index(values: np.ndarray, lo: float, hi: float, bins: int) -> np.ndarray:
+    """Each value's bin (n,) intp among ``bins`` equal bins over [lo, hi] (the values' 1–99%
+    range), as ``np.histogram2d`` assigns it (edges ``np.linspace(lo, hi + 1e-9, bins + 1)``, the
+    top edge in the last bin): −1 below the range, ``bins`` above it."""
+    edges = np.linspace(lo, hi + 1e-9, bins + 1)
+    if not np.isfinite(edges).all():
+        raise ValueError(f"expected finite values, got the range [{lo}, {hi}]")
+    padded = np.concatenate([[-np.inf], edges, [np.inf]])     # padded[i] <= value < padded[i + 1]: i edges at or below
+    step = (edges[-1] - edges[0]) / bins
+    guess = np.floor((values - edges[0]) * (1.0 / step)) if step > 0 else np.zeros_like(values)
+    index = np.clip(guess, -1, bins).astype(np.intp) + 1
+    for _ in range(bins + 2):                                 # the guess is off by at most one: put it right
+        below = values < padded[index]
+        above = values >= padded[index + 1]
+        if not (below.any() or above.any()):
+            break
+        index -= below
+        index += above
+    index[values == edges[-1]] -= 1
+    return index - 1

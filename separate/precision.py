@@ -6,6 +6,10 @@ CPUs). ``auto`` therefore takes bf16 only where torch reports native support, an
 oneDNN (which runs the network's convolutions) is not capped below it by ``ONEDNN_MAX_CPU_ISA``
 (or its older name ``DNNL_MAX_CPU_ISA``): with ``ONEDNN_MAX_CPU_ISA=AVX2`` an AVX-512 machine
 runs the network as an AVX2-only CPU would, which is how urd's AVX2 figures were measured.
+
+Where the network runs (`Device`): ``auto`` takes a CUDA GPU where torch sees one, else the CPU;
+``cuda`` without one is refused (`resolve_device`). On a GPU the network runs as a module,
+under bf16 autocast where the GPU has bf16, in tiles sized to its free memory (`gpu_tile`).
 """
 
 from __future__ import annotations
@@ -18,6 +22,45 @@ import torch
 #: oneDNN ISA caps (``ONEDNN_MAX_CPU_ISA``) at which bf16 convolutions run in hardware.
 BF16_ISAS = {"AVX512_CORE_BF16", "AVX512_CORE_FP16", "AVX10_1_512", "AVX512_CORE_AMX", "AVX10_1_512_AMX",
              "AVX512_CORE_AMX_FP16", "AVX10_1_512_AMX_FP16", "ALL", "DEFAULT"}
+
+
+#: Resident GPU memory (bytes) per pixel of a tile when the network runs as a module: its peak
+#: over the forward pass, measured on the CPU (fp32, 512² and 1024² tiles of urd-anchored: 0.85–1.05 kB/px), with a margin.
+MODULE_BYTES_PER_PIXEL = 1600
+#: Share of the GPU's free memory a tile may take, and the largest tile side (px).
+GPU_MEMORY_SHARE = 0.5
+MAX_GPU_TILE = 8192
+
+
+class Device(str, enum.Enum):
+    """Where the network runs: ``auto`` (a CUDA GPU where torch sees one, else the CPU), ``cpu``, ``cuda``."""
+
+    AUTO = "auto"
+    CPU = "cpu"
+    CUDA = "cuda"
+
+
+def resolve_device(device: str | Device) -> torch.device:
+    """The torch device to run the network on (`Device`). ValueError for other names, and for
+    ``cuda`` where torch sees no CUDA device (a CPU-only torch build, or no driver or GPU)."""
+    try:
+        choice = Device(device)
+    except ValueError:
+        raise ValueError(f"expected device auto, cpu or cuda, got {device!r}") from None
+    cuda = torch.cuda.is_available()
+    if choice is Device.CUDA and not cuda:
+        build = f"built with CUDA {torch.version.cuda}" if torch.version.cuda else "a CPU-only build"
+        raise ValueError(f"--device cuda: torch {torch.__version__} ({build}) sees no CUDA device; "
+                         "use --device cpu (or auto), or install torch with CUDA on a machine with an NVIDIA GPU")
+    return torch.device("cuda" if choice is Device.CUDA or (choice is Device.AUTO and cuda) else "cpu")
+
+
+def gpu_tile(free_bytes: int, bf16: bool) -> int:
+    """Tile side (px, a multiple of 8) whose module forward pass fits `GPU_MEMORY_SHARE` of
+    ``free_bytes`` (`MODULE_BYTES_PER_PIXEL`, halved in bf16), at most `MAX_GPU_TILE`."""
+    per_pixel = MODULE_BYTES_PER_PIXEL // (2 if bf16 else 1)
+    side = int((GPU_MEMORY_SHARE * free_bytes / per_pixel) ** 0.5)
+    return min(MAX_GPU_TILE, side) // 8 * 8
 
 
 class Precision(str, enum.Enum):

@@ -548,15 +548,17 @@ def _plane_fit(x: np.ndarray, y: np.ndarray, theta: np.ndarray, weights: np.ndar
     return coef
 
 
-def information_by_incidence(i_perp: np.ndarray, i_par: np.ndarray, grid_deg: np.ndarray) -> np.ndarray:
+def information_by_incidence(i_perp: np.ndarray, i_par: np.ndarray, grid_deg: np.ndarray, chunk: int = 16) -> np.ndarray:
     """The mutual information (nats) of the layers that canonical luminances I⊥, I∥ (h×w) invert
-    to at each angle of incidence of ``grid_deg`` (deg); at most ~256 px per side are used."""
+    to at each angle of incidence of ``grid_deg`` (deg); at most ~256 px per side are used, and
+    ``chunk`` angles are scored at a time (`separate.metrics.mutual_information_rows`)."""
     small = (slice(None, None, max(1, i_perp.shape[0] // 256)), slice(None, None, max(1, i_perp.shape[1] // 256)))
-    i_perp, i_par = np.asarray(i_perp[small], np.float64), np.asarray(i_par[small], np.float64)
+    i_perp, i_par = np.asarray(i_perp[small], np.float64).ravel(), np.asarray(i_par[small], np.float64).ravel()
+    thetas = np.radians(np.asarray(grid_deg, np.float64))
     scores = []
-    for theta in np.radians(grid_deg):
-        r, t = optics.mixture_inverse(i_perp, i_par, *optics.fresnel_reflectance(theta))
-        scores.append(metrics.mutual_information(r, t))
+    for start in range(0, thetas.size, chunk):
+        layers = [optics.mixture_inverse(i_perp, i_par, *optics.fresnel_reflectance(theta)) for theta in thetas[start : start + chunk]]
+        scores.extend(metrics.mutual_information_rows(np.stack([r for r, _ in layers]), np.stack([t for _, t in layers])))
     return np.array(scores)
 
 

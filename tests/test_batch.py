@@ -2,10 +2,12 @@
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -19,13 +21,20 @@ def urd(*args, **kwargs):
                           timeout=900, **kwargs)
 
 
-@pytest.fixture
-def three_scenes(tmp_path):
-    ds = Dataset.open_or_create(tmp_path / "ds")
+@pytest.fixture(scope="module")
+def ingested_three_scenes(tmp_path_factory):
+    """Three captured and ingested scenes, made once for the module; tests change copies of it."""
+    ds = Dataset.open_or_create(tmp_path_factory.mktemp("batch") / "ds")
     for seed in range(3):
         scene, _ = capture_virtual(ds, size=(192, 128), shake_px=1.0, shake_deg=0.1, seed=seed)
         ingest_scene(scene, IngestOptions())
     return ds.root
+
+
+@pytest.fixture
+def three_scenes(ingested_three_scenes, tmp_path):
+    """A fresh copy of the three ingested scenes."""
+    return Path(shutil.copytree(ingested_three_scenes, tmp_path / "ds", symlinks=True))
 
 
 def methods_of(root):

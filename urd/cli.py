@@ -479,6 +479,7 @@ def separate(
     weights: Optional[Path] = typer.Option(None, help="Weights file of the network or ceilnet, or a shipped one by name: urd-anchored (the default: the network anchored to the Fresnel inversion by a learned gate), urd-canonical (the same network without the gate), urd-canonical-transposed (the paper's decoder), urd-direct, ceilnet."),
     tile: Optional[int] = typer.Option(None, help="Network tile size (px, at least 320: twice the 160 px overlap; default 2048 for the network, 1024 for ceilnet: separate.infer.default_tile); memory grows with it, not with the image.", show_default=False),
     precision: str = typer.Option("auto", help="Network arithmetic: auto (bf16 where the CPU or GPU runs it natively, else fp32), fp32 or bf16."),
+    device: str = typer.Option("auto", help="Where the network runs: auto (a CUDA GPU where torch sees one, else the CPU), cpu or cuda."),
     colour_match: bool = typer.Option(False, help="Match each colour channel's histogram of T to the darkest observation's (paper §3.4)."),
     return_copies: Optional[bool] = typer.Option(None, "--return-copies/--keep-copies", help="Network: move light that R shows as a local copy of T (the scene's own polarization: sky, no glass) back into T (separate/copies.py). Default: --return-copies.", show_default=False),
     incidence: Optional[float] = typer.Option(None, "--incidence", help="Network: the angle of incidence on the glass (deg, between the camera's axis and the pane's normal) where you know it; the network's Fresnel gate uses it instead of the estimate from the shots. Schechner takes it as --param theta_deg=DEG.", show_default=False),
@@ -501,7 +502,7 @@ def separate(
     """
     from separate.infer import OVERLAP, check_tiling
     from separate.methods import METHODS, get_method
-    from separate.precision import describe, resolve
+    from separate.precision import describe, resolve, resolve_device
     from urd.core.images import Transfer
     from urd.core.raw import RAW_SUFFIXES
     from urd.separation import add_maps, check_out_folder, describe_incidence, sees_polarization_of, separate_images, separate_scene
@@ -523,7 +524,8 @@ def separate(
     if images and scene is not None:
         raise usage(f"expected a scene name or --images, not both (got {scene!r} and --images)")
     networks = ("network", "ceilnet")
-    unused = [f"--{name.replace('_', '-')}" for name in ("weights", "tile", "precision", "colour_match") if given(ctx, name)]
+    unused = [f"--{name.replace('_', '-')}" for name in ("weights", "tile", "precision", "device", "colour_match")
+              if given(ctx, name)]
     if unused and method not in networks:
         raise usage(f"{', '.join(unused)}: for the networks (network, ceilnet), not {method}")
     unused = [f"--{name}" for name in ("angles", "out", "transfer") if given(ctx, name)]
@@ -531,7 +533,11 @@ def separate(
         raise usage(f"{', '.join(unused)}: for --images; a scene's angles come from its manifest and its "
                                  "results go into the scene's results/METHOD/")
     try:
-        chosen = resolve(precision)
+        network_device = resolve_device(device) if method in networks else None
+    except ValueError as exc:
+        raise bad("--device", str(exc)) from None
+    try:
+        chosen = resolve(precision, network_device or "cpu")
     except ValueError as exc:
         raise bad("--precision", str(exc)) from None
     try:
@@ -557,12 +563,12 @@ def separate(
         try:
             check_out_folder(out, method)
         except DatasetError as exc:
-            raise typer.BadParameter(str(exc), param_hint="--out") from None
+            raise bad("--out", str(exc)) from None
     if images and len(images) != len(angle_list):
         raise usage(f"expected one --images file per angle of --angles {angles}, got {len(images)} files")
     if all_scenes:
         separate_dataset(dataset, method, weights, tile, chosen, colour_match, return_copies, incidence, params, force,
-                         forced, maps, jobs)
+                         forced, maps, jobs, network_device)
         return
     target = None if images else run_guarded(resolve_scene, scene, dataset)
     if target is not None and maps and not force and method in target.methods():
@@ -579,9 +585,10 @@ def separate(
         bar(done, total, f"separate ({method})")
 
     if method in networks:
-        options = {"weights": weights, "tile": tile, "precision": chosen.value, "colour_match": colour_match, "progress": show,
+        options = {"weights": weights, "tile": tile, "precision": chosen.value, "device": network_device.type,
+                   "colour_match": colour_match, "progress": show,
                    **({"return_copies": return_copies, "incidence_deg": incidence} if method == "network" else {})}
-        typer.echo(f"precision: {describe(chosen)}", err=True)
+        typer.echo(f"precision: {describe(chosen, network_device)}" + (f" on {network_device.type}" if network_device.type != "cpu" else ""), err=True)
     else:
         options = {**params, "progress": show} if method in PROGRESS_BASELINES else params
     run, info = run_guarded(get_method, method, **options)
@@ -608,14 +615,14 @@ def separate(
 
 def separate_dataset(dataset: Optional[Path], method: str, weights: Optional[Path], tile: Optional[int], chosen,
                      colour_match: bool, return_copies: bool, incidence: Optional[float], params: dict, force: bool,
-                     reference, maps: bool, jobs: int) -> None:
+                     reference, maps: bool, jobs: int, network_device=None) -> None:
     """``urd separate --all``: every scene that needs it (`urd.batch.separate_all`), one line per
-    scene; exit 1 when any failed."""
+    scene; exit 1 when any failed. ``network_device``: the networks' torch device."""
     from urd.batch import separate_all
 
     root = existing_dataset(dataset)
-    options = ({"weights": weights, "tile": tile, "precision": chosen.value, "colour_match": colour_match,
-                **({"return_copies": return_copies, "incidence_deg": incidence} if method == "network" else {})}
+    options = ({"weights": weights, "tile": tile, "precision": chosen.value, "device": network_device.type,
+                "colour_match": colour_match, **({"return_copies": return_copies, "incidence_deg": incidence} if method == "network" else {})}
                if method in ("network", "ceilnet") else params)
     outcomes = run_guarded(separate_all, root, method, options, force, reference, maps, jobs, progress=TerminalProgress())
     for outcome in outcomes:

@@ -1,0 +1,53 @@
+"""Where the network runs (--device auto|cpu|cuda): the choice, its refusal and the GPU tile,
+checked on the CPU (torch's view of CUDA patched where a GPU is needed)."""
+
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from separate import precision
+from separate.infer import TILE, FusedNet, default_tile, load_model, runner
+from separate.precision import Device, gpu_tile, resolve_device
+from urd.cli import app
+
+
+@pytest.mark.parametrize("cuda,choice,expected", [
+    (False, "auto", "cpu"), (True, "auto", "cuda"), (True, "cpu", "cpu"), (False, "cpu", "cpu"), (True, "cuda", "cuda"),
+    (True, Device.AUTO, "cuda"),
+])
+def test_auto_takes_cuda_only_where_torch_sees_it(monkeypatch, cuda, choice, expected):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: cuda)
+    assert resolve_device(choice) == torch.device(expected)
+
+
+def test_cuda_without_cuda_and_unknown_names_are_refused(monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(ValueError, match=r"--device cuda: torch .* sees no CUDA device; use --device cpu"):
+        resolve_device("cuda")
+    with pytest.raises(ValueError, match="expected device auto, cpu or cuda, got 'gpu'"):
+        resolve_device("gpu")
+
+
+def test_gpu_tile_grows_with_free_memory_and_precision():
+    tiles = [gpu_tile(free, bf16=False) for free in (2 * 2**30, 16 * 2**30, 80 * 2**30)]
+    assert tiles == sorted(tiles) and all(t % 8 == 0 for t in tiles)
+    assert tiles[0] ** 2 * precision.MODULE_BYTES_PER_PIXEL <= precision.GPU_MEMORY_SHARE * 2 * 2**30
+    assert gpu_tile(16 * 2**30, bf16=True) > tiles[1]
+    assert gpu_tile(10**15, bf16=True) == precision.MAX_GPU_TILE
+
+
+def test_the_cpu_path_is_unchanged():
+    model, _ = load_model()
+    if FusedNet.available():
+        assert isinstance(runner(model, "fp32", torch.device("cpu")), FusedNet)
+        assert default_tile(model, "cpu") == TILE
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on a machine without CUDA")
+def test_cli_device_cuda_without_cuda_exits_2_naming_the_way_out(tmp_path):
+    out = CliRunner().invoke(app, ["separate", "scene_01", "--dataset", str(tmp_path), "--device", "cuda"])
+    assert out.exit_code == 2
+    assert "sees no CUDA device" in out.output and "--device cpu" in out.output
+    out = CliRunner().invoke(app, ["separate", "scene_01", "--dataset", str(tmp_path), "--method", "kong",
+                                   "--device", "cpu"])
+    assert out.exit_code == 2 and "--device" in out.output and "not kong" in out.output
