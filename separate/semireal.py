@@ -27,6 +27,7 @@ into R̂, Σ R̂ / Σ S0).
 from __future__ import annotations
 
 import dataclasses
+import zlib
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -125,7 +126,7 @@ def make_scenes(captures: Sequence[samples.Capture] | None = None, size: int = S
     for k, capture in enumerate(captures):
         if progress:
             progress(k, len(captures), f"semi-real scenes: {capture.name}")
-        rng = np.random.default_rng([seed, k])
+        rng = np.random.default_rng([seed, zlib.crc32(capture.name.encode())])     # a capture's scenes whatever the list
         stokes, clipped = capture_stokes(capture)
         for draw, (shots_count, condition) in enumerate([(3, "3 shots"), (3, "3 shots"), (4, "4 shots"), (6, "6 shots")]):
             crop = crop_stokes(rng, stokes, clipped, size)
