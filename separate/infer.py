@@ -57,7 +57,7 @@ from separate.precision import Precision, gpu_tile, resolve
 from urd.core.errors import WeightsError
 
 if TYPE_CHECKING:
-    from separate.reference import Incidence
+    from separate.incidence import Incidence
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 TILE = 2048     # px: a 6000 × 4000 image takes 4 × 3 tiles (1.19× its pixels); see the module docstring
@@ -427,9 +427,9 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
             reference (`separate.presentation.present_field`), again tile by tile.
         theta_deg: the angle of incidence (deg) of a physics-anchored network (``base="fresnel"``),
             a number or a map of any size (resized to H×W, `separate.presentation.field_at`), or
-            an estimate (`separate.reference.Incidence`); estimated per pixel from the shots at
-            the reference when None (`separate.reference.estimate_incidence`). Where an estimate
-            is not clear (`separate.reference.Incidence.clear`) the network runs without its
+            an estimate (`separate.incidence.Incidence`); estimated per pixel from the shots at
+            the reference when None (`separate.incidence.estimate_incidence`). Where an estimate
+            is not clear (`separate.incidence.Incidence.clear`) the network runs without its
             gate. Ignored by other networks.
         device: where the network runs (`runner`; `separate.precision.resolve_device` chooses
             it); the tiles are built and blended on the CPU.
@@ -448,7 +448,7 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
     if getattr(model, "base", "canonical") == "fresnel":
         from separate.model import without_gate
         from separate.presentation import field_at
-        from separate.reference import Incidence, estimate_incidence
+        from separate.incidence import Incidence, estimate_incidence
 
         if theta_deg is None:
             theta_deg = estimate_incidence(images, angles_deg, angles_deg[0] if reference_deg is None else reference_deg)

@@ -5,7 +5,7 @@ Every map is H×W float32 on the luminance (the mean of the colour channels) exc
 which keep the colour channels (H×W×C). Angles are degrees in urd's image-plane convention
 (`separate.optics`: from the +x axis, counter-clockwise as the viewer sees the image): AoLP in
 [0, 180), φ⊥ the reference field (`separate.reference.estimate_reference_field`, continuous, so
-it may leave [0, 180)), θ the per-pixel estimate of `separate.reference.estimate_incidence_field`
+it may leave [0, 180)), θ the per-pixel estimate of `separate.incidence.estimate_incidence_field`
 (a plane fitted to block estimates: it turns across a wide view of a flat pane). DoLP keeps to
 [0, 1]; where S0 is within the sensor's noise (luminance below `DARK_S0`) DoLP and AoLP have no
 meaning and are NaN. `MAPS` gives each map's unit and meaning; the exporter writes them into the
@@ -19,7 +19,7 @@ from typing import Sequence
 import numpy as np
 
 from separate import optics
-from separate.reference import estimate_incidence_field
+from separate.incidence import estimate_incidence_field
 from separate.presentation import check_stack, field_at
 
 #: S0 of the luminance (linear, 1.0 = a shot's white level) below which a pixel is dark: its

@@ -31,7 +31,8 @@ from typing import Callable
 import numpy as np
 
 from separate import optics
-from separate.reference import estimate_incidence, resolve_reference
+from separate.incidence import estimate_incidence
+from separate.reference import resolve_reference
 from separate.presentation import present, present_field
 
 Run = Callable[..., tuple[np.ndarray, np.ndarray]]
@@ -94,7 +95,7 @@ def network(weights: Path | None = None, tile: int | None = None, precision: str
     with ``return_copies`` the part of R̂ that copies T̂ moved back into T̂ (`separate.copies`).
     A physics-anchored network takes the angle of incidence ``incidence_deg`` (deg) where given,
     else estimates it per pixel from each stack; the returned info's ``"incidence"`` records the
-    last run's (`separate.reference.Incidence.record`).
+    last run's (`separate.incidence.Incidence.record`).
     Its side decision's trial separations (``trial=True``) are Schechner's closed-form inversion:
     on the assumed-side stacks of 600 bsds500/val patches the network's T̂ was 32.94 dB with them
     against 31.78 with its own backbone's (bsds500-test: 33.89 against 33.38)."""

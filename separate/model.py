@@ -309,7 +309,7 @@ class SeparationNet(nn.Module):
             scale: (B,) exposure scale; default mean(S0) per sample. Pass one global value
                 when separating tiles of one image.
             theta: (B,) or (B, 1, H, W) estimated angle of incidence (rad), for ``base="fresnel"``
-                only (`separate.reference.estimate_incidence_field`).
+                only (`separate.incidence.estimate_incidence_field`).
 
         Returns:
             (R̂, T̂), each (B, C, H, W), linear, in the units of ``obs``.

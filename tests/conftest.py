@@ -1,7 +1,10 @@
-"""Shared fixtures: the shared data folder and a scripted serial peer on a real pty."""
+"""Shared fixtures: the shared data folder, a scripted serial peer on a real pty, a wide terminal
+for the CLI's messages, a small ingested dataset and a tmpfs mounted for a test."""
 
+import contextlib
 import os
 import select
+import subprocess
 import threading
 import tty
 from pathlib import Path
@@ -92,3 +95,37 @@ def scripted_peer():
     yield make
     for peer in peers:
         peer.close()
+
+
+@pytest.fixture
+def wide_terminal(monkeypatch):
+    """COLUMNS=200, so that the CLI's messages are not wrapped (use with ``pytest.mark.usefixtures``)."""
+    monkeypatch.setenv("COLUMNS", "200")
+
+
+def ingested_dataset(tmp_path_factory, name: str) -> Path:
+    """A dataset (``ds`` in a new temporary folder named after ``name``) with one scene, scene_01:
+    256×192, captured on the simulated rig and ingested through the CLI."""
+    from typer.testing import CliRunner
+
+    from urd.cli import app
+
+    root = tmp_path_factory.mktemp(name) / "ds"
+    for args in (["capture", str(root), "--stage", "sim", "--camera", "virtual", "--sim-size", "256x192"], ["ingest", str(root)]):
+        result = CliRunner().invoke(app, args)
+        assert result.exit_code == 0, result.output
+    return root
+
+
+@contextlib.contextmanager
+def mounted_tmpfs(folder: Path, options: str, what: str):
+    """A tmpfs mounted on ``folder`` (created here) with mount ``options`` (e.g. ``ro,size=1m``)
+    for the block, unmounted after it; skips the test where it cannot be mounted (needs root),
+    saying it cannot mount ``what``."""
+    folder.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(folder)], capture_output=True).returncode:
+        pytest.skip(f"cannot mount {what} here (needs root)")
+    try:
+        yield folder
+    finally:
+        subprocess.run(["umount", str(folder)])

@@ -14,6 +14,7 @@ from acquire.ell14 import Ell14
 from acquire.plan import Step, new_capture_scene, plan_capture, run_capture
 from acquire.sim_ell14 import FAULTS, SimulatedEll14
 from acquire.virtual_camera import VirtualCamera, make_glass_scene, shot_truth
+from conftest import mounted_tmpfs
 from urd.core.dataset import Dataset
 from urd.core.errors import UrdError
 
@@ -156,12 +157,6 @@ def test_full_disk_leaves_no_shot_that_looks_complete(tmp_path):
 
 
 def test_read_only_dataset_folder(tmp_path):
-    ro = tmp_path / "ro"
-    ro.mkdir()
-    if subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=1m", "tmpfs", str(ro)], capture_output=True).returncode:
-        pytest.skip("cannot mount a read-only tmpfs here (needs root)")
-    try:
+    with mounted_tmpfs(tmp_path / "ro", "ro,size=1m", "a read-only tmpfs") as ro:
         out = urd("capture", ro / "ds", "--stage", "sim", "--camera", "virtual", "--sim-size", "64x48")
         assert out.returncode == 1 and "cannot create dataset folder" in out.stderr
-    finally:
-        subprocess.run(["umount", str(ro)])

@@ -15,9 +15,11 @@ from typer.testing import CliRunner
 
 from separate.baselines import arvanitopoulos, kong, li_brown
 from separate.infer import MIN_TILE, OVERLAP
+from conftest import ingested_dataset
 from urd.cli import app
 from urd.core.dataset import Dataset
 
+pytestmark = pytest.mark.usefixtures("wide_terminal")
 SIM = ("--stage", "sim", "--camera", "virtual")
 
 
@@ -31,18 +33,10 @@ def urd(*args, cwd=None):
                           timeout=300, env=env, cwd=cwd)
 
 
-@pytest.fixture(autouse=True)
-def wide_terminal(monkeypatch):
-    monkeypatch.setenv("COLUMNS", "200")
-
-
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
     """A dataset with one captured and ingested 256×192 scene (scene_01)."""
-    root = tmp_path_factory.mktemp("messages") / "ds"
-    assert invoke("capture", root, *SIM, "--sim-size", "256x192").exit_code == 0
-    assert invoke("ingest", root).exit_code == 0
-    return root
+    return ingested_dataset(tmp_path_factory, "messages")
 
 
 def leaf_commands(command=None, path=()):

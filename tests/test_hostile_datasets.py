@@ -408,7 +408,7 @@ def test_a_killed_batch_leaves_no_process_and_no_late_write_and_the_next_run_com
 
 
 def test_verify_during_a_swap_checks_the_new_manifest_again(base, tmp_path, monkeypatch):
-    import urd.core.dataset as dataset_module
+    import urd.core.shots as shots_module
 
     root = tmp_path / "ds"
     shutil.copytree(base, root, symlinks=True)
@@ -416,14 +416,14 @@ def test_verify_during_a_swap_checks_the_new_manifest_again(base, tmp_path, monk
     entry = {k: v for k, v in writer.load(verify=False)["results"]["none"].items() if k not in ("files", "time", "method")}
     staged = root / "scene_01" / "new_R.tiff"
     shutil.copy(root / "scene_01/results/none/T.tiff", staged)          # other bytes than R.tiff
-    real_hash, swapped = dataset_module._hash, []
+    real_hash, swapped = shots_module._hash, []
 
     def hash_while_another_command_swaps(*args, **kwargs):
         if not swapped:
             swapped.append(writer.add_result("none", {"results/none/R.tiff": staged}, entry, replace=True))
         return real_hash(*args, **kwargs)
 
-    monkeypatch.setattr(dataset_module, "_hash", hash_while_another_command_swaps)
+    monkeypatch.setattr(shots_module, "_hash", hash_while_another_command_swaps)
     assert Dataset.open(root).scene("scene_01").verify() == []
     assert swapped and not (root / "scene_01/results/none/T.tiff").exists()
 

@@ -12,7 +12,8 @@ from separate import metrics, optics
 from separate.infer import FusedNet, load_model, separate_stack
 from separate.methods import get_method
 from separate.model import SeparationNet, fresnel_bases, with_fresnel_base
-from separate.reference import estimate_incidence_deg, estimate_incidence_field, estimate_reference_deg, estimate_reference_field, robust_plane
+from separate.incidence import estimate_incidence_deg, estimate_incidence_field, robust_plane
+from separate.reference import estimate_reference_deg, estimate_reference_field
 from separate.presentation import field_at, present, present_field
 from separate.synthesis import AngleMode, SynthesisConfig, Synthesizer, load_image_pool, perturbed_incidence
 from separate.train import TrainConfig, train
@@ -203,31 +204,31 @@ def test_the_bands_of_a_difference_sum_to_it_and_split_it_by_frequency():
 
 
 def test_a_broad_minimum_of_the_mutual_information_is_not_trusted(monkeypatch):
-    from separate import reference
+    from separate import incidence
     obs, angles, _, _, _ = wide_view(turn_deg=0.0, theta_deg=72.0)
-    aligned = reference.estimate_incidence(obs, angles, 57.0)
-    assert aligned.clear and aligned.sharpness >= reference.INCIDENCE_SHARPNESS_MIN
+    aligned = incidence.estimate_incidence(obs, angles, 57.0)
+    assert aligned.clear and aligned.sharpness >= incidence.INCIDENCE_SHARPNESS_MIN
     assert np.median(aligned.field_deg) == pytest.approx(72.0, abs=2.0)
 
     def bowl(i_perp, i_par, grid_deg):      # flat-bottomed: a least value, no dip
         return 1.0 + 2e-5 * (grid_deg - 60.0) ** 4
 
-    monkeypatch.setattr(reference, "information_by_incidence", bowl)
-    broad = reference.estimate_incidence(obs, angles, 57.0)
+    monkeypatch.setattr(incidence, "information_by_incidence", bowl)
+    broad = incidence.estimate_incidence(obs, angles, 57.0)
     grid = np.arange(10.0, 80.5, 2.0)
     assert broad.sharpness == pytest.approx(2e-5 * 6**4 / np.median(bowl(None, None, grid)))
-    assert broad.clarity >= reference.INCIDENCE_CLARITY_MIN and not broad.clear
+    assert broad.clarity >= incidence.INCIDENCE_CLARITY_MIN and not broad.clear
 
     def vee(i_perp, i_par, grid_deg):       # the cancellation's dip
         return 1.0 + 0.02 * np.abs(grid_deg - 72.0)
 
-    monkeypatch.setattr(reference, "information_by_incidence", vee)
-    sharp = reference.estimate_incidence(obs, angles, 57.0)
+    monkeypatch.setattr(incidence, "information_by_incidence", vee)
+    sharp = incidence.estimate_incidence(obs, angles, 57.0)
     assert sharp.clear and np.median(sharp.field_deg) == pytest.approx(72.0, abs=0.5)
 
 
 def test_an_unclear_angle_of_incidence_runs_the_network_without_its_gate():
-    from separate.reference import estimate_incidence
+    from separate.incidence import estimate_incidence
     anchored, canonical = load_model("urd-anchored")[0], load_model("urd-canonical")[0]
     noise = np.random.default_rng(5).uniform(0.1, 0.3, (3, 96, 128, 3)).astype(np.float32)   # no pane to tell θ
     assert not estimate_incidence(noise, [0.0, 45.0, 90.0], 0.0).clear
@@ -275,7 +276,7 @@ def test_the_side_trials_of_the_network_are_schechners_inversion():
 
 
 def test_a_plane_fit_to_one_row_of_blocks_has_no_made_up_tilt():
-    from separate.reference import _plane_fit
+    from separate.incidence import _plane_fit
     x, y = np.array([-0.375, -0.125, 0.125, 0.375]), np.full(4, -0.375)
     coef = _plane_fit(x, y, 50.0 + 10.0 * x, np.ones(4))
     np.testing.assert_allclose(coef, [50.0, 10.0, 0.0], atol=1e-9)

@@ -11,27 +11,21 @@ from typer.testing import CliRunner
 import urd
 from separate import optics
 from separate.maps import DARK_S0, MAPS, polarization_maps
+from conftest import ingested_dataset, mounted_tmpfs
 from urd.cli import app
 from urd.core.dataset import Dataset
 
-SIM = ("--stage", "sim", "--camera", "virtual")
+pytestmark = pytest.mark.usefixtures("wide_terminal")
 
 
 def invoke(*args):
     return CliRunner().invoke(app, [str(a) for a in args])
 
 
-@pytest.fixture(autouse=True)
-def wide_terminal(monkeypatch):
-    monkeypatch.setenv("COLUMNS", "200")
-
-
 @pytest.fixture(scope="module")
 def separated(tmp_path_factory):
     """A dataset with one captured, ingested 256×192 scene (scene_01), separated by the network."""
-    root = tmp_path_factory.mktemp("second-look") / "ds"
-    assert invoke("capture", root, *SIM, "--sim-size", "256x192").exit_code == 0
-    assert invoke("ingest", root).exit_code == 0
+    root = ingested_dataset(tmp_path_factory, "second-look")
     result = invoke("separate", "scene_01", "--dataset", root)
     assert result.exit_code == 0, result.output
     return root
@@ -180,13 +174,7 @@ def test_an_unwritable_output_folder_fails_before_the_network(tmp_path, monkeypa
 
 
 def test_a_full_disk_is_said_as_such_with_the_file(tmp_path):
-    import subprocess
-
-    small = tmp_path / "small"
-    small.mkdir()
-    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=96k", "tmpfs", str(small)], capture_output=True).returncode:
-        pytest.skip("cannot mount a small tmpfs here (needs root)")
-    try:
+    with mounted_tmpfs(tmp_path / "small", "size=96k", "a small tmpfs") as small:
         files = []
         for k, angle in enumerate((0, 45, 90)):
             shot = np.random.default_rng(k).integers(0, 65535, (128, 160, 3), dtype=np.uint16)
@@ -196,8 +184,6 @@ def test_a_full_disk_is_said_as_such_with_the_file(tmp_path):
         assert result.exit_code == 1
         assert "Error: disk full: " + str(small / "out") in result.output
         assert "requested and" not in result.output and "Write Error" not in result.output
-    finally:
-        subprocess.run(["umount", str(small)])
 
 
 # ---------------------------------------------------------------- 3. progress that tells the truth

@@ -330,7 +330,7 @@ def add_maps(scene: Scene, method: str, reference: str | float = "auto") -> Sepa
 
 
 def describe_incidence(incidence: dict) -> str:
-    """A line on the angle-of-incidence estimate (`separate.reference.Incidence.record`) and
+    """A line on the angle-of-incidence estimate (`separate.incidence.Incidence.record`) and
     whether the physics-anchored network used it."""
     lo, hi = incidence["range_deg"]
     if incidence.get("given"):

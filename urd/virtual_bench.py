@@ -14,8 +14,8 @@ table of the angle-of-incidence estimate against the truth on the first set:
    per-pixel reference field ("auto") and with one global reference ("global").
 
 θ estimate: the median over pixels of |θ̂ − θ| (deg), for the per-pixel field
-(`separate.reference.estimate_incidence_field`, what the network uses) and for one number per
-view (`separate.reference.estimate_incidence_deg`); θ turns across these panes by the
+(`separate.incidence.estimate_incidence_field`, what the network uses) and for one number per
+view (`separate.incidence.estimate_incidence_deg`); θ turns across these panes by the
 perspective (e.g. 31–61° at a nominal 50°).
 
 Seeded (`SEED`); every method sees the same shots. It lives above `acquire` and `separate`
@@ -32,7 +32,8 @@ from acquire.virtual_camera import GlassScene, VirtualCamera, make_glass_scene
 from separate import metrics
 from separate.methods import get_method
 from separate.presentation import field_at
-from separate.reference import estimate_incidence_deg, estimate_incidence_field, estimate_reference_field
+from separate.incidence import estimate_incidence_deg, estimate_incidence_field
+from separate.reference import estimate_reference_field
 from separate.synthesis import SHARED_NATURAL
 from urd.core.progress import Progress
 

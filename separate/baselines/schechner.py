@@ -22,7 +22,8 @@ from __future__ import annotations
 import numpy as np
 
 from separate.baselines.common import canonical, fresnel_inverse, luminance
-from separate.reference import INCIDENCE_RANGE_DEG, incidence_by_information
+from separate.incidence import incidence_by_information
+from separate.reference import INCIDENCE_RANGE_DEG
 
 #: The θ grid step (deg) over `separate.reference.INCIDENCE_RANGE_DEG`.
 GRID_STEP_DEG = 0.5
@@ -32,7 +33,7 @@ def estimate_theta(i_perp: np.ndarray, i_par: np.ndarray, grid_deg: np.ndarray) 
     """The angle of incidence (rad) minimizing the mutual information of the recovered layers
     over ``grid_deg`` (deg, ascending), on the canonical images' luminance; Brewster's angle if
     the minimum is on the grid's first or last point (module docstring;
-    `separate.reference.incidence_by_information`)."""
+    `separate.incidence.incidence_by_information`)."""
     return incidence_by_information(luminance(i_perp), luminance(i_par), grid_deg)
 
 

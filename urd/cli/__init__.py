@@ -1,0 +1,61 @@
+"""The ``urd`` command line: a thin layer. Each command parses its options, calls one workflow
+function (acquire.plan, urd.ingest, urd.calibration, calib.store, urd.separation, urd.report, urd.demo,
+separate.train, separate.bench) and prints.
+
+One module per command group: `capture` (capture, sim-stage), `calibrate`, `ingest`, `separate`,
+`reports` (report, verify), `demo`, `train`, `bench`; what they share (the error voice, option
+checks and parsers) is in `common`. This module assembles them into one typer app.
+
+Angles are degrees here and in manifests. Errors print one line in one voice, "Error: ...":
+bad arguments name the option ("Invalid value for '--method': ...") and exit with status 2,
+failures exit with status 1 (130 after Ctrl-C). Output paths are printed absolute.
+"""
+
+from __future__ import annotations
+
+import typer
+
+from urd import __version__
+from urd.cli import bench, calibrate, capture, demo, ingest, reports, separate, train
+from urd.cli.common import HELP_OPTIONS, WorkflowOrder
+from urd.core.processes import terminate_on_sigterm
+
+app = typer.Typer(
+    cls=WorkflowOrder,
+    help="urd: photograph scenes through glass with a rotating polarizer and separate reflection from transmission.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+    rich_markup_mode=None,
+    context_settings=HELP_OPTIONS,
+)
+
+
+def show_version(value: bool) -> None:
+    if value:
+        typer.echo(f"urd {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def main_options(
+    version: bool = typer.Option(False, "--version", callback=show_version, is_eager=True, help="Print urd's version and exit."),
+) -> None:
+    """urd: photograph scenes through glass with a rotating polarizer and separate reflection from transmission."""
+
+
+app.command()(capture.capture)
+app.command("sim-stage")(capture.sim_stage)
+app.command()(ingest.ingest)
+app.add_typer(calibrate.calibrate_app, name="calibrate")
+app.command()(separate.separate)
+app.command()(train.train)
+app.command()(bench.bench)
+app.command()(reports.report)
+app.command()(reports.verify)
+app.command()(demo.demo)
+
+
+def main() -> None:
+    terminate_on_sigterm()                  # SIGTERM stops worker pools and says what was kept, as Ctrl-C does
+    app(prog_name="urd")

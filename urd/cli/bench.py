@@ -1,0 +1,128 @@
+"""``urd bench``: the methods scored on data with ground truth (a quick table, the paper's evaluation,
+the ablation, the semi-real and the virtual-camera sets)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from urd.cli.common import given, parse_seeds, run_guarded, usage, within
+from urd.core.progress import TerminalProgress
+
+
+def bench(
+    ctx: typer.Context,
+    quick: bool = typer.Option(False, "--quick", help="The paper's evaluation, reduced (< 10 min on 2 cores): tables, CSV and plots in docs/bench/quick, checked against docs/bench/expected-quick.json."),
+    full: bool = typer.Option(False, "--full", help="The paper's full evaluation (20-50 min on 2 cores): cross-validation, robustness, speed into docs/bench/full."),
+    large: bool = typer.Option(False, "--24mp", help="With --full: also time the network and Schechner on a 24 MP scene."),
+    images: Optional[Path] = typer.Option(None, help="With --quick/--full: also cross-validate on the photos of this folder (JPEG, PNG, 8/16-bit TIFF)."),
+    out: Optional[Path] = typer.Option(None, help="With --quick/--full/--ablation: output folder (default docs/bench)."),
+    count: int = typer.Option(64, callback=within(1), help="Benchmark patches (seeded, from bsds500/test or bundled photos)."),
+    size: int = typer.Option(256, callback=within(32), help="Patch size (px)."),
+    methods: str = typer.Option("none,network", help="Comma-separated methods, plus 'direct' for the direct variant (shipped urd-direct.pt or --direct-weights), and LABEL=PATH for the network with other weights."),
+    direct_weights: Optional[Path] = typer.Option(None, help="Weights of the direct variant."),
+    ablation: bool = typer.Option(False, "--ablation", help="The paper's pipeline ablation (DR, DR+NRD, DR+NRD+LCG) with several seeds: trains the runs missing from --runs (configs/ablation-*.toml, about 1 h of CPU each), scores them on --count patches, writes OUT/ablation (default docs/bench/ablation)."),
+    seeds: str = typer.Option("0,1", help="With --ablation: comma-separated training seeds (at least two)."),
+    jobs: int = typer.Option(2, callback=within(1), help="With --ablation: training runs side by side (one thread each)."),
+    runs: Optional[Path] = typer.Option(None, help="With --ablation: folder of the training runs (unfinished ones resume; default runs/ablation, or runs/ablation-STEPS with --steps)."),
+    steps: Optional[int] = typer.Option(None, callback=within(1), help="With --ablation: training steps of every run (default: the configs' 4000; e.g. 16000 on a GPU); its runs in runs/ablation-STEPS and its report in OUT/ablation-STEPS."),
+    semireal: bool = typer.Option(False, "--semireal", help="The semi-real set: held-out real captures without glass (../shared/data/polarization) as the transmitted layer behind a rendered pane reflecting a bsds500/test photo, exact ground truth; 3, 4 and 6 shots, mono, and the no-glass R share; every method of --methods (default none, Schechner, Kong, Farid, network; LABEL=PATH adds the network with other weights); tables in OUT/semireal (default docs/bench/semireal). About 20 min on 2 cores."),
+    weights: Optional[Path] = typer.Option(None, help="With --semireal: the network's weights (default: shipped)."),
+    virtual: bool = typer.Option(False, "--virtual", help="The virtual-camera set: flat panes rendered by urd's virtual camera at angles of incidence 20-75 deg and a wide view (phi_perp turning 50 deg), the network against Schechner, Kong, Farid and no separation (4 photo pairs of 768x512; --methods to choose); tables in OUT/virtual (default docs/bench/virtual)."),
+) -> None:
+    """Benchmark the methods on synthetic data with ground truth: by default one table of RMSE /
+    PSNR / SSIM of R and T per method (with network and direct: their paired T PSNR difference);
+    with --quick or --full the paper's tables, robustness study and speed figures; with
+    --ablation the multi-seed pipeline ablation.
+
+    \b
+    Example:
+      urd bench --methods none,schechner,network --count 16
+      urd bench --quick
+      urd bench --virtual
+    """
+    if large and not full:
+        raise usage("--24mp goes with --full")
+    if semireal:
+        if virtual or quick or full or ablation or given(ctx, "count") or given(ctx, "size"):
+            raise usage("--semireal goes alone (with --methods, --weights and --out): it has its own scenes")
+        bench_semireal(methods if given(ctx, "methods") else None, weights, out)
+        return
+    if weights is not None:
+        raise usage("--weights goes with --semireal")
+    if virtual:
+        if quick or full or ablation or given(ctx, "count") or given(ctx, "size"):
+            raise usage("--virtual goes alone (with --methods and --out): it has its own scenes")
+        bench_virtual(methods if given(ctx, "methods") else None, out)
+        return
+    if not ablation and (seeds != "0,1" or jobs != 2 or runs is not None or steps is not None):
+        raise usage("--seeds, --jobs, --runs and --steps go with --ablation")
+    if ablation:
+        from separate.ablation import run_ablation
+        from separate.bench_run import DEFAULT_OUT
+
+        seed_list = parse_seeds(seeds)
+        folder = (out or DEFAULT_OUT) / ("ablation" + (f"-{steps}" if steps else ""))
+        bar = TerminalProgress()
+        runs = runs or Path("runs/ablation" + (f"-{steps}" if steps else ""))
+        result = run_guarded(run_ablation, folder, runs, seed_list, jobs, count, size,
+                             progress=lambda done, total: bar(done, total, "ablation training runs"),
+                             command=" ".join(["urd"] + sys.argv[1:]), steps=steps)
+        bar.close()
+        typer.echo(Path(result["files"][0]).read_text())
+        typer.echo(f"table, CSV, plot and weights in {folder.resolve()}")
+        if not (quick or full):
+            return
+    if quick or full:
+        from separate.bench_run import DEFAULT_OUT, run_evaluation
+
+        result = run_guarded(run_evaluation, out or DEFAULT_OUT, quick, images, progress=TerminalProgress(),
+                             large=large, command=" ".join(["urd"] + sys.argv[1:]))
+        typer.echo(f"tables, CSV and plots in {Path(result['folder']).resolve()}")
+        return
+    from separate.bench import format_paired, format_table, run_benchmark
+
+    rows = run_guarded(run_benchmark, [m for m in methods.split(",") if m], count, size, direct_weights)
+    typer.echo(format_table(rows))
+    if {"network", "direct"} <= {r["method"] for r in rows}:
+        typer.echo(format_paired(rows, "network", "direct"))
+
+
+def bench_semireal(methods: Optional[str], weights: Optional[Path], out: Optional[Path]) -> None:
+    """``urd bench --semireal``: print the tables and write them, with the per-scene figures, into OUT/semireal."""
+    import json
+
+    from separate.bench_run import DEFAULT_OUT
+    from separate.semireal import DEFAULT_METHODS, run_semireal
+    from urd.core.files import write_bytes_atomic
+
+    chosen = tuple(methods.split(",")) if methods else DEFAULT_METHODS
+    bar = TerminalProgress()
+    tables, records = run_guarded(run_semireal, chosen, weights, progress=bar)
+    bar.close()
+    folder = (out or DEFAULT_OUT) / "semireal"
+    folder.mkdir(parents=True, exist_ok=True)
+    write_bytes_atomic(folder / "tables.md", tables.encode(), overwrite=True)
+    write_bytes_atomic(folder / "scenes.json", json.dumps(records, indent=1).encode(), overwrite=True)
+    typer.echo(tables)
+    typer.echo(f"wrote {(folder / 'tables.md').resolve()} and scenes.json")
+
+
+def bench_virtual(methods: Optional[str], out: Optional[Path]) -> None:
+    """``urd bench --virtual``: print the tables and write them into OUT/virtual/tables.md."""
+    from separate.bench_run import DEFAULT_OUT
+    from urd.core.files import write_bytes_atomic
+    from urd.virtual_bench import DEFAULT_METHODS, run_virtual_bench
+
+    chosen = tuple(methods.split(",")) if methods else DEFAULT_METHODS
+    bar = TerminalProgress()
+    tables = run_guarded(run_virtual_bench, chosen, progress=bar)
+    bar.close()
+    folder = (out or DEFAULT_OUT) / "virtual"
+    folder.mkdir(parents=True, exist_ok=True)
+    write_bytes_atomic(folder / "tables.md", tables.encode(), overwrite=True)
+    typer.echo(tables)
+    typer.echo(f"wrote {(folder / 'tables.md').resolve()}")

@@ -1,0 +1,75 @@
+"""``urd calibrate offset`` (the mounting offset from a sweep) and ``urd calibrate shots`` (each shot's
+angle error from a scene's images): the ``calibrate`` group."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from urd.cli.common import (DATASET_HELP, HELP_OPTIONS, WorkflowOrder, check_address, choice, resolve_scene, run_guarded,
+                            warn, within)
+from urd.core.dataset import default_root
+from urd.core.progress import TerminalProgress
+
+
+calibrate_app = typer.Typer(cls=WorkflowOrder, help="Measure the polarizer: mounting offset from a sweep, per-shot angle errors of a scene."
+                                 "\n\n\b\nExample:\n  urd calibrate offset --stage /dev/ttyUSB0\n  urd calibrate shots scene_01",
+                            no_args_is_help=True, rich_markup_mode=None, context_settings=HELP_OPTIONS)
+
+
+@calibrate_app.command("offset")
+def calibrate_offset_cmd(
+    dataset: Optional[Path] = typer.Argument(None, help="Dataset whose polarizer to calibrate, where calibration.json is written (default: the current folder if it holds dataset.json, else ./dataset).", show_default=False),
+    stage: str = typer.Option(..., help="Serial port of the ELL14 stage, or 'sim'."),
+    camera: str = typer.Option("gphoto2", help="Camera driver: gphoto2 or virtual."),
+    step: float = typer.Option(10.0, callback=within(1.0, 45.0), help="Sweep step (deg) over 180 deg."),
+    target_angle: float = typer.Option(0.0, help="Polarization angle of the target's light (deg, image plane, CCW from x)."),
+    address: str = typer.Option("0", help="ELL14 device address 0-F.", callback=check_address),
+    sim_offset: float = typer.Option(0.0, help="[sim] true mounting offset of the simulated polarizer (deg)."),
+    seed: int = typer.Option(0, help="[sim/virtual] random seed."),
+) -> None:
+    """Sweep the polarizer in front of a polarized target and fit Malus's law for the mounting offset.
+
+    \b
+    Example:
+      urd calibrate offset --stage /dev/ttyUSB0 --target-angle 90
+      urd calibrate offset --stage sim --camera virtual --sim-offset 3
+    """
+    from acquire.camera import CameraKind
+    from acquire.rig import SimSettings
+    from urd.calibration import sweep_and_calibrate
+
+    choice(CameraKind, camera, "--camera")
+    root = dataset or default_root()
+    sim = SimSettings(offset_deg=sim_offset, width=256, height=192, shake_px=0, shake_deg=0, seed=seed,
+                      target_angle_deg=target_angle)
+    record = run_guarded(sweep_and_calibrate, root, stage, camera, step, target_angle, address, sim, progress=TerminalProgress())
+    typer.echo(f"mounting offset {record.offset_deg:.3f} ± {record.uncertainty_deg:.3f} deg "
+               f"(modulation {record.modulation:.2f}); written to {(Path(root) / 'calibration.json').resolve()}")
+
+
+@calibrate_app.command("shots")
+def calibrate_shots_cmd(
+    scene: str = typer.Argument(..., help="Scene name (scene_12) or folder; must be ingested."),
+    dataset: Optional[Path] = typer.Option(None, help=DATASET_HELP, show_default=False),
+    apply: bool = typer.Option(True, help="Store the calibrated angles in the manifest (used by separation); --no-apply only prints them and leaves the manifest as it is."),
+) -> None:
+    """Estimate each shot's polarizer angle error from the images (needs 4+ angles; 5+ for all errors).
+
+    \b
+    Example:
+      urd calibrate shots scene_01
+      urd calibrate shots dataset/scene_01 --no-apply
+    """
+    from calib.store import calibrate_shots
+
+    result = run_guarded(lambda: calibrate_shots(resolve_scene(scene, dataset), apply))
+    for i, (e, u) in enumerate(zip(result.errors_deg, result.uncertainty_deg)):
+        typer.echo(f"shot {i}: {e:+.3f} ± {u:.3f} deg")
+    if result.unobservable is not None:
+        warn("with 4 angles one combination of the errors cannot be seen in the images "
+             f"(direction {[round(v, 2) for v in result.unobservable]}); the smallest consistent "
+             "correction is reported. Capture 5 or more angles to determine every error.")
+    typer.echo("calibrated angles stored in the manifest" if apply else "manifest unchanged (--no-apply)")

@@ -1,0 +1,90 @@
+"""``urd capture`` (one scene on the rig, real or simulated) and ``urd sim-stage`` (a simulated ELL14
+on a pseudo-terminal)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from urd.cli.common import DATASET_HELP, bad, check_address, choice, given, parse_angles, parse_size, run_guarded, within
+from urd.core.dataset import default_root
+from urd.core.progress import TerminalProgress
+
+
+def sim_settings(offset: float, jitter: float, faults: str, size: str, shake: float, reflection, transmission, seed: int):
+    """Simulation knobs from the [sim]/[virtual] options."""
+    from acquire.rig import SimSettings
+    from acquire.sim_ell14 import parse_faults
+
+    width, height = parse_size(size, "--sim-size")
+    try:
+        fault_map = parse_faults(faults)
+    except ValueError as exc:
+        raise bad("--sim-faults", str(exc)) from None
+    return SimSettings(offset, jitter, fault_map, width, height, shake, 0.5, reflection, transmission, seed)
+
+
+def capture(
+    ctx: typer.Context,
+    dataset: Optional[Path] = typer.Argument(None, help=DATASET_HELP + " Created when new.", show_default=False),
+    stage: str = typer.Option(..., help="Serial port of the ELL14 stage (e.g. /dev/ttyUSB0), or 'sim' for the simulated stage."),
+    camera: str = typer.Option("gphoto2", help="Camera driver: 'gphoto2' (real camera over USB) or 'virtual' (needs --stage sim)."),
+    angles: str = typer.Option("0,45,90", help="Polarizer angles in degrees, comma-separated (at least 3 distinct)."),
+    scene: Optional[str] = typer.Option(None, help="Scene name; an existing incomplete scene is resumed. Default: resume the newest incomplete scene, else the next free scene_NN."),
+    new_scene: bool = typer.Option(False, "--new-scene", help="Start a new scene even if an incomplete one exists."),
+    tolerance: float = typer.Option(0.5, callback=within(0.0), help="Largest accepted difference of read-back and commanded angle (deg)."),
+    address: str = typer.Option("0", help="ELL14 device address 0-F.", callback=check_address),
+    sim_offset: float = typer.Option(0.0, help="[sim] polarizer mounting offset (deg)."),
+    sim_jitter: float = typer.Option(0.0, callback=within(0.0), help="[sim] per-move angle error the encoder does not see, std (deg)."),
+    sim_faults: str = typer.Option("", help="[sim] fault probabilities per command, e.g. drop=0.05,garble=0.05,mech_timeout=0.02,miss=0.02,vanish=0.01."),
+    sim_size: str = typer.Option("1536x1024", help="[virtual] sensor size WIDTHxHEIGHT."),
+    sim_shake: float = typer.Option(4.0, callback=within(0.0), help="[virtual] camera shake between shots, max translation (px)."),
+    reflection: Optional[Path] = typer.Option(None, help="[virtual] image file reflected in the glass (default: bundled photo)."),
+    transmission: Optional[Path] = typer.Option(None, help="[virtual] image file seen through the glass (default: bundled photo)."),
+    seed: int = typer.Option(0, help="[sim/virtual] random seed."),
+) -> None:
+    """Capture one scene: home the polarizer stage, then move, verify, trigger and download at each angle.
+
+    An interrupted capture is resumed by the next 'urd capture' (or with --scene NAME).
+
+    \b
+    Example:
+      urd capture --stage sim --camera virtual
+      urd capture dataset --stage /dev/ttyUSB0 --angles 0,45,90,135
+    """
+    from acquire.camera import CameraKind
+    from acquire.plan import capture_scene
+
+    choice(CameraKind, camera, "--camera")
+    angle_list = parse_angles(angles) if given(ctx, "angles") else None
+    sim = sim_settings(sim_offset, sim_jitter, sim_faults, sim_size, sim_shake, reflection, transmission, seed)
+    bar = TerminalProgress()
+    result = run_guarded(capture_scene, dataset or default_root(), stage, camera, angle_list, scene, new_scene,
+                         tolerance if given(ctx, "tolerance") else None, address, sim,
+                         announce=lambda line: (bar.break_line(), typer.echo(line)), progress=bar)
+    typer.echo(f"scene complete: {result.path.resolve()}")
+
+
+def sim_stage(
+    address: str = typer.Option("0", help="Device address 0-F.", callback=check_address),
+    offset: float = typer.Option(0.0, help="Polarizer mounting offset the encoder does not see (deg)."),
+    jitter: float = typer.Option(0.0, callback=within(0.0), help="Per-move angle error the encoder does not see, std (deg)."),
+    faults: str = typer.Option("", help="Fault probabilities per command, e.g. drop=0.05,garble=0.05,mech_timeout=0.02,miss=0.02,vanish=0.01."),
+    seed: int = typer.Option(0, help="Random seed of jitter and faults."),
+) -> None:
+    """Serve a simulated ELL14 rotation mount on a pseudo-terminal until Ctrl-C (to test any Elliptec client).
+
+    \b
+    Example:
+      urd sim-stage --offset 2 --faults drop=0.05
+    """
+    from acquire.sim_ell14 import SimulatedEll14, parse_faults, serve
+
+    try:
+        fault_map = parse_faults(faults)
+    except ValueError as exc:
+        raise bad("--faults", str(exc)) from None
+    with SimulatedEll14(address, sim_offset_deg=offset, sim_jitter_deg=jitter, sim_faults=fault_map, seed=seed) as sim:
+        run_guarded(serve, sim, typer.echo)

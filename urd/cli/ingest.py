@@ -1,0 +1,85 @@
+"""``urd ingest``: RAW shots, captured scenes, datasets or polarization-camera frames into a dataset."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from urd.cli.common import bad, choice, fail, given, parse_angles, run_guarded, usage, warn, within
+from urd.core.dataset import default_root
+from urd.core.progress import TerminalProgress, plural
+
+
+def ingest(
+    ctx: typer.Context,
+    source: Path = typer.Argument(..., help="A folder of RAW shots, a captured scene folder, a dataset folder, or (with --mosaic) polarization-camera frames."),
+    dataset: Optional[Path] = typer.Argument(None, help="Dataset to add scenes to when SOURCE is a RAW folder or mosaics (default: the current folder if it holds dataset.json, else ./dataset).", show_default=False),
+    angles: str = typer.Option("0,45,90", help="Polarizer angles of consecutive shots (deg), for RAW folders without a capture manifest."),
+    motion: str = typer.Option("euclidean", help="Alignment model: translation, euclidean or homography."),
+    half_size: bool = typer.Option(False, help="Decode at half resolution (one pixel per 2x2 CFA tile; ~4x faster)."),
+    gap: float = typer.Option(60.0, callback=within(0.0), help="Seconds between shots that start a new scene when grouping by capture time."),
+    redo: bool = typer.Option(False, help="Decode and align again scenes that are already ingested (the old aligned stack is replaced only on success)."),
+    mosaic: Optional[str] = typer.Option(None, help="SOURCE holds polarization-camera frames (PNG/TIFF) with this layout: imx250mzr, imx250myr or wen2019; one scene per frame."),
+    demosaic: str = typer.Option("newton", help="Demosaicing of --mosaic frames: none (sites as they are, unregistered), bilinear, newton (registers the four polarizer sites)."),
+    transfer: str = typer.Option("linear", help="8-bit frames: linear (sensor codes, polarization cameras) or srgb (photos from ordinary cameras). 16-bit frames are always linear."),
+    jobs: int = typer.Option(1, callback=within(1), help="Worker processes for the scenes of a dataset (SOURCE a dataset folder): each decodes and aligns one scene at a time."),
+) -> None:
+    """Decode RAW shots to linear images, group them into scenes and align each scene (ECC).
+
+    Already-ingested files (same SHA-256) are skipped; incomplete captures are reported.
+
+    \b
+    Example:
+      urd ingest raw/
+      urd ingest raw/ dataset --angles 0,45,90,135
+      urd ingest dataset --jobs 2
+    """
+    from urd.core.align import Motion
+    from urd.core.images import Transfer
+    from urd.ingest import IngestOptions, ingest as ingest_workflow
+
+    opts = IngestOptions(tuple(parse_angles(angles)), choice(Motion, motion, "--motion"), half_size, gap, redo)
+    layout = method = None
+    if mosaic:
+        from urd.core.mosaic import Demosaic, MosaicLayout
+
+        layout, method = choice(MosaicLayout, mosaic, "--mosaic"), choice(Demosaic, demosaic, "--demosaic")
+    transfer_rule = choice(Transfer, transfer, "--transfer")
+    if not source.exists():
+        raise bad("SOURCE", f"{source}: no such folder or file")
+    if source.is_file() and not mosaic:
+        raise bad("SOURCE", f"{source} is a file; ingest takes a folder (of RAW shots, a captured scene, or a "
+                                 "dataset): put the shots in a folder and pass that")
+    recorded = (source / "scene.json").is_file() or (source / "dataset.json").is_file()
+    if recorded and given(ctx, "angles"):
+        raise usage("a scene's angles are in its manifest; --angles is for a folder of RAW files. To "
+                                 "record other angles, move the scene folder away and ingest its raw/ files again")
+    if jobs > 1 and (not recorded or mosaic):
+        raise usage("--jobs is for a dataset or scene folder; a RAW folder or mosaic frames are ingested "
+                                 "by one process (ingest them, then the dataset with --jobs)")
+    unused = [f"--{name}" for name in ("demosaic", "transfer") if given(ctx, name)]
+    if unused and not mosaic:
+        raise usage(f"{', '.join(unused)}: for --mosaic frames")
+    report = run_guarded(ingest_workflow, source, dataset or default_root(), opts, layout, method, transfer_rule,
+                         progress=TerminalProgress(), jobs=jobs)
+    for path in report.ignored:
+        typer.echo(f"ignored (not a RAW file name): {path.resolve()}", err=True)
+    for note in report.notes:
+        warn(note)
+    for outcome in report.outcomes:
+        where = outcome.name or ", ".join(p.name for p in outcome.files)
+        if outcome.state == "failed":
+            typer.secho(f"FAILED {where}: {outcome.error}", fg=typer.colors.RED, err=True)
+        elif outcome.state == "ingested":
+            names = ", ".join(p.name for p in outcome.files)
+            origin = f"from {len(outcome.files)} files" if len(outcome.files) > 3 else f"from {names}"
+            typer.echo(f"ingested {outcome.name} ({origin})")
+        else:
+            typer.echo(f"{outcome.state} {where}: {outcome.error}")
+    if not report.outcomes:
+        typer.echo("nothing to ingest")
+    if report.failed:
+        failed = len(report.failed)
+        fail(f"{failed} of {plural(len(report.outcomes), 'scene')} {'failed or was' if failed == 1 else 'failed or were'} flagged")

@@ -1,0 +1,66 @@
+"""``urd report`` (a dataset's summary, optionally as an HTML report) and ``urd verify`` (every listed
+file against its size and SHA-256)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from urd.cli.common import DATASET_HELP, existing_dataset, fail, run_guarded
+from urd.core.progress import TerminalProgress, plural
+
+
+def report(
+    dataset: Optional[Path] = typer.Argument(None, help=DATASET_HELP, show_default=False),
+    html: Optional[Path] = typer.Option(None, "--html", help="Also write a self-contained HTML report into this folder (opens from disk: shots, S0/DoLP/AoLP, results side by side with a comparison slider)."),
+    force: bool = typer.Option(False, help="Replace an existing HTML report folder."),
+) -> None:
+    """Summarize a dataset: scenes (incomplete, broken, ingested), angles, calibration, results.
+
+    \b
+    Example:
+      urd report
+      urd report dataset --html report/
+    """
+    from urd.report import report_html, report_text
+
+    from urd.report_html import is_report_folder
+
+    root = existing_dataset(dataset)
+    if html is not None and (html.exists() or html.is_symlink()):
+        if html.is_symlink() or not is_report_folder(html):
+            fail(f"{html}: exists and is not an urd HTML report; choose another folder for the report")
+        if not force:
+            fail(f"{html}: report folder already exists; pass --force to replace it, or another folder")
+    typer.echo(run_guarded(report_text, root))
+    if html is not None:
+        index = run_guarded(report_html, root, html, force, progress=TerminalProgress())
+        typer.echo(f"wrote {Path(index).resolve()}")
+
+
+def verify(dataset: Optional[Path] = typer.Argument(None, help=DATASET_HELP + " Or one scene's folder.", show_default=False)) -> None:
+    """Check every file a dataset's manifests list against its size and SHA-256; exit 1 on any problem.
+
+    \b
+    Example:
+      urd verify
+      urd verify dataset
+      urd verify dataset/scene_01
+    """
+    from urd.report import verify as verify_dataset
+
+    problems = run_guarded(verify_dataset, existing_dataset(dataset))
+    bad = 0
+    for name, issues in problems.items():
+        for issue in issues:
+            typer.secho(f"{name}: {issue}", fg=typer.colors.RED, err=True)
+        bad += bool(issues)
+        if not issues:
+            typer.echo(f"{name}: ok")
+    scenes = len(problems) - ("calibration" in problems)
+    what = plural(scenes, "scene") + (" and the calibration" if "calibration" in problems else "")
+    if bad:
+        fail(f"{bad} of {what} {'has' if bad == 1 else 'have'} problems")
+    typer.echo(f"{'all ' if scenes > 1 else ''}{what} intact")

@@ -1,0 +1,56 @@
+"""``urd train``: the separation network (or the CEILNet baseline) from a TOML config."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from urd.cli.common import run_guarded, within
+from urd.core.progress import TerminalProgress
+
+
+def train(
+    config: Path = typer.Argument(..., help="TOML config (see configs/cpu.toml and configs/paper.toml)."),
+    run_dir: Path = typer.Argument(..., help="Run folder: checkpoints, log.jsonl; an existing run resumes."),
+    init: Optional[Path] = typer.Option(None, help="Start from these weights (e.g. the shipped ones) instead of scratch."),
+    seed: Optional[int] = typer.Option(None, callback=within(0), help="Override the config's seed (weight initialisation and training data), e.g. for a multi-seed ablation."),
+) -> None:
+    """Train the separation network (or the CEILNet baseline: configs/ceilnet.toml) on synthesized data (config file, checkpoints, resume; torchrun for DDP).
+
+    \b
+    Example:
+      urd train configs/cpu.toml runs/cpu
+      urd train configs/paper.toml runs/paper --init separate/weights/urd-canonical.pt
+    """
+    from separate.precision import describe, resolve
+    from separate.train import TrainConfig, train as train_run
+
+    cfg = run_guarded(TrainConfig.from_toml, config)
+    if seed is not None:
+        cfg = dataclasses.replace(cfg, seed=seed)
+    typer.echo(f"precision: {describe(resolve(cfg.precision))}", err=True)
+    bar = TerminalProgress()
+
+    def show(record: dict) -> None:
+        bar(record["step"], cfg.steps, "train")
+        if "psnr_t" in record:
+            loss = f"loss {record['loss']:.5f}" if "loss" in record else "the --init weights"
+            bar.break_line()
+            typer.echo(f"step {record['step']}: {loss}, val PSNR T {record['psnr_t']:.2f} dB, R {record['psnr_r']:.2f} dB "
+                       f"({record['wall_s'] / 60:.1f} min of training)")
+
+    last = Path(run_dir) / "last.pt"
+    if last.is_file() and os.environ.get("RANK", "0") == "0":
+        from separate.train import load_checkpoint
+
+        state = run_guarded(load_checkpoint, last)
+        typer.echo(f"resuming {run_dir} from step {state['step']} of {cfg.steps} ({last}; "
+                   f"{state.get('wall_s', 0.0) / 60:.1f} min trained so far)")
+    record = run_guarded(train_run, cfg, run_dir, init, progress=show)
+    bar.close()
+    if os.environ.get("RANK", "0") == "0":                   # under torchrun, rank 0 reports
+        typer.echo(f"stopped at step {record.get('step')}; checkpoints in {Path(run_dir).resolve()}")
