@@ -47,7 +47,7 @@ they were), on in training the physics-anchored network's gate (``configs/cpu-ga
 * ``incidence_estimate``: each sample carries ``theta_est``, a P×P angle-of-incidence map as
   an estimator reads it (`perturbed_incidence`), the physics-anchored network's input. It is
   drawn around the truth rather than estimated from the patch: `urd separate` estimates θ on
-  the whole frame (`separate.reference.estimate_incidence_field`), where it is far better
+  the whole frame (`separate.incidence.estimate_incidence_field`), where it is far better
   determined than on a 128² patch, and an estimate per patch would cost 100× the synthesis.
 
 Every step has a switch in `SynthesisConfig`; a generator seeded with the same seed yields
@@ -273,7 +273,7 @@ def perturbed_incidence(rng: np.random.Generator, theta: np.ndarray, error_deg: 
     off by a global error ~ N(0, σ²), σ ~ U[0, ``error_deg[0]``], and a smooth error within
     ±``error_deg[1]`` (deg), held in `separate.reference.INCIDENCE_RANGE_DEG`; or a failed estimate,
     one angle drawn over that range, with probability ``failure[0]`` (``failure[1]`` within
-    `HEAD_ON_DEG` of head-on, where three shots barely tell θ, and without glass, θ = 0). `separate.reference.estimate_incidence_field` is off by a median
+    `HEAD_ON_DEG` of head-on, where three shots barely tell θ, and without glass, θ = 0). `separate.incidence.estimate_incidence_field` is off by a median
     1–2° from θ = 35° up on the virtual camera's panes, 4–6° at 20° (`urd bench --virtual`)."""
     lo, hi = INCIDENCE_RANGE_DEG
     theta_deg = np.degrees(theta.astype(np.float32))
