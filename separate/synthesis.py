@@ -450,23 +450,23 @@ class Synthesizer:
         angles = (nominal + noise).astype(np.float32)
         deform = rng.random() < cfg.nrd_prob
         sigma = rng.uniform(0.0, cfg.nrd_sigma_max_px) * p / 128
+        zeros = np.zeros_like(refl)
+        if stokes_t is None:
+            r_obs, t_obs = optics.observable_layers(refl, trans, theta, cfg.n)
+        else:
+            parts = optics.pane_stokes(np.stack([refl, zeros, zeros]), stokes_t, theta, phi_perp, cfg.n)
+            r_obs, t_obs = parts[0][0], parts[1][0]
         shots = []
         for phi in angles:
             maps = smooth_warp_field(rng, p, cfg.nrd_grid, sigma) if deform else None
             if stokes_t is None:
                 shots.append(optics.render(_warp(refl, maps), _warp(trans, maps), theta, phi_perp, float(phi), cfg.n))
-            else:
-                zeros = np.zeros_like(refl)
-                part_r, part_t = optics.pane_stokes(np.stack([_warp(refl, maps), zeros, zeros]), _warp(stokes_t, maps),
-                                                    theta, phi_perp, cfg.n)
-                shots.append(optics.intensity_from_stokes(part_r + part_t, float(phi)))
+                continue
+            if maps is not None:
+                parts = optics.pane_stokes(np.stack([_warp(refl, maps), zeros, zeros]), _warp(stokes_t, maps),
+                                           theta, phi_perp, cfg.n)
+            shots.append(optics.intensity_from_stokes(parts[0] + parts[1], float(phi)))
         obs = np.stack(shots).astype(np.float32)
-        if stokes_t is None:
-            r_obs, t_obs = optics.observable_layers(refl, trans, theta, cfg.n)
-        else:
-            zeros = np.zeros_like(refl)
-            part_r, part_t = optics.pane_stokes(np.stack([refl, zeros, zeros]), stokes_t, theta, phi_perp, cfg.n)
-            r_obs, t_obs = part_r[0], part_t[0]
         exposed = self._expose(obs, r_obs, t_obs)
         return None if exposed is None else self._finish(*exposed, nominal, angles, theta, phi_perp)
 
