@@ -1,5 +1,7 @@
 """Shared fixtures: the shared data folder, a scripted serial peer on a real pty, a wide terminal
-for the CLI's messages, a small ingested dataset and a tmpfs mounted for a test."""
+for the CLI's messages, a small ingested dataset and a tmpfs mounted for a test; and, where
+pytest-xdist runs the suite in several processes (``-n auto``), the CPU's cores shared out among
+them rather than each process's torch taking every core."""
 
 import contextlib
 import os
@@ -10,6 +12,7 @@ import tty
 from pathlib import Path
 
 import pytest
+import torch
 
 SHARED_DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
 
@@ -17,6 +20,12 @@ SHARED_DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
 SHARED_DATA_NOTE = ("../shared/data is the developers' folder of third-party research data beside the checkout "
                     "(BSDS500 photos, real polarization-camera captures; licences in its README.md): urd does not "
                     "ship it, so a user's checkout lacks it and these tests skip; the rest of the suite needs none of it")
+
+
+def pytest_configure(config):
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    if workers > 1:
+        torch.set_num_threads(max(1, len(os.sched_getaffinity(0)) // workers))
 
 
 def shared_data(*parts: str) -> Path:

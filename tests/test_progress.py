@@ -36,3 +36,15 @@ def test_a_line_break_keeps_the_clock_running(monkeypatch):
     bar(100, 100, "train")
     assert "\nstep 50: val PSNR T 30.00 dB\n" in out.getvalue()
     assert "1:00" in out.getvalue().split("\r")[-1]          # elapsed since the start, not since the break
+
+
+def test_a_log_file_gets_a_line_every_ten_seconds_not_every_step(monkeypatch):
+    now = [0.0]
+    monkeypatch.setattr(progress.time, "monotonic", lambda: now[0])
+    out = io.StringIO()
+    bar = progress.TerminalProgress(out)
+    for step in range(101):                   # one step a second
+        bar(step, 100, "train")
+        now[0] += 1.0
+    lines = out.getvalue().split("\r")[1:]
+    assert [line.split()[3] for line in lines] == [f"{k}/100" for k in range(0, 101, 10)]

@@ -355,6 +355,19 @@ def test_training_only_the_gate_of_a_fresnel_network_from_canonical_weights(tmp_
     assert any(not torch.equal(state["model"][k], fresh[k]) for k in fresh if k.startswith("gate."))
 
 
+def test_training_all_but_the_gate_keeps_the_gate_and_moves_the_backbone(tmp_path):
+    from separate.train import save_checkpoint
+    start = with_fresnel_base(SeparationNet(width=8, upsample="resize"))
+    cfg = TrainConfig(width=8, upsample="resize", base="fresnel", trainable="backbone", angles="any-true-side",
+                      reference_field=True, patch=64, batch=2, micro_batch=2, steps=2, val_samples=2, val_every=2, lr=1e-2)
+    save_checkpoint(tmp_path / "start.pt", start, None, 0, cfg, {})
+    record = train(cfg, tmp_path / "run", init=tmp_path / "start.pt")
+    assert record["step"] == 2 and np.isfinite(record["psnr_t"])
+    state = torch.load(tmp_path / "run" / "last.pt", weights_only=True)["model"]
+    for name, value in start.state_dict().items():
+        assert torch.equal(state[name], value) == name.startswith("gate."), name
+
+
 def test_a_gate_only_config_needs_the_fresnel_network(tmp_path):
     config = tmp_path / "gate.toml"
     config.write_text('trainable = "gate"\n')
@@ -362,6 +375,9 @@ def test_a_gate_only_config_needs_the_fresnel_network(tmp_path):
         TrainConfig.from_toml(config)
     config.write_text('trainable = "gate"\nbase = "fresnel"\n')
     assert TrainConfig.from_toml(config).trainable == "gate"
+    config.write_text('trainable = "backbone"\n')
+    with pytest.raises(ValueError, match="trainable"):
+        TrainConfig.from_toml(config)
 
 
 def pane(theta_deg, reflection_gain, transmission_gain, phi_perp_deg=30.0, h=192, w=288):

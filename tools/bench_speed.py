@@ -45,6 +45,13 @@ from separate.provenance import cpu_model
 
 ANGLES = [float(a) for a in np.radians([0.0, 45.0, 90.0])]
 SCALE = torch.tensor([0.5])
+THETA = torch.tensor([np.radians(50.0)], dtype=torch.float32)
+
+
+def call_args(model: torch.nn.Module) -> tuple:
+    """What the network takes beside the shots: the angles and exposure scale, and for a
+    physics-anchored network (``base="fresnel"``, the shipped one) an angle of incidence of 50°."""
+    return (ANGLES, SCALE, THETA) if getattr(model, "base", "canonical") == "fresnel" else (ANGLES, SCALE)
 
 
 def best_seconds(fn, repeat: int) -> tuple[float, float]:
@@ -73,18 +80,19 @@ def flops_per_mp(model: torch.nn.Module) -> float:
     """The network's forward FLOPs per megapixel (convolutions and matmuls, counted at 256²)."""
     side = 256
     with FlopCounterMode(display=False) as counter, torch.inference_mode():
-        model(torch.rand(1, 3, model.channels, side, side), ANGLES, SCALE)
+        model(torch.rand(1, 3, model.channels, side, side), *call_args(model))
     return counter.get_total_flops() / (side * side) * 1e6
 
 
 def levers(model: torch.nn.Module, bf16: bool, compile_too: bool, threads: int) -> dict[str, object]:
     """Ways of running ``model(obs, angles, scale)`` at one precision, by name."""
     dtype = torch.bfloat16 if bf16 else torch.float32
+    args = call_args(model)
 
     def autocast(fn):
         def run(obs):
             with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-                return fn(obs, ANGLES, SCALE)
+                return fn(obs, *args)
         return run
 
     fused = FusedNet(model, dtype)
@@ -93,7 +101,7 @@ def levers(model: torch.nn.Module, bf16: bool, compile_too: bool, threads: int) 
     ways["channels-last"] = autocast(channels_last)
     if not bf16:
         ways["jit-frozen"] = jit_frozen(model)
-    ways["fused"] = lambda obs: fused(obs, ANGLES, SCALE)
+    ways["fused"] = lambda obs: fused(obs, *args)
     if threads > 1:
         ways["fused-1thread"] = one_thread(ways["fused"])
     if compile_too:
@@ -130,7 +138,7 @@ def jit_frozen(model: torch.nn.Module):
             self.net = net
 
         def forward(self, obs):
-            return self.net(obs, ANGLES, SCALE)
+            return self.net(obs, *call_args(self.net))
 
     traced = {}
 
@@ -158,7 +166,7 @@ def compiled(model: torch.nn.Module, bf16: bool):
     def run(obs):
         started = time.perf_counter()
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-            out = net(obs, ANGLES, SCALE)
+            out = net(obs, *call_args(net))
         if not first:
             first.append(time.perf_counter() - started)
             print(f"    (torch.compile: first call {first[0]:.1f} s, compilation included)")

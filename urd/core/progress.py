@@ -24,12 +24,17 @@ def plural(count: int, noun: str) -> str:
     return f"{count} {noun}{'' if count == 1 else 's'}"
 
 
+#: Seconds between two progress lines written to a stream that is not a terminal.
+LOG_INTERVAL_S = 10.0
+
+
 class TerminalProgress:
     """Render progress callbacks as one updating line (a new line when the label changes).
 
     The ETA extrapolates the rate of the current label's units since its first call, counted
     from the ``done`` of that call (a resumed run starts part-way: its earlier units took no time
-    here).
+    here). The line is redrawn at most every 0.2 s on a terminal and every `LOG_INTERVAL_S` on
+    anything else (a log file of a long run), besides each label's first and last call.
     """
 
     def __init__(self, stream: TextIO = sys.stderr, width: int = 24):
@@ -38,6 +43,7 @@ class TerminalProgress:
         self.started = time.monotonic()
         self.first_done = 0
         self.last_draw = 0.0
+        self.interval = 0.2 if stream.isatty() else LOG_INTERVAL_S
 
     def __call__(self, done: int, total: int, label: str) -> None:
         now = time.monotonic()
@@ -45,7 +51,7 @@ class TerminalProgress:
             if self.label is not None:
                 self.stream.write("\n")
             self.label, self.started, self.first_done = label, now, done
-        elif done < total and now - self.last_draw < 0.2:
+        elif done < total and now - self.last_draw < self.interval:
             return
         self.last_draw = now
         total = max(total, 1)
