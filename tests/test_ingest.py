@@ -196,3 +196,19 @@ def test_shots_taken_together_split_into_several_scenes_are_pointed_out(tmp_path
     assert [o.state for o in report.outcomes] == ["ingested", "ingested"]
     assert report.notes == ["6 shots taken together (IMG_0.dng … IMG_5.dng) became 2 scenes of 3 angles; if they are "
                             "one capture at 6 angles, move those scenes away and ingest the files again with --angles"]
+
+
+def test_shots_aligned_and_written_two_at_a_time_are_the_bytes_of_one_at_a_time(tmp_path, monkeypatch):
+    import urd.ingest as ingest_module
+    from urd.core.align import luminance
+
+    image = np.random.default_rng(0).random((64, 96, 3), dtype=np.float32)
+    assert np.array_equal(luminance(image), image.mean(axis=2))
+    aligned = {}
+    for threads in (1, 2):
+        monkeypatch.setattr(ingest_module, "INGEST_THREADS", threads)
+        ds = Dataset.open_or_create(tmp_path / f"threads{threads}")
+        scene, _ = capture_virtual(ds, angles=(0, 45, 90, 135), size=(320, 240), shake_px=4, shake_deg=0.5, seed=7)
+        ingest_scene(scene, IngestOptions())
+        aligned[threads] = [p.read_bytes() for p in sorted((scene.path / "aligned").glob("*.tiff"))]
+    assert len(aligned[1]) == 4 and aligned[1] == aligned[2]

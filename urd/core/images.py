@@ -38,7 +38,9 @@ def srgb_to_linear(x: np.ndarray) -> np.ndarray:
 def linear_to_u16(image: np.ndarray, full_scale: float = 1.0) -> np.ndarray:
     """Linear values → 16-bit codes of urd's linear TIFFs, ``full_scale`` mapping to 65535
     (aligned shots: 1.0; results: 2.0), rounded and clipped."""
-    return np.clip(np.rint(image * (65535.0 / full_scale)), 0, 65535).astype(np.uint16)
+    scaled = np.asarray(image * (65535.0 / full_scale))
+    np.rint(scaled, out=scaled)                                 # in place: one temporary, not three
+    return np.clip(scaled, 0, 65535, out=scaled).astype(np.uint16)
 
 
 def u16_to_linear(codes: np.ndarray, full_scale: float = 1.0, out: np.ndarray | None = None) -> np.ndarray:
