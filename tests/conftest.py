@@ -12,7 +12,6 @@ import tty
 from pathlib import Path
 
 import pytest
-import torch
 
 SHARED_DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
 
@@ -25,6 +24,8 @@ SHARED_DATA_NOTE = ("../shared/data is the developers' folder of third-party res
 def pytest_configure(config):
     workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
     if workers > 1:
+        import torch                      # only here: a serial run does not pay for it at start-up
+
         torch.set_num_threads(max(1, len(os.sched_getaffinity(0)) // workers))
 
 
