@@ -180,15 +180,6 @@ def estimate_shot_errors(stack: np.ndarray, nominal_deg: list[float], short_side
         raise CalibrationError(f"too few unsaturated pixels ({int(chosen.sum())}) to estimate angle errors")
     data = flat[:, chosen].astype(np.float64)
     phi, iterations, unobservable = _solve_angles(data, nominal)
-    tiles = np.arange(h)[:, None] * 8 // h * 8 + np.arange(w)[None, :] * 8 // w
-    tile_of = np.broadcast_to(tiles[..., None], chosen.shape)[chosen]
-    rng = np.random.default_rng(seed)
-    draws = []
-    for _ in range(bootstrap):
-        idx = np.concatenate([np.flatnonzero(tile_of == t) for t in rng.choice(64, 64)])
-        if idx.size >= 100:
-            draws.append(_solve_angles(data[:, idx], nominal)[0])
-    spread = np.degrees(np.std(draws, axis=0)) if draws else np.full(n, np.nan)
     errors = np.degrees(phi - nominal)
     remedy = ("the scene has too little polarized light against the noise, or its shots are not aligned. "
               "Calibrate on a scene with glare from glass or a polarizer target, from a tripod")
@@ -198,5 +189,14 @@ def estimate_shot_errors(stack: np.ndarray, nominal_deg: list[float], short_side
     if n >= 5 and unobservable is not None:
         raise CalibrationError("the images do not determine every shot's angle: one combination of the errors does "
                                f"not show in them; {remedy}")
+    tiles = np.arange(h)[:, None] * 8 // h * 8 + np.arange(w)[None, :] * 8 // w          # the fit is plausible: its spread
+    tile_of = np.broadcast_to(tiles[..., None], chosen.shape)[chosen]
+    rng = np.random.default_rng(seed)
+    draws = []
+    for _ in range(bootstrap):
+        idx = np.concatenate([np.flatnonzero(tile_of == t) for t in rng.choice(64, 64)])
+        if idx.size >= 100:
+            draws.append(_solve_angles(data[:, idx], nominal)[0])
+    spread = np.degrees(np.std(draws, axis=0)) if draws else np.full(n, np.nan)
     return ShotErrors(errors.tolist(), spread.tolist(), int(chosen.sum()), iterations,
                       None if unobservable is None else unobservable.tolist())

@@ -212,6 +212,9 @@ def baseline(module_name: str, s0_only: bool) -> Callable[..., tuple[Run, dict]]
     return make
 
 
+#: The methods that run a network (torch; tiles, precision, device).
+NETWORKS = ("network", "ceilnet")
+
 METHODS: dict[str, Callable[..., tuple[Run, dict]]] = {
     "network": network,
     "none": no_separation,

@@ -40,6 +40,9 @@ they were), on in training the physics-anchored network's gate (``configs/cpu-ga
   ../shared/data is present (else the photo);
 * ``mono_prob``: both layers grey (a mono polarization camera); ``defocus_prob``: the reflection
   out of focus (a Gaussian blur of σ 1–4 px per 128 px);
+* ``strength``: (lo, hi) > 0: the reflection scaled so that the observed layers' mean ratio
+  R_obs/T_obs is log-uniform in [lo, hi] (as `separate.semireal` draws it), instead of what the
+  photos, DR and the pane's reflectance give (a median near 0.18, rarely above 0.5);
 * ``reference_field``: the ANY modes present the shots at the estimated per-pixel reference
   field (`separate.reference.estimate_reference_field`, turned to φ⊥'s side in
   ANY_TRUE_SIDE), as `urd separate` does, instead of at one global reference; ``angles`` are
@@ -136,6 +139,7 @@ class SynthesisConfig:
     real_prob: float = 0.0
     mono_prob: float = 0.0
     defocus_prob: float = 0.0
+    strength: tuple[float, float] = (0.0, 0.0)
     incidence_estimate: bool = False
     incidence_error_deg: tuple[float, float] = (3.0, 1.5)
     incidence_failure: tuple[float, float] = (0.05, 0.3)
@@ -144,6 +148,9 @@ class SynthesisConfig:
     def __post_init__(self):
         self.angles = AngleMode(self.angles)
         self.shot_gain_log10, self.read_var_log10 = tuple(self.shot_gain_log10), tuple(self.read_var_log10)
+        self.strength = tuple(self.strength)
+        if len(self.strength) != 2 or self.strength != (0.0, 0.0) and not 0 < self.strength[0] <= self.strength[1]:
+            raise ValueError(f"expected strength (0, 0) (as drawn) or (lo, hi) with 0 < lo <= hi, got {self.strength}")
         if any(len(r) != 2 or r[0] > r[1] for r in (self.shot_gain_log10, self.read_var_log10)):
             raise ValueError(f"expected noise ranges (lo, hi) with lo <= hi, got {self.shot_gain_log10} and {self.read_var_log10}")
         if not self.angle_sets_deg or any(len(a) < 3 for a in self.angle_sets_deg):
@@ -456,6 +463,10 @@ class Synthesizer:
         else:
             parts = optics.pane_stokes(np.stack([refl, zeros, zeros]), stokes_t, theta, phi_perp, cfg.n)
             r_obs, t_obs = parts[0][0], parts[1][0]
+        if cfg.strength[1] > 0 and r_obs.mean() > 0:
+            scale = np.float32(np.exp(rng.uniform(*np.log(cfg.strength))) * t_obs.mean() / r_obs.mean())
+            refl, r_obs = refl * scale, r_obs * scale
+            parts = None if stokes_t is None else (parts[0] * scale, parts[1])
         shots = []
         for phi in angles:
             maps = smooth_warp_field(rng, p, cfg.nrd_grid, sigma) if deform else None

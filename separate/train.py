@@ -56,7 +56,7 @@ class TrainConfig:
     ``reference_field``, the sensor-noise ranges ``shot_gain_log10`` and ``read_var_log10`` and
     the gate's θ-estimate errors ``incidence_error_deg`` and ``incidence_failure``, and the
     scene's own polarization ``t_polarized_prob``, ``real_prob``, ``mono_prob`` and
-    ``defocus_prob`` are the synthesis settings of the same names (`separate.synthesis.SynthesisConfig`). ``workers``
+    ``defocus_prob`` and the reflection's ``strength`` are the synthesis settings of the same names (`separate.synthesis.SynthesisConfig`). ``workers``
     synthesis processes per rank feed the network (0: the rank synthesizes between steps; 0 and
     1 draw the same samples, K > 1 interleaves K seeded streams); ``schedule_minutes`` > 0 lets the
     learning rate's cosine end after that much training time where that comes before ``steps``
@@ -100,9 +100,10 @@ class TrainConfig:
     real_prob: float = 0.0
     mono_prob: float = 0.0
     defocus_prob: float = 0.0
+    strength: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self):
-        for name in ("shot_gain_log10", "read_var_log10", "incidence_error_deg", "incidence_failure"):
+        for name in ("shot_gain_log10", "read_var_log10", "incidence_error_deg", "incidence_failure", "strength"):
             setattr(self, name, tuple(getattr(self, name)))
 
     @classmethod
@@ -152,7 +153,7 @@ def synthesis_config(cfg: TrainConfig, pipeline: str | None = None) -> Synthesis
                                shot_gain_log10=cfg.shot_gain_log10, read_var_log10=cfg.read_var_log10,
                                incidence_error_deg=cfg.incidence_error_deg, incidence_failure=cfg.incidence_failure,
                                t_polarized_prob=cfg.t_polarized_prob, real_prob=cfg.real_prob, mono_prob=cfg.mono_prob,
-                               defocus_prob=cfg.defocus_prob)
+                               defocus_prob=cfg.defocus_prob, strength=cfg.strength)
 
 
 def validation_set(cfg: TrainConfig) -> dict[str, np.ndarray]:

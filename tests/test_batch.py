@@ -54,6 +54,17 @@ def test_separate_all_with_two_jobs_separates_every_scene_and_skips_done_ones(th
     assert refused.returncode == 2 and "--all alone" in refused.stderr
 
 
+def test_classical_methods_separate_without_importing_torch(three_scenes):
+    """torch costs ~2 s per process; `urd separate` imports it for the networks only."""
+    script = ("import sys\nfrom urd.cli import app\n"
+              f"try:\n    app(['separate', '--all', '--method', 'schechner', '--dataset', {str(three_scenes)!r}])\n"
+              "except SystemExit as exc:\n    assert exc.code in (0, None), exc.code\n"
+              "print('torch imported:', 'torch' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert "3 scenes separated with schechner" in out.stdout and "torch imported: False" in out.stdout
+
+
 def test_one_failing_scene_is_reported_and_the_others_go_on(three_scenes):
     aligned = sorted((three_scenes / "scene_02" / "aligned").iterdir())[0]
     aligned.write_bytes(aligned.read_bytes()[:-10] + b"0123456789")         # same size, other bytes

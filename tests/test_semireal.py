@@ -95,6 +95,20 @@ def test_polarized_training_samples_keep_r_plus_t_the_shots_s0(switch):
             np.testing.assert_allclose(t[..., 0], t[..., 2], atol=1e-6)
 
 
+@pytest.mark.parametrize("t_polarized_prob", [0.0, 1.0])
+def test_strength_sets_the_reflections_share_and_keeps_the_shots_consistent(t_polarized_prob):
+    pool = load_image_pool(None, 256)
+    cfg = _clean(SynthesisConfig(strength=(0.3, 0.6), abrupt_prob=0.0, t_polarized_prob=t_polarized_prob))
+    batch = Synthesizer(pool, cfg, seed=4).batch(6)
+    ratios = batch["r"].mean(axis=(1, 2, 3)) / batch["t"].mean(axis=(1, 2, 3))
+    assert np.all((ratios > 0.3 - 1e-4) & (ratios < 0.6 + 1e-4)), ratios
+    for obs, r, t, angles in zip(batch["obs"], batch["r"], batch["t"], batch["angles"]):
+        unclipped = (obs < 1.0).all(axis=0)                       # up to 1% of a sample's shots may clip
+        np.testing.assert_allclose((r + t)[unclipped], optics.stokes_from_images(obs, angles)[0][unclipped], atol=2e-5)
+    with pytest.raises(ValueError, match="strength"):
+        SynthesisConfig(strength=(0.5, 0.2))
+
+
 def test_new_switches_off_draw_the_paper_samples():
     """The polarization switches at 0 draw nothing: the same seed gives the same samples with a
     real pool handed in or not."""

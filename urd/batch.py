@@ -52,13 +52,14 @@ def targets(ds: Dataset, method: str, force: bool) -> tuple[list[Scene], list[Ba
 
 
 def _prepare(path: str, method: str, options: dict, reference: str | float, maps: bool, threads: int):
-    """Worker: prepare one scene (`urd.separation.prepare_scene`) on ``threads`` torch threads."""
-    import torch
-
-    from separate.methods import get_method
+    """Worker: prepare one scene (`urd.separation.prepare_scene`), a network on ``threads`` torch threads."""
+    from separate.methods import NETWORKS, get_method
     from urd.separation import prepare_scene
 
-    torch.set_num_threads(threads)
+    if method in NETWORKS:                      # the classical methods run without torch
+        import torch
+
+        torch.set_num_threads(threads)
     run, info = get_method(method, reference=reference, **options)
     return prepare_scene(Scene(Path(path)), method, run, info, reference, maps)
 

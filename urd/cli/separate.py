@@ -51,9 +51,7 @@ def separate(
       urd separate scene_01 --maps --reference global
       urd separate --images a.tif --images b.tif --images c.tif --angles 0,45,90 --transfer srgb
     """
-    from separate.infer import OVERLAP, check_tiling
-    from separate.methods import METHODS, get_method
-    from separate.precision import describe, resolve, resolve_device
+    from separate.methods import METHODS, NETWORKS, get_method
     from urd.core.images import Transfer
     from urd.core.raw import RAW_SUFFIXES
     from urd.separation import add_maps, check_out_folder, describe_incidence, sees_polarization_of, separate_images, separate_scene
@@ -74,28 +72,31 @@ def separate(
         raise usage("expected a scene name, --all or --images")
     if images and scene is not None:
         raise usage(f"expected a scene name or --images, not both (got {scene!r} and --images)")
-    networks = ("network", "ceilnet")
     unused = [f"--{name.replace('_', '-')}" for name in ("weights", "tile", "precision", "device", "colour_match")
               if given(ctx, name)]
-    if unused and method not in networks:
+    if unused and method not in NETWORKS:
         raise usage(f"{', '.join(unused)}: for the networks (network, ceilnet), not {method}")
     unused = [f"--{name}" for name in ("angles", "out", "transfer") if given(ctx, name)]
     if unused and not images:
         raise usage(f"{', '.join(unused)}: for --images; a scene's angles come from its manifest and its "
                                  "results go into the scene's results/METHOD/")
-    try:
-        network_device = resolve_device(device) if method in networks else None
-    except ValueError as exc:
-        raise bad("--device", str(exc)) from None
-    try:
-        chosen = resolve(precision, network_device or "cpu")
-    except ValueError as exc:
-        raise bad("--precision", str(exc)) from None
-    try:
-        if tile is not None and method in networks:
-            check_tiling(tile, OVERLAP)
-    except ValueError as exc:
-        raise bad("--tile", str(exc)) from None
+    network_device = chosen = None
+    if method in NETWORKS:                               # torch is imported for the networks only
+        from separate.infer import OVERLAP, check_tiling
+        from separate.precision import resolve, resolve_device
+        try:
+            network_device = resolve_device(device)
+        except ValueError as exc:
+            raise bad("--device", str(exc)) from None
+        try:
+            chosen = resolve(precision, network_device)
+        except ValueError as exc:
+            raise bad("--precision", str(exc)) from None
+        try:
+            if tile is not None:
+                check_tiling(tile, OVERLAP)
+        except ValueError as exc:
+            raise bad("--tile", str(exc)) from None
     transfer_rule = choice(Transfer, transfer, "--transfer")
     if return_copies is not None and method != "network":
         raise usage(f"--return-copies/--keep-copies is for the network, not {method}")
@@ -105,7 +106,7 @@ def separate(
             " (use --param theta_deg=DEG)" if method == "schechner" else ""))
     if incidence is not None and not 0 < incidence < 90:
         raise bad("--incidence", f"expected between 0 and 90 deg, got {incidence:g}")
-    if param and method in networks + ("none",):
+    if param and method in NETWORKS + ("none",):
         raise usage(f"--param is for the baselines; {method} takes its own options")
     params = parse_params(param or [])
     forced = parse_reference(reference)
@@ -135,7 +136,9 @@ def separate(
     def show(done: int, total: int) -> None:
         bar(done, total, f"separate ({method})")
 
-    if method in networks:
+    if method in NETWORKS:
+        from separate.precision import describe
+
         options = {"weights": weights, "tile": tile, "precision": chosen.value, "device": network_device.type,
                    "colour_match": colour_match, "progress": show,
                    **({"return_copies": return_copies, "incidence_deg": incidence} if method == "network" else {})}
@@ -169,12 +172,13 @@ def separate_dataset(dataset: Optional[Path], method: str, weights: Optional[Pat
                      reference, maps: bool, jobs: int, network_device=None) -> None:
     """``urd separate --all``: every scene that needs it (`urd.batch.separate_all`), one line per
     scene; exit 1 when any failed. ``network_device``: the networks' torch device."""
+    from separate.methods import NETWORKS
     from urd.batch import separate_all
 
     root = existing_dataset(dataset)
     options = ({"weights": weights, "tile": tile, "precision": chosen.value, "device": network_device.type,
                 "colour_match": colour_match, **({"return_copies": return_copies, "incidence_deg": incidence} if method == "network" else {})}
-               if method in ("network", "ceilnet") else params)
+               if method in NETWORKS else params)
     outcomes = run_guarded(separate_all, root, method, options, force, reference, maps, jobs, progress=TerminalProgress())
     for outcome in outcomes:
         typer.echo(f"{outcome.scene}: {outcome.state}{': ' + outcome.detail if outcome.detail else ''}")
