@@ -123,8 +123,9 @@ def _solve_angles(data: np.ndarray, nominal: np.ndarray, iterations: int = 100,
     for it in range(1, iterations + 1):  # noqa: B007 - the count of iterations is returned
         jac = np.stack([(_residual(phi + step * np.eye(n)[k], data) - r) / step for k in range(n)], axis=1)
         lam = lam if lam is not None else 1e-6 * float(np.sum(jac**2))
+        normal, gradient = jac.T @ jac, jac.T @ r          # the ridge step's normal equations (n × n)
         for _ in range(20):
-            delta = -np.linalg.lstsq(np.vstack([jac, np.sqrt(lam) * np.eye(n)]), np.concatenate([r, np.zeros(n)]), rcond=None)[0]
+            delta = -np.linalg.solve(normal + lam * np.eye(n), gradient)
             trial = phi + delta
             r_trial = _residual(trial, data)
             if r_trial @ r_trial < cost:
