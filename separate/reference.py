@@ -18,7 +18,9 @@ DoLP-weighted axial mean of 4·AoLP (no 90° ambiguity on the axis); the side is
 bound:
 
 * both orientations occur (``Basis.TAILS``): the one reaching the higher DoLP is the
-  reflection's (Δ/ρ > Δ/(1−ρ) below ~83°);
+  reflection's (Δ/ρ > Δ/(1−ρ) below ~83°). A scene's own polarization (a wooden wall's sheen,
+  foliage) can reach higher still along the other orientation, so where a method is at hand
+  `decide_side` checks this side as it checks an assumed one;
 * one orientation, more polarized than transmitted light can be (DoLP above
   `TRANSMISSION_DOLP_MAX`; ``Basis.STRONG``): the reflection's;
 * one orientation, weakly polarized (``Basis.TRANSMISSION``): ambiguous in principle (a
@@ -482,18 +484,24 @@ Trial = Callable[[np.ndarray, list[float], "float | np.ndarray"], tuple[np.ndarr
 
 def decide_side(images: np.ndarray, angles_deg: Sequence[float], inspection: "Inspection", trial: Trial,
                 use_field: bool = True) -> "Inspection":
-    """Settle an assumed side of φ⊥ by separating both (Schechner's criterion, on a trial
-    separation: a method's own, or for the network Schechner's inversion): where the side was
-    only assumed (``Basis.TRANSMISSION``: weak polarization of one orientation), ``trial``
+    """Settle a side of φ⊥ that the polarization alone does not by separating both (Schechner's
+    criterion, on a trial separation: a method's own, or for the network Schechner's inversion):
+    where the side was only assumed (``Basis.TRANSMISSION``: weak polarization of one
+    orientation) or read from the higher of two orientations' DoLP (``Basis.TAILS``), ``trial``
     separates the stack reduced to `TRIAL_SIDE` px at the reference (the field with
     ``use_field``, else the one angle) and at it + 90°, and the side whose layers share less
-    mutual information wins. Other bases come back unchanged.
+    mutual information wins. ``Basis.STRONG`` and ``Basis.NONE`` come back unchanged.
 
     Measured with the network's backbone as the trial on 48 synthetic scenes × 3 angle sets (the
     benchmark's patches): the network's T̂ was 0.78 dB below the true φ⊥ with the assumed side,
     0.40 dB with this decision; deciding every stack this way was worse (−1.1 dB), so the
     polarization's own evidence stays first where it is strong. Schechner's inversion as the
-    trial decides better still (`separate.methods.network`).
+    trial decides better still (`separate.methods.network`). With it, trying ``Basis.TAILS``
+    too turned 2 of the 3 wrong sides among the 10 TAILS stacks of the training-side semi-real
+    scenes (3, 4 and 6 shots) and none of the 7 right ones (the shipped network's T̂ on those
+    10: 26.20 → 28.39 dB), and moved the paper's synthetic set (bsds500-test, 64 × 256²) from
+    T̂ 32.13 / R̂ 35.22 to 32.22 / 34.80 dB; trying ``Basis.STRONG`` turned none of the 34
+    STRONG stacks there.
 
     Args:
         images: (N, H, W, C) linear shots (float, or uint16 codes).
@@ -506,7 +514,7 @@ def decide_side(images: np.ndarray, angles_deg: Sequence[float], inspection: "In
         ``inspection``, or one turned by 90° (estimate with ``Basis.TRIAL``, reference, field,
         presence map) with a note in its warnings.
     """
-    if inspection.estimate.basis is not Basis.TRANSMISSION:
+    if inspection.estimate.basis not in (Basis.TRANSMISSION, Basis.TAILS):
         return inspection
     small = reduced_stack(images, TRIAL_SIDE)
     field = field_at(inspection.field, small.shape[1:3]) if use_field else inspection.reference_deg
@@ -517,9 +525,11 @@ def decide_side(images: np.ndarray, angles_deg: Sequence[float], inspection: "In
     if scores[1] >= scores[0]:
         return inspection
     reference = float(np.mod(inspection.reference_deg + 90.0, 180.0))
-    note = (f"the side of the reference was decided by separating both: {reference:.1f} deg (the reflection dominates) "
-            f"gave layers sharing less information ({scores[1]:.3f} against {scores[0]:.3f} nats) than the assumed "
-            f"{inspection.reference_deg:.1f} deg; pass --reference {inspection.reference_deg:.1f} to keep the assumption "
+    assumed = inspection.estimate.basis is Basis.TRANSMISSION
+    read = "the assumed" if assumed else "the more strongly polarized orientation's"
+    note = (f"the side of the reference was decided by separating both: {reference:.1f} deg"
+            f"{' (the reflection dominates)' if assumed else ''} gave layers sharing less information ({scores[1]:.3f} against {scores[0]:.3f} nats) than {read} "
+            f"{inspection.reference_deg:.1f} deg; pass --reference {inspection.reference_deg:.1f} to keep that "
             "(one angle for the whole view)")
     warnings = [w for w in inspection.warnings if "urd assumes the transmission dominates" not in w] + [note]
     turned = inspect_stack(images, angles_deg, reference)                 # the presence map along the new side

@@ -2,6 +2,7 @@
 physics-anchored (Fresnel-gated) network."""
 
 import dataclasses
+from functools import partial
 
 import cv2
 import numpy as np
@@ -387,6 +388,37 @@ def pane(theta_deg, reflection_gain, transmission_gain, phi_perp_deg=30.0, h=192
     obs = np.stack([optics.render(refl, trans, np.radians(theta_deg), np.radians(phi_perp_deg), np.radians(a))
                     for a in angles]).astype(np.float32)
     return obs / obs.mean() * 0.2, angles
+
+
+def sheen_behind_pane(reflection, transmission, reflection_gain, sheen_dolp, h=192, w=288):
+    """Shots (0/45/90°) through a pane at 40° with φ⊥ 30° whose transmitted view has a sheen of its own
+    polarized across the glass's s-direction (at 120°), stronger than the reflection is polarized."""
+    refl = optics.photo_to_linear(cv2.resize(POOL[reflection], (w, h))) * reflection_gain
+    trans = optics.photo_to_linear(cv2.resize(POOL[transmission], (w, h)))
+    dolp = np.zeros((h, w, 1), np.float32)
+    dolp[60:120, 100:180] = sheen_dolp
+    stokes_t = optics.stokes_from_polarization(trans, dolp, np.radians(120.0)).astype(np.float32)
+    zeros = np.zeros_like(refl)
+    parts = optics.pane_stokes(np.stack([refl, zeros, zeros]), stokes_t, np.radians(40.0), np.radians(30.0))
+    angles = [0.0, 45.0, 90.0]
+    obs = np.stack([optics.intensity_from_stokes(parts[0] + parts[1], np.radians(a)) for a in angles]).astype(np.float32)
+    return obs / obs.mean() * 0.2, angles
+
+
+def test_a_side_read_from_the_higher_dolp_is_checked_by_separating_both():
+    from separate.reference import Basis, decide_side, inspect_stack
+
+    run, _ = get_method("schechner")
+    obs, angles = sheen_behind_pane(0, 3, 2.0, 0.6)          # the sheen reaches a higher DoLP than the reflection
+    inspection = inspect_stack(obs, angles)
+    assert inspection.estimate.basis is Basis.TAILS and abs(optics.axis_gap_deg(inspection.reference_deg, 120.0)) < 1.0
+    decided = decide_side(obs, angles, inspection, partial(run, trial=True))
+    assert decided.estimate.basis is Basis.TRIAL and abs(optics.axis_gap_deg(decided.reference_deg, 30.0)) < 1.0
+    assert any("than the more strongly polarized orientation's 120.0 deg" in w for w in decided.warnings)
+    obs, angles = sheen_behind_pane(1, 2, 1.0, 0.5)          # the reflection's orientation reaches higher: kept
+    inspection = inspect_stack(obs, angles)
+    assert inspection.estimate.basis is Basis.TAILS and abs(optics.axis_gap_deg(inspection.reference_deg, 30.0)) < 1.0
+    assert decide_side(obs, angles, inspection, partial(run, trial=True)) is inspection
 
 
 @pytest.mark.parametrize("method", ["network", "schechner"])
