@@ -4,9 +4,12 @@ Captures a scene of three DNG shots with the simulated rig (not timed), then run
 ``urd ingest`` (decode + align + write) and ``urd separate`` (load + network + write) each in
 its own process, timing the wall clock and reading the process's peak resident memory; the
 network runs at ``--precision`` (auto: bf16 where the CPU runs it natively, else fp32), the
-precision the CLI reports is printed.
+precision the CLI reports is printed. Last, the shipped network's FLOPs over ``urd separate``'s
+wall time (the whole command in a fresh process) against this CPU's fp32 matmul rate, measured
+after the commands (`tools/bench_speed.py`'s counts).
 
     python tools/bench_24mp.py [--size 6000x4000] [--folder /tmp/urd-bench] [--precision auto] [--tile N]
+    python tools/bench_24mp.py --size 2448x1632       # 4 MP
 """
 
 import argparse
@@ -56,3 +59,13 @@ print(f"CPU: {cpu_model()}, {os.cpu_count()} cores" + (f"; instruction sets capp
 print(f"scene {args.size}, 3 shots; network precision {precision}" + (f", tile {args.tile} px" if args.tile else ""))
 print(f"urd ingest   (decode + align + write):  {ingest_s:6.1f} s, peak memory {ingest_gb:.2f} GiB")
 print(f"urd separate (load + network + write):  {separate_s:6.1f} s, peak memory {separate_gb:.2f} GiB")
+import torch  # noqa: E402 - after the timed commands: this process stays out of their way
+
+from bench_speed import flops_per_mp, matmul_gflops  # noqa: E402 - tools/ is this script's folder
+from separate.infer import load_model  # noqa: E402
+
+width, height = (int(v) for v in args.size.split("x"))
+network_gflop = flops_per_mp(load_model()[0]) * width * height / 1e15
+fp32_rate = matmul_gflops(torch.float32, 5)[0]
+print(f"network {network_gflop:.0f} GFLOP in urd separate's {separate_s:.1f} s: {network_gflop / separate_s:.0f} GFLOP/s end to end, "
+      f"{network_gflop / separate_s / fp32_rate:.0%} of this CPU's fp32 matmul rate ({fp32_rate:.0f} GFLOP/s)")
