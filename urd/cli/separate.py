@@ -83,7 +83,7 @@ def separate(
     network_device = chosen = None
     if method in NETWORKS:                               # torch is imported for the networks only
         from separate.infer import OVERLAP, check_tiling
-        from separate.precision import resolve, resolve_device
+        from separate.precision import describe, resolve, resolve_device
         try:
             network_device = resolve_device(device)
         except ValueError as exc:
@@ -137,8 +137,6 @@ def separate(
         bar(done, total, f"separate ({method})")
 
     if method in NETWORKS:
-        from separate.precision import describe
-
         options = {"weights": weights, "tile": tile, "precision": chosen.value, "device": network_device.type,
                    "colour_match": colour_match, "progress": show,
                    **({"return_copies": return_copies, "incidence_deg": incidence} if method == "network" else {})}
