@@ -1,10 +1,8 @@
 """Full-resolution inference with the separation network.
 
-Images of any size are processed in overlapping tiles of equal size whose origins lie on the
-network's 8-pixel grid (so strided convolutions see the same pixels as on the whole image);
-each tile's output is weighted by a ramp that is ~0 near its borders (where the receptive field
-is cut) and the weights are normalized (their sum over the tiles is one at every pixel), which
-leaves no seams: with the default 160 px overlap, tiled and whole-image results agree within
+Images of any size are processed in overlapping tiles (`separate.tiling`: equal tiles on the
+network's 8-pixel grid, blended by ramps that are ~0 where a tile's receptive field is cut),
+which leaves no seams: with the default 160 px overlap, tiled and whole-image results agree within
 3.9e-5 in fp32 (781×776 px test image in 2 × 2 tiles of 512 px; 1.1e-3 with 128 px). Memory is bounded by the
 tile size, not the image size: besides the input stack and the two results, a tile takes about
 230 bytes per pixel of resident memory in bf16 and 310 in fp32 (measured on a 24 MP scene,
@@ -42,7 +40,6 @@ import ctypes.util
 import functools
 import hashlib
 import json
-import operator
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Sequence
@@ -54,15 +51,13 @@ from separate import optics
 from separate.model import TARGET_MEAN, ResBlock, ResizeUp, SeparationNet, canonical_inputs
 from separate.networks import build_model
 from separate.precision import Precision, gpu_tile, resolve
+from separate.tiling import OVERLAP, TILE, blend_weights, check_tiling, tile_spans
 from urd.core.errors import WeightsError
 
 if TYPE_CHECKING:
     from separate.incidence import Incidence
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
-TILE = 2048     # px: a 6000 × 4000 image takes 4 × 3 tiles (1.19× its pixels); see the module docstring
-OVERLAP = 160   # px between tiles: tiled and whole-image results agree within 3.9e-5 (fp32, module docstring)
-MIN_TILE = 128  # px: smaller tiles spend most of their pixels on the overlap
 #: Smallest span (deg, mod 180) of the shots' angles: re-rendering them at 0/45/90° from their
 #: Stokes fit raises the noise by 1.36× RMS (1.9× worst shot) at 0/35/70°, 1.9× (3×) at 0/30/60°;
 #: 0/45/90° with ±8° errors (calibrated angles) spans 74° at least.
@@ -346,59 +341,6 @@ def default_tile(model: torch.nn.Module, device: torch.device | str = "cpu", pre
     return TILE if isinstance(model, SeparationNet) and FusedNet.available() else MODULE_TILE
 
 
-def check_tiling(tile: int, overlap: int) -> tuple[int, int]:
-    """Validate tile size and overlap (px); return the tile rounded down to the 8-px grid and
-    the overlap. ValueError unless tile ≥ `MIN_TILE` and ≥ 2·overlap, and overlap ≥ 0."""
-    try:
-        tile, overlap = operator.index(tile), operator.index(overlap)
-    except TypeError:
-        raise TypeError(f"expected integer tile and overlap (px), got {tile!r} and {overlap!r}") from None
-    if overlap < 0:
-        raise ValueError(f"expected an overlap of at least 0 px, got {overlap}")
-    if tile // 8 * 8 < max(MIN_TILE, 2 * overlap):
-        raise ValueError(f"expected a tile of at least {max(MIN_TILE, 2 * overlap)} px (≥ {MIN_TILE} and ≥ 2 × "
-                         f"overlap {overlap}, rounded down to a multiple of 8), got {tile}")
-    return tile // 8 * 8, overlap
-
-
-def _ramp(length: int, overlap: int, at_start: bool, at_end: bool) -> np.ndarray:
-    """1-D blending weight at a border shared with another tile: ~0 over the first half of
-    ``overlap`` (pixels whose receptive field is cut by the tile border), then a linear rise."""
-    w = np.ones(length, np.float32)
-    if overlap == 0:
-        return w
-    margin = overlap // 2
-    ramp = np.clip((np.arange(overlap, dtype=np.float32) + 0.5 - margin) / (overlap - margin), 1e-6, 1.0)
-    if not at_start:
-        w[:overlap] = ramp
-    if not at_end:
-        w[-overlap:] = np.minimum(w[-overlap:], ramp[::-1])
-    return w
-
-
-def _blend_weights(spans: list[tuple[int, int]], size: int, overlap: int) -> list[np.ndarray]:
-    """Each span's ramp (`_ramp`) divided by the sum of all spans' ramps at each pixel, so that
-    the weights of the tiles covering a pixel sum to one (the 2-D weights are products)."""
-    ramps = [_ramp(end - start, overlap, start == 0, end == size) for start, end in spans]
-    total = np.zeros(size, np.float32)
-    for (start, end), ramp in zip(spans, ramps):
-        total[start:end] += ramp
-    return [ramp / total[start:end] for (start, end), ramp in zip(spans, ramps)]
-
-
-def tile_spans(size: int, tile: int, overlap: int) -> list[tuple[int, int]]:
-    """Tiles along one axis as (start, end) px: as few as tiles of at most ``tile`` px allow,
-    all of one length and evenly spread (no thin last tile), starts on the 8-px grid of the
-    network's down-sampling, neighbours overlapping by at least ``overlap``."""
-    if size <= tile:
-        return [(0, size)]
-    reach = overlap + 16                       # rounding both starts to the 8-px grid costs ≤ 15 px
-    n = -(-(size - reach) // (tile - reach))
-    length = -(-(size + (n - 1) * reach) // (8 * n)) * 8     # ≤ tile by the choice of n
-    starts = [i * (size - length) // (n - 1) // 8 * 8 for i in range(n - 1)] + [-(-(size - length) // 8) * 8]
-    return [(start, min(size, start + length)) for start in starts]
-
-
 @torch.inference_mode()
 def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[float], tile: int = TILE,
                    overlap: int = OVERLAP, precision: str = "auto",
@@ -505,7 +447,7 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
     # of each row of tiles, which on the development VM took 80-160 ms each (huge-page faults)
     r_out, t_out = (torch.zeros((h, w, c), dtype=torch.float32).numpy() for _ in range(2))
     rows, cols = tile_spans(h, tile, overlap), tile_spans(w, tile, overlap)
-    row_weights, col_weights = _blend_weights(rows, h, overlap), _blend_weights(cols, w, overlap)
+    row_weights, col_weights = blend_weights(rows, h, overlap), blend_weights(cols, w, overlap)
     done, total = 0, len(rows) * len(cols)
     for (y, y1), wy in zip(rows, row_weights):
         for (x, x1), wx in zip(cols, col_weights):

@@ -100,7 +100,8 @@ def network(weights: Path | None = None, tile: int | None = None, precision: str
     on the assumed-side stacks of 600 bsds500/val patches the network's T̂ was 32.94 dB with them
     against 31.78 with its own backbone's (bsds500-test: 33.89 against 33.38)."""
     from separate.copies import return_copies as returned
-    from separate.infer import OVERLAP, default_tile, load_model, match_histograms, separate_stack
+    from separate.infer import default_tile, load_model, match_histograms, separate_stack
+    from separate.tiling import OVERLAP
     from separate.precision import resolve, resolve_device
 
     target = resolve_device(device)

@@ -10,14 +10,19 @@ runs the network as an AVX2-only CPU would, which is how urd's AVX2 figures were
 Where the network runs (`Device`): ``auto`` takes a CUDA GPU where torch sees one, else the CPU;
 ``cuda`` without one is refused (`resolve_device`). On a GPU the network runs as a module,
 under bf16 autocast where the GPU has bf16, in tiles sized to its free memory (`gpu_tile`).
+
+The names are checked without torch (`parse_precision`, `parse_device`): the command line refuses
+a bad option at once; torch is imported where a device is looked at.
 """
 
 from __future__ import annotations
 
 import enum
 import os
+from typing import TYPE_CHECKING
 
-import torch
+if TYPE_CHECKING:
+    import torch
 
 #: oneDNN ISA caps (``ONEDNN_MAX_CPU_ISA``) at which bf16 convolutions run in hardware.
 BF16_ISAS = {"AVX512_CORE_BF16", "AVX512_CORE_FP16", "AVX10_1_512", "AVX512_CORE_AMX", "AVX10_1_512_AMX",
@@ -40,13 +45,20 @@ class Device(str, enum.Enum):
     CUDA = "cuda"
 
 
+def parse_device(device: str | Device) -> Device:
+    """The `Device` named ``device``; ValueError for other names (no torch needed)."""
+    try:
+        return Device(device)
+    except ValueError:
+        raise ValueError(f"expected device auto, cpu or cuda, got {device!r}") from None
+
+
 def resolve_device(device: str | Device) -> torch.device:
     """The torch device to run the network on (`Device`). ValueError for other names, and for
     ``cuda`` where torch sees no CUDA device (a CPU-only torch build, or no driver or GPU)."""
-    try:
-        choice = Device(device)
-    except ValueError:
-        raise ValueError(f"expected device auto, cpu or cuda, got {device!r}") from None
+    import torch
+
+    choice = parse_device(device)
     cuda = torch.cuda.is_available()
     if choice is Device.CUDA and not cuda:
         build = f"built with CUDA {torch.version.cuda}" if torch.version.cuda else "a CPU-only build"
@@ -75,6 +87,8 @@ def native_bf16(device: torch.device | str = "cpu") -> bool:
     """True where bfloat16 runs in hardware on ``device``: a CUDA device with bf16 support, or
     a CPU that torch reports with AVX-512 BF16 or AMX-BF16, unless oneDNN is capped below
     them (module docstring)."""
+    import torch
+
     device = torch.device(device)
     if device.type == "cuda":
         return torch.cuda.is_available() and torch.cuda.is_bf16_supported()
@@ -85,15 +99,20 @@ def native_bf16(device: torch.device | str = "cpu") -> bool:
     return bool(caps.get("avx512_bf16") or caps.get("amx_bf16"))
 
 
+def parse_precision(precision: str | Precision) -> Precision:
+    """The `Precision` named ``precision``; ValueError for other names (no torch needed)."""
+    try:
+        return Precision(precision)
+    except ValueError:
+        raise ValueError(f"expected precision auto, fp32 or bf16, got {precision!r}") from None
+
+
 def resolve(precision: str | Precision, device: torch.device | str = "cpu") -> Precision:
     """The precision to run: ``auto`` becomes bf16 where native (`native_bf16`), else fp32.
 
     Raises ValueError for names other than auto, fp32, bf16.
     """
-    try:
-        choice = Precision(precision)
-    except ValueError:
-        raise ValueError(f"expected precision auto, fp32 or bf16, got {precision!r}") from None
+    choice = parse_precision(precision)
     if choice is Precision.AUTO:
         return Precision.BF16 if native_bf16(device) else Precision.FP32
     return choice

@@ -14,7 +14,7 @@ import typer
 from typer.testing import CliRunner
 
 from separate.baselines import arvanitopoulos, kong, li_brown
-from separate.infer import MIN_TILE, OVERLAP
+from separate.tiling import MIN_TILE, OVERLAP
 from conftest import ingested_dataset
 from urd.cli import app
 from urd.core.dataset import Dataset
@@ -136,6 +136,24 @@ def test_argument_checks_come_before_the_existing_results_check(dataset):
     assert out.exit_code == 2 and f"at least {minimum} px" in out.stderr and "already has" not in out.stderr
     out = invoke("separate", "scene_01", "--dataset", dataset, "--method", "network", "--tile", minimum)
     assert out.exit_code == 1 and "already has network results" in out.stderr and "precision" not in out.stderr
+
+
+def test_the_networks_refusals_come_before_torch_is_imported(dataset, tmp_path):
+    """torch costs ~2 s per process: a command that is refused does not wait for it."""
+    invoke("separate", "scene_01", "--dataset", dataset)                  # the scene has network results
+    refused = [(["separate", "scene_01", "--dataset", str(dataset), "--precision", "fp16"], 2),
+               (["separate", "scene_01", "--dataset", str(dataset)], 1),
+               (["separate", "--images", "a.tiff", "--images", "b.tiff", "--out", "elsewhere"], 2),
+               (["bench", "--methods", "none,netwrk"], 2)]
+    script = ("import sys\nfrom urd.cli import app\n"
+              f"for args, _ in {refused!r}:\n"
+              "    try:\n        app(args)\n    except SystemExit as exc:\n        print('exit', exc.code)\n"
+              "print('torch imported:', 'torch' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=tmp_path)
+    assert out.stdout.split("\n")[:4] == [f"exit {code}" for _, code in refused], out.stdout + out.stderr
+    assert "torch imported: False" in out.stdout
+    for says in ("fp32 or bf16, got 'fp16'", "already has network results", "got 2 files", "unknown 'netwrk'"):
+        assert says in out.stderr
 
 
 def test_keep_copies_is_recorded_for_the_network_and_refused_for_a_baseline(dataset):

@@ -6,7 +6,8 @@ import torch
 from typer.testing import CliRunner
 
 from separate import precision
-from separate.infer import TILE, FusedNet, default_tile, load_model, runner
+from separate.infer import FusedNet, default_tile, load_model, runner
+from separate.tiling import TILE
 from separate.precision import Device, gpu_tile, resolve_device
 from urd.cli import app
 
@@ -45,8 +46,9 @@ def test_the_cpu_path_is_unchanged():
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on a machine without CUDA")
 def test_cli_device_cuda_without_cuda_exits_2_naming_the_way_out(tmp_path):
-    out = CliRunner().invoke(app, ["separate", "scene_01", "--dataset", str(tmp_path), "--device", "cuda"])
-    assert out.exit_code == 2
+    shots = [arg for k in range(3) for arg in ("--images", str(tmp_path / f"shot_{k}.tiff"))]   # refused before they are read
+    out = CliRunner().invoke(app, ["separate", *shots, "--out", str(tmp_path / "out"), "--device", "cuda"])
+    assert out.exit_code == 2 and not (tmp_path / "out").exists()
     assert "sees no CUDA device" in out.output and "--device cpu" in out.output
     out = CliRunner().invoke(app, ["separate", "scene_01", "--dataset", str(tmp_path), "--method", "kong",
                                    "--device", "cpu"])

@@ -301,7 +301,7 @@ if __name__ == "__main__":
 
     main()
 '''
-DELAY_S = 3
+DELAY_S = 2
 
 
 def children(pid):

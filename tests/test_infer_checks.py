@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from separate.infer import (OVERLAP, STRIP_ROWS, TILE, FusedNet, load_model, runner, separate_stack, shipped_weights,
-                            tile_spans)
+from separate.infer import STRIP_ROWS, FusedNet, load_model, runner, separate_stack, shipped_weights
+from separate.tiling import OVERLAP, TILE, tile_spans
 from separate.model import FresnelGate, ResizeUp, SeparationNet
 from urd.core.errors import WeightsError
 

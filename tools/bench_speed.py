@@ -39,7 +39,8 @@ import numpy as np
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
-from separate.infer import OVERLAP, TILE, FusedNet, load_model, separate_stack, tile_spans
+from separate.infer import FusedNet, load_model, separate_stack
+from separate.tiling import OVERLAP, TILE, tile_spans
 from separate.precision import Precision, describe, native_bf16, resolve
 from separate.provenance import cpu_model
 

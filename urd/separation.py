@@ -392,12 +392,8 @@ def separate_images(paths: list[Path], angles_deg: list[float], out: Path, run, 
     if len(paths) != len(angles_deg):
         raise ValueError(f"expected one angle per image ({len(paths)} images), got {len(angles_deg)} angles")
     check_out_folder(Path(out))
+    check_no_results_in(Path(out), force)
     check_writable(Path(out))
-    existing = sorted(p.name for p in Path(out).glob("*") if p.name in RESULT_NAMES or p.name == "maps") \
-        if Path(out).is_dir() and not force else []
-    if existing:
-        raise DatasetError(f"{out} already holds results ({', '.join(existing)}); pass --force to replace them, "
-                           "or another --out")
     loaded = [read_image(p, transfer) for p in paths]
     if len({im.shape for im in loaded}) > 1:
         raise ValueError(f"expected images of one size, got {[im.shape[:2] for im in loaded]}")
@@ -416,6 +412,16 @@ def separate_images(paths: list[Path], angles_deg: list[float], out: Path, run, 
         paths += write_maps(Path(out) / "maps", polarization, overwrite=force)
     _remove_replaced(Path(out), paths)
     return Separation(paths, inspection.reference_deg, inspection.warnings)
+
+
+def check_no_results_in(out: Path, force: bool = False) -> None:
+    """DatasetError, before any work, when the folder ``out`` holds results of an earlier run of
+    separating image files and not ``force``."""
+    existing = sorted(p.name for p in out.glob("*") if p.name in RESULT_NAMES or p.name == "maps") \
+        if out.is_dir() and not force else []
+    if existing:
+        raise DatasetError(f"{out} already holds results ({', '.join(existing)}); pass --force to replace them, "
+                           "or another --out")
 
 
 def check_writable(folder: Path) -> None:

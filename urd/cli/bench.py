@@ -9,7 +9,7 @@ from typing import Optional
 
 import typer
 
-from urd.cli.common import given, parse_seeds, run_guarded, usage, within
+from urd.cli.common import bad, given, parse_seeds, run_guarded, usage, within
 from urd.core.progress import TerminalProgress
 
 
@@ -46,6 +46,14 @@ def bench(
     """
     if large and not full:
         raise usage("--24mp goes with --full")
+    if given(ctx, "methods"):
+        from separate.methods import METHODS
+
+        known = sorted(METHODS) + ["direct"]
+        unknown = [m for m in methods.split(",") if m and "=" not in m and m not in known]
+        if unknown:
+            raise bad("--methods", f"unknown {', '.join(map(repr, unknown))}; expected some of {', '.join(known)}, "
+                                   "or LABEL=PATH for the network with other weights")
     if semireal:
         if virtual or quick or full or ablation or given(ctx, "count") or given(ctx, "size"):
             raise usage("--semireal goes alone (with --methods, --weights and --out): it has its own scenes")

@@ -54,7 +54,7 @@ def separate(
     from separate.methods import METHODS, NETWORKS, get_method
     from urd.core.images import Transfer
     from urd.core.raw import RAW_SUFFIXES
-    from urd.separation import add_maps, check_out_folder, describe_incidence, sees_polarization_of, separate_images, separate_scene
+    from urd.separation import add_maps, check_no_results_in, check_out_folder, describe_incidence, sees_polarization_of, separate_images, separate_scene
 
     if method not in METHODS:
         raise bad("--method", f"expected one of {', '.join(sorted(METHODS))}, got {method!r}")
@@ -80,23 +80,6 @@ def separate(
     if unused and not images:
         raise usage(f"{', '.join(unused)}: for --images; a scene's angles come from its manifest and its "
                                  "results go into the scene's results/METHOD/")
-    network_device = chosen = None
-    if method in NETWORKS:                               # torch is imported for the networks only
-        from separate.infer import OVERLAP, check_tiling
-        from separate.precision import describe, resolve, resolve_device
-        try:
-            network_device = resolve_device(device)
-        except ValueError as exc:
-            raise bad("--device", str(exc)) from None
-        try:
-            chosen = resolve(precision, network_device)
-        except ValueError as exc:
-            raise bad("--precision", str(exc)) from None
-        try:
-            if tile is not None:
-                check_tiling(tile, OVERLAP)
-        except ValueError as exc:
-            raise bad("--tile", str(exc)) from None
     transfer_rule = choice(Transfer, transfer, "--transfer")
     if return_copies is not None and method != "network":
         raise usage(f"--return-copies/--keep-copies is for the network, not {method}")
@@ -111,26 +94,52 @@ def separate(
     params = parse_params(param or [])
     forced = parse_reference(reference)
     angle_list = parse_angles(angles) if images else None
+    if method in NETWORKS:                               # the names only: torch comes after every check
+        from separate.precision import parse_device, parse_precision
+        from separate.tiling import OVERLAP, check_tiling
+        try:
+            parse_device(device)
+        except ValueError as exc:
+            raise bad("--device", str(exc)) from None
+        try:
+            parse_precision(precision)
+        except ValueError as exc:
+            raise bad("--precision", str(exc)) from None
+        try:
+            if tile is not None:
+                check_tiling(tile, OVERLAP)
+        except ValueError as exc:
+            raise bad("--tile", str(exc)) from None
+    if images and len(images) != len(angle_list):
+        raise usage(f"expected one --images file per angle of --angles {angles}, got {len(images)} files")
     if images:
         try:
             check_out_folder(out, method)
         except DatasetError as exc:
             raise bad("--out", str(exc)) from None
-    if images and len(images) != len(angle_list):
-        raise usage(f"expected one --images file per angle of --angles {angles}, got {len(images)} files")
+        run_guarded(check_no_results_in, out, force)
+    target = None if images or all_scenes else run_guarded(resolve_scene, scene, dataset)
+    adding_maps = target is not None and maps and not force and method in target.methods()
+    if target is not None and not force and not adding_maps:
+        run_guarded(target.check_no_results, method)
+    network_device = chosen = None
+    if method in NETWORKS:                               # torch is imported for the networks only, after the checks above
+        from separate.precision import describe, resolve, resolve_device
+        try:
+            network_device = resolve_device(device)
+        except ValueError as exc:
+            raise bad("--device", str(exc)) from None
+        chosen = resolve(precision, network_device)
     if all_scenes:
         separate_dataset(dataset, method, weights, tile, chosen, colour_match, return_copies, incidence, params, force,
                          forced, maps, jobs, network_device)
         return
-    target = None if images else run_guarded(resolve_scene, scene, dataset)
-    if target is not None and maps and not force and method in target.methods():
+    if adding_maps:
         result = run_guarded(add_maps, target, method, forced)
         typer.echo(f"added the polarization maps to {target.name}'s {method} results (a Stokes fit; not separated again)")
         for path in result.files:
             typer.echo(f"wrote {Path(path).resolve()}")
         return
-    if target is not None and not force:
-        run_guarded(target.check_no_results, method)
     bar = TerminalProgress()
 
     def show(done: int, total: int) -> None:
