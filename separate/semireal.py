@@ -12,7 +12,8 @@ Each scene (`SIZE`² crops, seeded, the same for every method):
 * the pane: θ and φ⊥ per pixel as the training synthesis draws them (`separate.synthesis.surface_maps`:
   flat or curved, a wide view turning φ⊥ in `PHI_FIELD_PROB` of scenes);
 * the reflection: an unpolarized photo, defocused in `DEFOCUS_PROB` of scenes, at a strength
-  R_obs/T_obs drawn log-uniform in `STRENGTH`; grey where the capture is mono;
+  R_obs/T_obs drawn log-uniform in `STRENGTH` (`FAINT_STRENGTH` in the faint-reflection row);
+  grey where the capture is mono;
 * the shots: 3, 4 or 6 angles (`SHOT_SETS_DEG`) from a random first angle, each off by up to
   ±`ANGLE_ERROR_DEG`, exposed to a mean S0/2 in [0.1, 0.35] (never clipped), with the training
   synthesis's shot and read noise; the methods get the nominal angles.
@@ -21,7 +22,8 @@ Conditions (rows): 3 shots (two scenes per capture), 4 and 6 shots (one each); t
 scene again with the transmitted layer made unpolarized (what the paper's synthesis shows), and,
 for colour captures, made grey (a mono camera: compared with the same scene in colour); and no
 glass: the real stack alone, whose answer is R = 0 (scored by the share of light a method puts
-into R̂, Σ R̂ / Σ S0).
+into R̂, Σ R̂ / Σ S0); and a 3-shot scene with a faint reflection, where the transmitted light's
+polarization can outweigh the reflection's and the side of φ⊥ is hardest to read.
 """
 
 from __future__ import annotations
@@ -46,6 +48,9 @@ SIZE = 256
 SHOT_SETS_DEG = {3: (0.0, 45.0, 90.0), 4: (0.0, 45.0, 90.0, 135.0), 6: (0.0, 30.0, 60.0, 90.0, 120.0, 150.0)}
 ANGLE_ERROR_DEG = 2.0
 STRENGTH = (0.15, 1.0)
+#: R_obs/T_obs of the faint-reflection scenes: a shop window in daylight, where the transmitted
+#: light, polarized by the pane and by the scene, can outweigh the reflection's polarization.
+FAINT_STRENGTH = (0.02, 0.15)
 DEFOCUS_PROB = 0.3
 PHI_FIELD_PROB = 0.3
 DEFAULT_METHODS = ("none", "schechner", "kong", "farid", "network")
@@ -95,9 +100,11 @@ def shoot(rng: np.random.Generator, stokes: np.ndarray, offsets_deg: Sequence[fl
 
 
 def glass_scene(rng: np.random.Generator, stokes_t: np.ndarray, photo: np.ndarray, offsets_deg: Sequence[float],
-                mono: bool) -> tuple[np.ndarray, list[float], np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                mono: bool, strength_range: tuple[float, float] = STRENGTH,
+                ) -> tuple[np.ndarray, list[float], np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """A real view (Stokes crop (3, P, P, 3)) behind a pane reflecting ``photo`` (uint8 RGB):
-    (shots, nominal angles (deg), R_obs, T_obs, θ, φ⊥) as the module docstring draws them."""
+    (shots, nominal angles (deg), R_obs, T_obs, θ, φ⊥) as the module docstring draws them, the
+    mean R_obs/T_obs log-uniform in ``strength_range``."""
     size = stokes_t.shape[1]
     refl = optics.photo_to_linear(random_crop(rng, photo, size))
     if mono:
@@ -107,7 +114,7 @@ def glass_scene(rng: np.random.Generator, stokes_t: np.ndarray, photo: np.ndarra
     theta, phi_perp = surface_maps(rng, SynthesisConfig(patch=size, phi_field_prob=PHI_FIELD_PROB))
     zeros = np.zeros_like(refl)
     part_r, part_t = optics.pane_stokes(np.stack([refl, zeros, zeros]), stokes_t, theta, phi_perp)
-    strength = np.exp(rng.uniform(*np.log(STRENGTH))) * float(part_t[0].mean()) / max(float(part_r[0].mean()), 1e-6)
+    strength = np.exp(rng.uniform(*np.log(strength_range))) * float(part_t[0].mean()) / max(float(part_r[0].mean()), 1e-6)
     light = part_r * strength + part_t
     shots, angles, exposure = shoot(rng, light, offsets_deg)
     return shots, angles, part_r[0] * strength * exposure, part_t[0] * exposure, theta, phi_perp
@@ -146,6 +153,10 @@ def make_scenes(captures: Sequence[samples.Capture] | None = None, size: int = S
         crop = crop_stokes(rng, stokes, clipped, 2 * size)
         shots, angles, exposure = shoot(rng, crop, SHOT_SETS_DEG[3])
         scenes.append(Scene(capture.name, "no glass", 0, shots, angles, np.zeros_like(crop[0]), crop[0] * exposure))
+        crop = crop_stokes(rng, stokes, clipped, size)                  # drawn last: the scenes above stay as they were
+        photo = photos[int(rng.integers(len(photos)))]
+        scenes.append(Scene(capture.name, "3 shots, faint reflection", 0,
+                            *glass_scene(rng, crop, photo, SHOT_SETS_DEG[3], capture.mono, FAINT_STRENGTH)))
     if progress:
         progress(len(captures), len(captures), "semi-real scenes")
     return scenes
