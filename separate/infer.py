@@ -404,7 +404,7 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
                              f"{theta_deg if np.ndim(theta_deg) == 0 else f'a map of shape {np.shape(theta_deg)}'}")
         else:
             full = np.full((h, w), theta_deg, np.float32) if np.ndim(theta_deg) == 0 else field_at(theta_deg, (h, w))
-            theta = torch.from_numpy(np.radians(full))
+            theta = torch.from_numpy(np.radians(full, out=full))          # in place: one full-size map, not two
     run = runner(model, precision, device)
     mono = c == 1 or _equal_channels(images)
     angles = [float(a) for a in np.radians(angles_deg)]
@@ -417,7 +417,7 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
     if field:
         mixing = np.linalg.pinv(optics.stokes_matrix(angles)).astype(np.float32)           # shots → Stokes
         rendering = torch.from_numpy(optics.stokes_matrix(np.radians(optics.PAPER_ANGLES_DEG)).astype(np.float32))
-        reference_rad = np.radians(np.asarray(reference_deg, np.float32))
+        reference_field = np.asarray(reference_deg, np.float32)         # to radians a tile at a time (no full-size copy)
         angles = [float(a) for a in np.radians(optics.PAPER_ANGLES_DEG)]
     elif reference_deg is not None:
         from separate.presentation import presented_angles_deg, presenting_matrix
@@ -438,7 +438,7 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
         shots = shots.permute(0, 3, 1, 2).to(torch.float32, memory_format=torch.contiguous_format)
         out = torch.matmul(mixing, shots.view(n, -1)).view(len(mixing), c, y1 - y, x1 - x)
         if rendering is not None:                           # Stokes → each pixel's frame → its 0/45/90° shots
-            local = optics.rotate_stokes(out, torch.from_numpy(reference_rad[y:y1, x:x1]))
+            local = optics.rotate_stokes(out, torch.from_numpy(np.radians(reference_field[y:y1, x:x1])))
             out = torch.matmul(rendering, local.reshape(3, -1)).view(3, c, y1 - y, x1 - x)
         out = out.clamp_(min=0.0)[None]
         return out.expand(-1, -1, model.channels, -1, -1) if c == 1 else out
