@@ -8,8 +8,11 @@ precision the CLI reports is printed. Last, the shipped network's FLOPs over ``u
 wall time (the whole command in a fresh process) against this CPU's fp32 matmul rate, measured
 after the commands (`tools/bench_speed.py`'s counts).
 
-    python tools/bench_24mp.py [--size 6000x4000] [--folder /tmp/urd-bench] [--precision auto] [--tile N]
-    python tools/bench_24mp.py --size 2448x1632       # 4 MP
+    python tools/bench_24mp.py [--size 6000x4000] [--folder /tmp/urd-bench] [--precision auto] [--tile N] [--runs N]
+    python tools/bench_24mp.py --size 2448x1632 --runs 3       # 4 MP, three separations
+
+Single runs on a shared 2-core machine spread by 5-15%: ``--runs N`` separates the scene N
+times (each a fresh process, ``--force`` after the first) and prints every run and the median.
 """
 
 import argparse
@@ -45,6 +48,7 @@ parser.add_argument("--size", default="6000x4000")
 parser.add_argument("--folder", default="/tmp/urd-bench-24mp")
 parser.add_argument("--precision", default="auto", choices=["auto", "fp32", "bf16"])
 parser.add_argument("--tile", type=int, default=None, help="network tile (px); default: the CLI's")
+parser.add_argument("--runs", type=int, default=1, help="separations of the scene, each in a fresh process")
 args = parser.parse_args()
 shutil.rmtree(args.folder, ignore_errors=True)
 subprocess.run([sys.executable, "-m", "urd.cli", "capture", args.folder, "--stage", "sim", "--camera", "virtual",
@@ -52,12 +56,18 @@ subprocess.run([sys.executable, "-m", "urd.cli", "capture", args.folder, "--stag
 scene = os.path.join(args.folder, "scene_01")
 ingest_s, ingest_gb, _ = run(["ingest", scene])
 separate_args = ["separate", "scene_01", "--dataset", args.folder, "--precision", args.precision]
-separate_s, separate_gb, log = run(separate_args + (["--tile", str(args.tile)] if args.tile else []))
+if args.runs < 1:
+    sys.exit(f"expected --runs of at least 1, got {args.runs}")
+separations = [run(separate_args + (["--tile", str(args.tile)] if args.tile else []) + (["--force"] if k else []))
+               for k in range(args.runs)]
+separate_s, separate_gb, log = sorted(separations)[len(separations) // 2]          # the median run (upper for even N)
 precision = next((line.split(":", 1)[1].strip() for line in log.splitlines() if line.startswith("precision:")), args.precision)
 capped = [f"{k}={os.environ[k]}" for k in ("ONEDNN_MAX_CPU_ISA", "ATEN_CPU_CAPABILITY", "MKL_ENABLE_INSTRUCTIONS") if k in os.environ]
 print(f"CPU: {cpu_model()}, {os.cpu_count()} cores" + (f"; instruction sets capped: {' '.join(capped)}" if capped else ""))
 print(f"scene {args.size}, 3 shots; network precision {precision}" + (f", tile {args.tile} px" if args.tile else ""))
 print(f"urd ingest   (decode + align + write):  {ingest_s:6.1f} s, peak memory {ingest_gb:.2f} GiB")
+if args.runs > 1:
+    print("urd separate runs: " + ", ".join(f"{seconds:.1f} s" for seconds, _, _ in separations) + "; the median below")
 print(f"urd separate (load + network + write):  {separate_s:6.1f} s, peak memory {separate_gb:.2f} GiB")
 import torch  # noqa: E402 - after the timed commands: this process stays out of their way
 
