@@ -40,6 +40,12 @@ they were), on in training the physics-anchored network's gate (``configs/cpu-ga
   ../shared/data is present (else the photo);
 * ``mono_prob``: both layers grey (a mono polarization camera); ``defocus_prob``: the reflection
   out of focus (a Gaussian blur of σ 1–4 px per 128 px);
+* ``mosaic_prob`` (ANY modes): the shots taken by a polarization-mosaic sensor, as most
+  polarization cameras take them (`through_mosaic`): the sample drawn at twice the patch size
+  with the sensor's four angles 0/45/90/135° (from a random first angle, which is the same as a
+  random φ⊥), noise per sensor pixel, one angle per pixel (IMX250MZR for a grey sample, the
+  colour IMX250MYR otherwise), demosaiced at half size as `urd ingest` does (Newton: each 2×2
+  cell's mean), its layers and θ averaged over the same cells;
 * ``strength``: (lo, hi) > 0: the reflection scaled so that the observed layers' mean ratio
   R_obs/T_obs is log-uniform in [lo, hi] (as `separate.semireal` draws it), instead of what the
   photos, DR and the pane's reflectance give (a median near 0.18, rarely above 0.5);
@@ -71,6 +77,7 @@ from separate.optics import parabola_aoi, photo_to_linear
 from separate.reference import INCIDENCE_RANGE_DEG, inspect_stack
 from separate.presentation import field_at, present, present_field
 from urd.core import samples
+from urd.core.mosaic import ANGLES_DEG as MOSAIC_ANGLES_DEG, Demosaic, MosaicLayout, build_mosaic, demosaic
 
 SHARED_NATURAL = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "natural"
 #: scikit-image photos that ship with the package (no download): the fallback image pool.
@@ -138,6 +145,7 @@ class SynthesisConfig:
     t_dolp_max: float = 0.6
     real_prob: float = 0.0
     mono_prob: float = 0.0
+    mosaic_prob: float = 0.0
     defocus_prob: float = 0.0
     strength: tuple[float, float] = (0.0, 0.0)
     incidence_estimate: bool = False
@@ -153,6 +161,9 @@ class SynthesisConfig:
             raise ValueError(f"expected strength (0, 0) (as drawn) or (lo, hi) with 0 < lo <= hi, got {self.strength}")
         if any(len(r) != 2 or r[0] > r[1] for r in (self.shot_gain_log10, self.read_var_log10)):
             raise ValueError(f"expected noise ranges (lo, hi) with lo <= hi, got {self.shot_gain_log10} and {self.read_var_log10}")
+        if self.mosaic_prob > 0 and (self.angles is AngleMode.CLASSIC or self.patch % 2):
+            raise ValueError(f"expected mosaic samples in an ANY angle mode with an even patch, got angles "
+                             f"{self.angles.value!r} and patch {self.patch}")
         if not self.angle_sets_deg or any(len(a) < 3 for a in self.angle_sets_deg):
             raise ValueError(f"expected angle sets of at least 3 angles each, got {self.angle_sets_deg}")
 
@@ -411,13 +422,19 @@ class Synthesizer:
         if real is None and cfg.real_prob > 0:
             real = real_pool("train")
         self.real = [entry for entry in (real or []) if min(entry[0].shape[1:3]) >= cfg.patch]
+        self.mosaic = None                       # the twin that draws mosaic samples at twice the size
+        if cfg.mosaic_prob > 0:
+            twin = dataclasses.replace(cfg, patch=2 * cfg.patch, mosaic_prob=0.0, angle_sets_deg=(MOSAIC_ANGLES_DEG,))
+            self.mosaic = Synthesizer(pool, twin, seed, real=real or [])
+            self.mosaic.rng = self.rng
 
     def sample(self) -> dict[str, np.ndarray]:
         """One accepted sample (rejected draws are counted in ``self.rejected``)."""
         while True:
-            sample = self._draw()
-            if sample is not None:
-                return sample
+            mosaic = self.mosaic is not None and self.rng.random() < self.cfg.mosaic_prob
+            parts = self.mosaic._draw() if mosaic else self._draw()
+            if parts is not None:
+                return self._finish(*(through_mosaic(*parts) if mosaic else parts))
             self.rejected += 1
 
     def batch(self, size: int) -> dict[str, np.ndarray]:
@@ -425,7 +442,9 @@ class Synthesizer:
         samples = [self.sample() for _ in range(size)]
         return {k: np.stack([s[k] for s in samples]) for k in samples[0]}
 
-    def _draw(self) -> dict[str, np.ndarray] | None:
+    def _draw(self) -> tuple[np.ndarray, ...] | None:
+        """A sample's parts before `_finish` (shots, R_obs, T_obs, nominal and true angles, θ, φ⊥),
+        or None for a rejected draw."""
         cfg, rng, p = self.cfg, self.rng, self.cfg.patch
         if cfg.no_glass_prob > 0 and rng.random() < cfg.no_glass_prob:
             return self._draw_no_glass()
@@ -479,7 +498,7 @@ class Synthesizer:
             shots.append(optics.intensity_from_stokes(parts[0] + parts[1], float(phi)))
         obs = np.stack(shots).astype(np.float32)
         exposed = self._expose(obs, r_obs, t_obs)
-        return None if exposed is None else self._finish(*exposed, nominal, angles, theta, phi_perp)
+        return None if exposed is None else (*exposed, nominal, angles, theta, phi_perp)
 
     def _transmitted(self, photo: np.ndarray) -> np.ndarray | None:
         """The transmitted light's Stokes stack (3, P, P, 3) where the sample's transmitted layer
@@ -515,7 +534,7 @@ class Synthesizer:
             return None
         return np.clip(obs, 0.0, 1.0).astype(np.float32), r_obs, t_obs
 
-    def _draw_no_glass(self) -> dict[str, np.ndarray] | None:
+    def _draw_no_glass(self) -> tuple[np.ndarray, ...] | None:
         """A view with no glass: one photo with a smooth polarization of its own, or a real capture's
         crop (``real_prob``) (module docstring)."""
         cfg, rng, p = self.cfg, self.rng, self.cfg.patch
@@ -535,7 +554,7 @@ class Synthesizer:
         obs = np.stack([optics.intensity_from_stokes(stokes, float(phi)) for phi in angles]).astype(np.float32)
         exposed = self._expose(obs, np.zeros_like(photo), photo)
         zeros = np.zeros((p, p), np.float32)
-        return None if exposed is None else self._finish(*exposed, nominal, angles, zeros, zeros)
+        return None if exposed is None else (*exposed, nominal, angles, zeros, zeros)
 
     def _finish(self, obs: np.ndarray, r_obs: np.ndarray, t_obs: np.ndarray, nominal: np.ndarray, angles: np.ndarray,
                 theta: np.ndarray, phi_perp: np.ndarray) -> dict[str, np.ndarray]:
@@ -566,6 +585,26 @@ class Synthesizer:
         if cfg.incidence_estimate:
             sample["theta_est"] = perturbed_incidence(self.rng, theta, cfg.incidence_error_deg, cfg.incidence_failure)
         return sample
+
+
+def through_mosaic(obs: np.ndarray, r_obs: np.ndarray, t_obs: np.ndarray, nominal: np.ndarray, angles: np.ndarray,
+                   theta: np.ndarray, phi_perp: np.ndarray) -> tuple[np.ndarray, ...]:
+    """A sample's parts drawn at 2P with four shots at a mosaic sensor's 0/45/90/135° (from any
+    first angle) as the sensor and `urd ingest` give them: one angle per pixel (and, for a
+    colour sample, one colour; `urd.core.mosaic.build_mosaic`: IMX250MZR where the layers are
+    grey, else IMX250MYR), demosaiced at half size (Newton, each 2×2 cell's mean); the layers
+    and θ averaged over the same cells, φ⊥ as an axis. Returns the parts at P."""
+    mono = all(np.array_equal(x[..., 0], x[..., k]) for x in (r_obs, t_obs) for k in (1, 2))   # noise differs per channel
+    layout = MosaicLayout.IMX250MZR if mono else MosaicLayout.IMX250MYR
+    stack, _ = demosaic(build_mosaic(obs[..., :1] if mono else obs, layout), layout, Demosaic.NEWTON)
+    stack = np.repeat(stack, 3, axis=-1) if mono else stack
+
+    def cells(x: np.ndarray) -> np.ndarray:
+        return x.reshape(x.shape[0] // 2, 2, x.shape[1] // 2, 2, *x.shape[2:]).mean(axis=(1, 3))
+
+    phi = np.angle(cells(np.exp(2j * phi_perp.astype(np.float64)))) / 2 % np.pi
+    return (stack.astype(np.float32), *(cells(x).astype(np.float32) for x in (r_obs, t_obs)), nominal, angles,
+            cells(theta).astype(np.float32), phi.astype(np.float32))
 
 
 def circular_mean_deg(axis_rad: np.ndarray) -> float:

@@ -55,7 +55,7 @@ class TrainConfig:
     network's gate alone, the rest frozen) or "backbone" (all but the gate). ``phi_field_prob``, ``no_glass_prob``,
     ``reference_field``, the sensor-noise ranges ``shot_gain_log10`` and ``read_var_log10`` and
     the gate's θ-estimate errors ``incidence_error_deg`` and ``incidence_failure``, and the
-    scene's own polarization ``t_polarized_prob``, ``real_prob``, ``mono_prob`` and
+    scene's own polarization ``t_polarized_prob``, ``real_prob``, ``mono_prob``, ``mosaic_prob`` and
     ``defocus_prob`` and the reflection's ``strength`` are the synthesis settings of the same names (`separate.synthesis.SynthesisConfig`). ``workers``
     synthesis processes per rank feed the network (0: the rank synthesizes between steps; 0 and
     1 draw the same samples, K > 1 interleaves K seeded streams); ``schedule_minutes`` > 0 lets the
@@ -99,6 +99,7 @@ class TrainConfig:
     t_polarized_prob: float = 0.0
     real_prob: float = 0.0
     mono_prob: float = 0.0
+    mosaic_prob: float = 0.0
     defocus_prob: float = 0.0
     strength: tuple[float, float] = (0.0, 0.0)
 
@@ -153,7 +154,7 @@ def synthesis_config(cfg: TrainConfig, pipeline: str | None = None) -> Synthesis
                                shot_gain_log10=cfg.shot_gain_log10, read_var_log10=cfg.read_var_log10,
                                incidence_error_deg=cfg.incidence_error_deg, incidence_failure=cfg.incidence_failure,
                                t_polarized_prob=cfg.t_polarized_prob, real_prob=cfg.real_prob, mono_prob=cfg.mono_prob,
-                               defocus_prob=cfg.defocus_prob, strength=cfg.strength)
+                               mosaic_prob=cfg.mosaic_prob, defocus_prob=cfg.defocus_prob, strength=cfg.strength)
 
 
 def validation_set(cfg: TrainConfig) -> dict[str, np.ndarray]:

@@ -9,7 +9,7 @@ from typer.testing import CliRunner
 
 from conftest import SHARED_DATA
 from separate import optics, semireal
-from separate.synthesis import Synthesizer, SynthesisConfig, load_image_pool, own_polarization, turn_stokes
+from separate.synthesis import Synthesizer, SynthesisConfig, load_image_pool, own_polarization, through_mosaic, turn_stokes
 from urd.cli import app
 from urd.core import samples
 
@@ -118,6 +118,27 @@ def test_new_switches_off_draw_the_paper_samples():
     b = Synthesizer(pool, SynthesisConfig(), seed=5, real=[(stokes, np.zeros((200, 200), bool), False)]).batch(3)
     for key in a:
         np.testing.assert_array_equal(a[key], b[key])
+
+
+def test_mosaic_samples_come_as_urd_ingest_gives_them():
+    pool = load_image_pool(None, 512)
+    cfg = _clean(SynthesisConfig(angles="any-true-side", patch=64, mosaic_prob=1.0, mono_prob=0.5, no_glass_prob=0.3))
+    batch = Synthesizer(pool, cfg, seed=2).batch(8)
+    assert batch["obs"].shape == (8, 3, 64, 64, 3) and (batch["shots"] == 4).all()
+    for obs, r, t, angles in zip(batch["obs"], batch["r"], batch["t"], batch["angles"]):
+        grey = all(np.array_equal(x[..., 0], x[..., k]) for x in (r, t) for k in (1, 2))
+        assert grey == np.array_equal(obs[..., 0], obs[..., 1])            # IMX250MZR for grey layers, IMX250MYR else
+        error = np.abs(optics.stokes_from_images(obs, angles)[0] - (r + t)).mean() / (r + t).mean()
+        assert 1e-4 < error < (0.03 if grey else 0.15)                    # demosaiced, close to the cells' means
+    # shots constant over the frame come back as they were; φ⊥ is averaged as an axis (0.01 and π − 0.01 → ~0)
+    shots = np.ones((4, 8, 8, 3), np.float32) * np.float32([0.2, 0.3, 0.4, 0.3])[:, None, None, None]
+    layer = np.full((8, 8, 3), 0.25, np.float32)
+    phi = np.tile(np.float32([0.01, np.pi - 0.01]), (8, 4))
+    out = through_mosaic(shots, layer, layer, np.zeros(4), np.zeros(4), np.full((8, 8), 0.5, np.float32), phi)
+    np.testing.assert_allclose(out[0], shots[:, :4, :4], atol=1e-6)
+    assert out[1].shape == (4, 4, 3) and np.allclose(out[5], 0.5) and (np.minimum(out[6], np.pi - out[6]) < 1e-3).all()
+    with pytest.raises(ValueError, match="ANY angle mode"):
+        SynthesisConfig(mosaic_prob=0.5)
 
 
 @needs_captures
