@@ -77,7 +77,7 @@ from separate.optics import parabola_aoi, photo_to_linear
 from separate.reference import INCIDENCE_RANGE_DEG, inspect_stack
 from separate.presentation import field_at, present, present_field
 from urd.core import samples
-from urd.core.mosaic import ANGLES_DEG as MOSAIC_ANGLES_DEG, Demosaic, MosaicLayout, build_mosaic, demosaic
+from urd.core.mosaic import ANGLES_DEG as MOSAIC_ANGLES_DEG, Demosaic, MosaicLayout, build_mosaic, cell_means, demosaic
 
 SHARED_NATURAL = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "natural"
 #: scikit-image photos that ship with the package (no download): the fallback image pool.
@@ -598,13 +598,9 @@ def through_mosaic(obs: np.ndarray, r_obs: np.ndarray, t_obs: np.ndarray, nomina
     layout = MosaicLayout.IMX250MZR if mono else MosaicLayout.IMX250MYR
     stack, _ = demosaic(build_mosaic(obs[..., :1] if mono else obs, layout), layout, Demosaic.NEWTON)
     stack = np.repeat(stack, 3, axis=-1) if mono else stack
-
-    def cells(x: np.ndarray) -> np.ndarray:
-        return x.reshape(x.shape[0] // 2, 2, x.shape[1] // 2, 2, *x.shape[2:]).mean(axis=(1, 3))
-
-    phi = np.angle(cells(np.exp(2j * phi_perp.astype(np.float64)))) / 2 % np.pi
-    return (stack.astype(np.float32), *(cells(x).astype(np.float32) for x in (r_obs, t_obs)), nominal, angles,
-            cells(theta).astype(np.float32), phi.astype(np.float32))
+    phi = np.angle(cell_means(np.exp(2j * phi_perp.astype(np.float64)))) / 2 % np.pi
+    return (stack, *(cell_means(x).astype(np.float32) for x in (r_obs, t_obs)), nominal, angles,
+            cell_means(theta).astype(np.float32), phi.astype(np.float32))
 
 
 def circular_mean_deg(axis_rad: np.ndarray) -> float:

@@ -199,8 +199,16 @@ def demosaic(frame: np.ndarray, layout: MosaicLayout | str, method: Demosaic | s
     if method is Demosaic.NEWTON:
         np.clip(stack, float(data.min()), float(data.max()), out=stack)
     if half_size:
-        stack = (stack[:, 0::2, 0::2] + stack[:, 0::2, 1::2] + stack[:, 1::2, 0::2] + stack[:, 1::2, 1::2]) * np.float32(0.25)
+        stack = cell_means(stack, axis=1)
     return np.ascontiguousarray(stack, dtype=np.float32), list(ANGLES_DEG)
+
+
+def cell_means(x: np.ndarray, axis: int = 0) -> np.ndarray:
+    """The mean of each 2×2 cell of axes ``axis`` and ``axis + 1`` (even lengths): half size there."""
+    def part(r: int, c: int) -> tuple[slice, ...]:
+        return (slice(None),) * axis + (slice(r, None, 2), slice(c, None, 2))
+
+    return (x[part(0, 0)] + x[part(0, 1)] + x[part(1, 0)] + x[part(1, 1)]) * np.float32(0.25)
 
 
 def _describe(value) -> str:
