@@ -181,11 +181,12 @@ def test_codes_read_only_and_reversed_stacks_separate_as_their_float_values():
     read_only = codes.copy()
     read_only.flags.writeable = False
     reversed_rows = codes[:, ::-1].copy()[:, ::-1]               # the same values, negative row strides
-    assert reversed_rows.strides[1] < 0
+    reversed_floats = floats[:, ::-1].copy()[:, ::-1]           # floats are wrapped, not converted: a copy is needed
+    assert reversed_rows.strides[1] < 0 and reversed_floats.strides[1] < 0
     with warnings.catch_warnings():
         warnings.simplefilter("error")                           # torch warns on a read-only array it would wrap
         big_endian = codes.astype(">u2")
-    for stack in (codes, read_only, reversed_rows, big_endian):
+    for stack in (codes, read_only, reversed_rows, reversed_floats, big_endian):
             r_got, t_got = separate_stack(model, stack, [0, 45, 90], tile=128, overlap=32, precision="fp32", reference_deg=20.0)
             np.testing.assert_allclose(r_got, r_want, atol=1e-5)
             np.testing.assert_allclose(t_got, t_want, atol=1e-5)
