@@ -1,7 +1,7 @@
 """Shared fixtures: the shared data folder, a scripted serial peer on a real pty, a wide terminal
 for the CLI's messages, a small ingested dataset and a tmpfs mounted for a test; and, where
-pytest-xdist runs the suite in several processes (``-n auto``), the CPU's cores shared out among
-them rather than each process's torch taking every core."""
+pytest-xdist runs the suite in several processes (``-n auto``, the default: one per core and one
+more), the CPU's cores shared out among them rather than each process's torch taking every core."""
 
 import contextlib
 import os
@@ -19,6 +19,13 @@ SHARED_DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
 SHARED_DATA_NOTE = ("../shared/data is the developers' folder of third-party research data beside the checkout "
                     "(BSDS500 photos, real polarization-camera captures; licences in its README.md): urd does not "
                     "ship it, so a user's checkout lacks it and these tests skip; the rest of the suite needs none of it")
+
+
+def pytest_xdist_auto_num_workers(config):
+    """``-n auto`` (the default, pyproject's addopts): one worker per core and one more. Many tests
+    wait (on a subprocess, a serial time-out, a killed batch's delay) and the extra worker fills
+    that time: the suite on 2 cores 201-218 s with 2 workers, 173-182 s with 3, 200 s with 4."""
+    return len(os.sched_getaffinity(0)) + 1
 
 
 def pytest_configure(config):

@@ -42,6 +42,7 @@ def methods_of(root):
             for name in sorted(p.name for p in root.iterdir() if (p / "scene.json").is_file())}
 
 
+@pytest.mark.slow
 def test_separate_all_with_two_jobs_separates_every_scene_and_skips_done_ones(three_scenes):
     out = urd("separate", "--all", "--jobs", "2", "--method", "schechner", "--dataset", three_scenes)
     assert out.returncode == 0, out.stderr
@@ -54,6 +55,7 @@ def test_separate_all_with_two_jobs_separates_every_scene_and_skips_done_ones(th
     assert refused.returncode == 2 and "--all alone" in refused.stderr
 
 
+@pytest.mark.slow
 def test_classical_methods_separate_without_importing_torch(three_scenes):
     """torch costs ~2 s per process; `urd separate` imports it for the networks only."""
     script = ("import sys\nfrom urd.cli import app\n"
@@ -74,6 +76,7 @@ def test_one_failing_scene_is_reported_and_the_others_go_on(three_scenes):
     assert methods_of(three_scenes)["scene_01"] == ["none"] and methods_of(three_scenes)["scene_03"] == ["none"]
 
 
+@pytest.mark.slow
 def test_a_kill_during_separate_all_leaves_finished_scenes_intact(three_scenes):
     proc = subprocess.Popen([sys.executable, "-m", "urd.cli", "separate", "--all", "--method", "network", "--dataset",
                              str(three_scenes)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -93,6 +96,7 @@ def test_a_kill_during_separate_all_leaves_finished_scenes_intact(three_scenes):
     assert not list(three_scenes.glob("*/.staging-*"))
 
 
+@pytest.mark.slow
 def test_ingest_a_dataset_with_two_jobs(tmp_path):
     ds = Dataset.open_or_create(tmp_path / "ds")
     for seed in range(3):

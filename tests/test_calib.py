@@ -36,6 +36,7 @@ def test_malus_fit_recovers_a_known_offset():
         fit_offset(stage, np.full(stage.size, 0.5))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("offset", [7.3, 131.0])
 def test_offset_sweep_on_the_virtual_rig_then_capture_uses_it(tmp_path, offset):
     out = urd("calibrate", "offset", tmp_path / "ds", "--stage", "sim", "--camera", "virtual",

@@ -98,6 +98,7 @@ def test_fault_injection_never_loses_duplicates_or_mislabels_shots(tmp_path, kin
         assert sum(e["fault"] == kind for e in sim.log) >= faults
 
 
+@pytest.mark.slow
 def test_cli_reports_a_device_fault_and_resumes(tmp_path):
     out = urd("capture", tmp_path / "ds", "--stage", "sim", "--camera", "virtual", "--sim-size", "64x48",
               "--sim-faults", "mech_timeout=1.0")
@@ -133,6 +134,7 @@ def test_interrupted_capture_resumes_without_retaking_done_shots(tmp_path):
         assert len(cam.triggers) == 3 and record["capture"]["complete"]
 
 
+@pytest.mark.slow
 def test_bad_inputs_fail_clearly(tmp_path, scripted_peer):
     out = urd("capture", tmp_path / "ds", "--stage", "/dev/ttyNOPE9", "--camera", "virtual")
     assert out.returncode == 1 and "cannot open serial port /dev/ttyNOPE9" in out.stderr

@@ -40,6 +40,7 @@ class Interrupted(Exception):
     """Raised from the progress callback: the run stops as if killed after that step."""
 
 
+@pytest.mark.slow
 def test_ceilnet_training_resumes_from_last_pt_with_its_weights_and_optimizer(tmp_path):
     cfg = TrainConfig(variant="ceilnet", width=8, blocks=1, patch=32, batch=8, micro_batch=8, lr=2e-3, steps=6,
                       val_samples=8, val_every=3, ckpt_every=3, precision="fp32", threads=1)

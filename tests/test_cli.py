@@ -35,6 +35,7 @@ def test_bench_prints_the_table_and_the_paired_gain_of_the_network_over_direct()
     assert bad.returncode != 0 and "nonsense" in bad.stderr + bad.stdout
 
 
+@pytest.mark.slow
 def test_commands_without_a_dataset_use_the_current_dataset_or_dataset_folder(tmp_path):
     """The design card's `urd capture --stage ...`, `urd ingest raw/`, `urd separate scene_12`
     name no dataset: ./dataset from outside a dataset, the current folder inside one."""

@@ -73,6 +73,7 @@ def test_every_command_accepts_h_and_shows_examples_that_parse(command):
 
 @pytest.mark.parametrize("module,options", [(kong, {"steps": 4}), (li_brown, {}), (arvanitopoulos, {})],
                          ids=["kong", "li_brown", "arvanitopoulos"])
+@pytest.mark.slow
 def test_the_slow_baselines_report_progress_through_a_callback(module, options):
     stack = np.random.default_rng(0).uniform(0.1, 0.5, (3, 64, 64, 3)).astype(np.float32)
     calls = []
@@ -82,6 +83,7 @@ def test_the_slow_baselines_report_progress_through_a_callback(module, options):
     assert [done for done, _ in calls] == sorted(done for done, _ in calls)
 
 
+@pytest.mark.slow
 def test_a_baseline_shows_progress_on_the_terminal_and_records_no_callback(dataset):
     out = urd("separate", "scene_01", "--dataset", dataset, "--method", "li-brown")
     assert out.returncode == 0, out.stderr
@@ -170,6 +172,7 @@ def test_no_precision_line_before_no_such_scene(dataset):
     assert out.exit_code == 2 and "no scene 'scene_09'" in out.stderr and "precision" not in out.stderr
 
 
+@pytest.mark.slow
 def test_raw_files_given_to_separate_point_to_ingest_without_opencv_warnings(dataset):
     shots = sorted((dataset / "scene_01" / "raw").glob("*.dng"))
     for args in ([arg for shot in shots for arg in ("--images", shot)], ["--images", *shots[:2]], [shots[0]]):
@@ -291,6 +294,7 @@ def test_the_demo_ends_with_the_previews_to_open_and_what_clipped_png_means(tmp_
     assert "clipped.png: no pixel is clipped in any shot (the mask is all black)" in out.stdout
 
 
+@pytest.mark.slow
 def test_separate_says_which_angle_of_incidence_the_network_used_and_takes_a_given_one(tmp_path):
     import json
 
@@ -331,6 +335,7 @@ def test_mosaic_ingest_names_the_frame_of_each_scene(tmp_path):
     assert "ingested scene_01 (from left.png)" in out.stdout and "ingested scene_02 (from right.png)" in out.stdout
 
 
+@pytest.mark.slow
 def test_training_says_from_which_step_it_resumes(tmp_path):
     config = tmp_path / "tiny.toml"
     config.write_text('width = 8\npatch = 64\nbatch = 2\nmicro_batch = 2\nsteps = 2\nval_samples = 2\nval_every = 2\n')

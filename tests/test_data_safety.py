@@ -125,6 +125,7 @@ def assert_clean(root):
 
 # 1, 2. interrupt or kill at every step of the swap: the dataset stays consistent, the next run completes
 
+@pytest.mark.slow
 @pytest.mark.parametrize("operation", OPERATIONS)
 def test_an_interrupt_at_any_step_of_a_rerun_leaves_a_consistent_dataset(tmp_path, monkeypatch, base, operation):
     run = OPERATIONS[operation]
@@ -145,6 +146,7 @@ def test_an_interrupt_at_any_step_of_a_rerun_leaves_a_consistent_dataset(tmp_pat
         assert_clean(work)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("operation", OPERATIONS)
 def test_a_kill_at_any_step_of_a_rerun_leaves_a_consistent_dataset_the_next_run_completes(tmp_path, monkeypatch, base,
                                                                                           operation):
@@ -162,6 +164,7 @@ def test_a_kill_at_any_step_of_a_rerun_leaves_a_consistent_dataset_the_next_run_
         assert_clean(killed)
 
 
+@pytest.mark.slow
 def test_remove_stale_keeps_the_staged_files_a_killed_swap_left_named(tmp_path, monkeypatch, base):
     steps = count_steps(monkeypatch, shutil.copytree(base, tmp_path / "count"), force)
     pending = 0

@@ -78,6 +78,7 @@ def test_interrupted_redo_and_force_keep_the_old_outputs_named_and_present(tmp_p
 
 # 2. a capture that fails before its first shot leaves no scene; a broken scene stops nothing
 
+@pytest.mark.slow
 def test_failed_start_leaves_no_scene_and_a_broken_scene_stops_no_command(tmp_path):
     out = urd("capture", tmp_path / "ds", "--stage", "/dev/ttyNOPE9", "--camera", "virtual")
     assert out.returncode == 1 and "cannot open serial port" in out.stderr
@@ -141,6 +142,7 @@ def test_ingesting_the_same_raw_files_twice_makes_no_duplicate_scene(tmp_path):
 
 # 5. integrity: hashes checked before use, paths confined to the scene
 
+@pytest.mark.slow
 def test_tampered_files_are_refused_and_manifest_paths_stay_inside_the_scene(tmp_path):
     ds, scene = ingested_scene(tmp_path)
     aligned = scene.path / scene.load()["ingest"]["aligned"][1]["file"]

@@ -285,6 +285,7 @@ def test_settings_and_speed_stack():
     assert timing["seconds"] >= 0 and timing["peak_rss_mb"] > 0
 
 
+@pytest.mark.slow
 def test_run_isolated_returns_the_result_or_the_child_error():
     assert speed.run_isolated(plots.nice_ticks, (0.0, 1.0), timeout_s=120)[0] == 0.0
     with pytest.raises(RuntimeError, match="only in the full run"):

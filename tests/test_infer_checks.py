@@ -35,6 +35,7 @@ def test_non_integer_tile_is_a_type_error():
         separate_stack(model, SMALL, [0, 45, 90], tile=512.5, precision="fp32")
 
 
+@pytest.mark.slow
 def test_smallest_tile_and_no_overlap_are_accepted():
     model, _ = load_model()
     stack = np.random.default_rng(1).random((3, 300, 280, 3)).astype(np.float32) * 0.5
@@ -43,6 +44,7 @@ def test_smallest_tile_and_no_overlap_are_accepted():
         assert r_hat.shape == t_hat.shape == stack.shape[1:] and np.isfinite(r_hat).all() and np.isfinite(t_hat).all()
 
 
+@pytest.mark.slow
 def test_tiled_matches_whole_image():
     # 776 × 781 px takes 2 × 2 tiles of 512 px with the default overlap (the last column not on
     # the 8-px grid: padded). Measured: 3.9e-5 apart (128 px overlap: 1.1e-3, over the bound).
@@ -172,6 +174,7 @@ def test_presenting_tile_by_tile_matches_presenting_the_stack():
         separate_stack(model, stack, angles, reference_deg=float("nan"))
 
 
+@pytest.mark.slow
 def test_codes_read_only_and_reversed_stacks_separate_as_their_float_values():
     model, _ = load_model()
     rng = np.random.default_rng(3)

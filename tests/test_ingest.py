@@ -28,6 +28,7 @@ def warp_rms(estimate, truth, h, w):
     return float(np.sqrt(((np.asarray(estimate)[:2] @ pts - np.asarray(truth)[:2] @ pts) ** 2).sum(0).mean()))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [1, 2])
 def test_alignment_recovers_known_shake_within_a_tenth_of_a_pixel(tmp_path, seed):
     ds = Dataset.open_or_create(tmp_path / "ds")
@@ -51,6 +52,7 @@ def test_alignment_recovers_known_shake_within_a_tenth_of_a_pixel(tmp_path, seed
         assert err < 0.02, (i, err)
 
 
+@pytest.mark.slow
 def test_unalignable_scene_is_flagged_and_no_stack_is_written(tmp_path):
     ds = Dataset.open_or_create(tmp_path / "ds")
     scene, _ = capture_virtual(ds, size=(512, 384), seed=3)
@@ -105,6 +107,7 @@ def test_ingest_folder_groups_by_time_and_reports_bad_files(tmp_path, monkeypatc
     assert not [p for p in (tmp_path / "ds").iterdir() if p.name.startswith(".")]
 
 
+@pytest.mark.slow
 def test_mixed_sizes_and_missing_folder(tmp_path):
     ds = Dataset.open_or_create(tmp_path / "cap")
     a, _ = capture_virtual(ds, size=(256, 192), seed=1)

@@ -61,6 +61,7 @@ def test_imx250mzr_polarizer_target_gives_four_filters_45_degrees_apart():
     assert all(abs(s + 45) < 7 for s in steps), (aolps, steps)               # −45° per filter, in order
 
 
+@pytest.mark.slow
 def test_urd_ingest_mosaic_frames_then_separate(tmp_path):
     import subprocess
     import sys

@@ -161,6 +161,7 @@ def test_model_shapes_residual_and_canonical_layer():
     assert direct.head.in_channels == 9 and model.head.in_channels == 15
 
 
+@pytest.mark.slow
 def test_training_improves_the_validation_psnr(tmp_path):
     # a high peak learning rate, so that the 200-step warm-up still moves a 20-step run; measured with seed 0:
     # validation PSNR of T̂ 23.5 dB after 5 steps, 26.4 dB after 20 (+2.9 dB; seeds 1–3 gain 1.4–2.0 dB)
@@ -226,6 +227,7 @@ def test_train_seed_option_overrides_the_config(tmp_path, monkeypatch):
     assert result.exit_code == 2
 
 
+@pytest.mark.slow
 def test_a_run_folder_is_trained_by_one_process_and_resumed_only_with_its_settings(tmp_path):
     cfg = TrainConfig(width=4, patch=32, batch=2, micro_batch=2, steps=1, val_samples=2, val_every=1, precision="fp32", threads=1)
     (tmp_path / "run").mkdir()
@@ -239,6 +241,7 @@ def test_a_run_folder_is_trained_by_one_process_and_resumed_only_with_its_settin
     assert train(dataclasses.replace(cfg, steps=2, threads=2), tmp_path / "run")["step"] == 2   # longer: allowed
 
 
+@pytest.mark.slow
 def test_synthesis_workers_draw_seeded_streams_and_end_with_the_run(tmp_path):
     import multiprocessing
 
@@ -267,6 +270,7 @@ def test_learning_rate_follows_steps_or_training_time_whichever_is_further():
     assert lr_at(timed, 300, wall_s=601.0) == pytest.approx(1e-5)          # time is up: lr_min
 
 
+@pytest.mark.slow
 def test_a_training_time_schedule_reaches_lr_min_in_a_fresh_and_a_resumed_run(tmp_path):
     cfg = TrainConfig(width=4, patch=32, batch=2, micro_batch=2, steps=3, val_samples=2, val_every=3, lr=1e-2,
                       lr_min=1e-5, precision="fp32", threads=1, schedule_minutes=1e-9)

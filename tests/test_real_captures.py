@@ -52,6 +52,7 @@ def test_separation_of_each_real_capture_is_physically_consistent(capture, metho
     assert 0.0 <= r_hat.sum() / s0.sum() <= 0.9          # never (almost) everything into R̂
 
 
+@pytest.mark.slow
 def test_registered_demosaicing_removes_false_edge_polarization_of_real_mosaics():
     for capture in [c for c in CAPTURES if c.kind == "mosaic"]:
         raw, _ = samples.load(capture, method=Demosaic.NONE)
@@ -94,6 +95,7 @@ def test_the_default_captures_folder_is_the_shared_data():
     assert samples.captures() == CAPTURES
 
 
+@pytest.mark.slow
 def test_a_view_without_glass_keeps_its_own_polarization_in_the_transmission():
     """wen2019's scene61 (a castle under blue sky, no glass): the network's R̂ is a tinted copy
     of the scene, which `separate.copies` returns to T̂ (measured at 512 px: 13.8% → 7.9%)."""

@@ -246,6 +246,7 @@ def test_an_unclear_angle_of_incidence_runs_the_network_without_its_gate():
     np.testing.assert_allclose(t_map, t_one, atol=1e-6)                  # a small map is resized to the image
 
 
+@pytest.mark.slow
 def test_the_network_records_whether_it_used_its_gate():
     from urd.separation import describe_incidence
 
@@ -405,6 +406,7 @@ def sheen_behind_pane(reflection, transmission, reflection_gain, sheen_dolp, h=1
     return obs / obs.mean() * 0.2, angles
 
 
+@pytest.mark.slow
 def test_a_side_read_from_the_higher_dolp_is_checked_by_separating_both():
     from separate.reference import Basis, decide_side, inspect_stack
 

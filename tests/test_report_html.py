@@ -310,6 +310,7 @@ def _wait(predicate, timeout_s: float = 15.0, what: str = "condition"):
     raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
 
 
+@pytest.mark.slow
 def test_report_in_a_real_browser(report, tmp_path):
     from selenium.webdriver.common.action_chains import ActionChains
     from selenium.webdriver.common.by import By

@@ -236,6 +236,7 @@ def test_ingest_of_frames_without_mosaic_names_the_option(tmp_path):
     assert "no RAW files" in result.output and "--mosaic imx250mzr|imx250myr|wen2019" in result.output
 
 
+@pytest.mark.slow
 def test_each_demo_run_gets_a_fresh_dataset_and_says_so(tmp_path):
     folder = tmp_path / "urd-demo"
     first = invoke("demo", folder, "--size", "256x192")

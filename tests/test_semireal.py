@@ -152,6 +152,7 @@ def test_no_glass_split_is_fixed_and_disjoint():
         samples.no_glass_captures(SHARED_DATA / "polarization", "val")
 
 
+@pytest.mark.slow
 @needs_captures
 def test_every_no_glass_capture_obeys_malus():
     """I0 + I90 = I45 + I135 within 3% of S0 for every capture (the angle labels pair right)."""
@@ -164,6 +165,7 @@ def test_every_no_glass_capture_obeys_malus():
             np.testing.assert_array_equal(stack[..., 0], stack[..., 1])
 
 
+@pytest.mark.slow
 @needs_captures
 def test_real_training_samples_are_polarized_and_consistent():
     cfg = _clean(SynthesisConfig(real_prob=1.0, no_glass_prob=0.5))
@@ -174,6 +176,7 @@ def test_real_training_samples_are_polarized_and_consistent():
     assert (batch["r"].reshape(6, -1).max(axis=1) == 0).any()         # a view without glass: R = 0
 
 
+@pytest.mark.slow
 @needs_captures
 def test_semireal_scenes_have_exact_ground_truth():
     captures = [c for c in NO_GLASS if c.name in ("dphr2022-outdoor-01", "imx250mzr-fruits")]

@@ -2,9 +2,12 @@
 
 import re
 
+import pytest
+
 from urd.virtual_bench import THETAS_DEG, run_virtual_bench
 
 
+@pytest.mark.slow
 def test_the_virtual_set_scores_every_angle_and_the_wide_view():
     tables = run_virtual_bench(("none", "schechner"), size=(128, 96), pairs=1)
     rows = {}
