@@ -1,4 +1,4 @@
-"""Image quality figures: mutual information from one bincount, as np.histogram2d would give it."""
+"""Image quality figures: mutual information from one bincount, as np.histogram2d would give it; SSIM as scikit-image gives it."""
 
 import numpy as np
 import pytest
@@ -49,3 +49,18 @@ def test_mutual_information_refuses_non_finite_values():
     a = np.array([0.0, 1.0, np.nan, 2.0])
     with pytest.raises(ValueError, match="finite"):
         metrics.mutual_information(a, a)
+
+
+def test_ssim_is_scikit_images_structural_similarity():
+    from skimage.metrics import structural_similarity
+
+    rng = np.random.default_rng(5)
+    for shape, noise in (((96, 128, 3), 0.002), ((64, 80, 3), 0.05), ((40, 33, 1), 0.3), ((7, 9, 3), 0.1)):
+        truth = rng.random(shape).astype(np.float32)
+        truth = (truth + np.roll(truth, 1, axis=0) + np.roll(truth, 1, axis=1)) / 3      # some structure
+        estimate = np.clip(truth + rng.normal(0, noise, shape), 0, 1)                   # float64
+        want = structural_similarity(estimate, truth, channel_axis=-1, data_range=1.0)
+        assert metrics.ssim(estimate, truth) == pytest.approx(want, abs=1e-6)
+    assert metrics.ssim(truth, truth) == pytest.approx(1.0, abs=1e-6)
+    with pytest.raises(ValueError, match="sides ≥ 7"):
+        metrics.ssim(truth[:6], truth[:6])
