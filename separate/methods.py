@@ -55,8 +55,8 @@ def check_reference(reference: Reference) -> Reference:
 def reference_policy(reference: Reference) -> str:
     """The reference policy of a polarization method, as recorded in its ``info``."""
     if reference == "auto":
-        return ("auto: the glass's s-direction estimated per pixel from the shots, a smooth field (separate.reference); "
-                "each pixel presented at it + 0/45/90 deg")
+        return ("auto: the glass's s-direction estimated per pixel from the shots, a smooth field (separate.reference), "
+                "or one angle where the polarization is weak and of one orientation; each pixel presented at it + 0/45/90 deg")
     if reference == "global":
         return "global: one s-direction estimated from the shots (separate.reference); shots presented at it + 0/45/90 deg"
     return f"fixed: {reference:g} deg; shots presented at it + 0/45/90 deg"

@@ -449,3 +449,40 @@ def test_an_assumed_side_is_settled_by_separating_both(method):
     inspection = inspect_stack(obs, angles)
     assert inspection.estimate.basis is Basis.TRANSMISSION
     assert decide_side(obs, angles, inspection, run) is inspection
+
+
+def test_auto_presents_a_weak_polarization_of_one_orientation_at_one_angle_and_a_strong_one_per_pixel():
+    from separate.reference import Basis, resolve_reference
+
+    trial = get_method("schechner")[0]
+    obs, angles = pane(60.0, 0.03, 1.5)                    # a faint reflection: weak, one orientation
+    inspection, reference = resolve_reference(obs, angles, "auto", trial)
+    assert inspection.estimate.basis is Basis.TRANSMISSION
+    assert np.ndim(reference) == 0 and reference == inspection.reference_deg
+    obs, angles, phi_true, _, _ = wide_view(h=96, w=144)    # a strong reflection, φ⊥ turning across the frame
+    inspection, reference = resolve_reference(obs, angles, "auto", trial)
+    assert inspection.estimate.basis is not Basis.TRANSMISSION and np.shape(reference) == obs.shape[1:3]
+    assert np.abs(optics.axis_gap_deg(reference, phi_true)).mean() < 3.0
+
+
+def test_a_separation_at_one_angle_says_why_and_writes_it_as_a_constant_map(tmp_path):
+    import tifffile
+
+    from urd.separation import separate_images
+
+    obs, angles = pane(60.0, 0.03, 1.5)                    # weak polarization of one orientation
+    paths = []
+    for angle, shot in zip(angles, obs):
+        paths.append(tmp_path / f"shot_{angle:g}.tiff")
+        tifffile.imwrite(paths[-1], shot, photometric="rgb")
+    run = get_method("schechner")[0]
+    result = separate_images(paths, angles, tmp_path / "one", run)
+    assert result.reference_kind.startswith("estimated, one angle: the polarization is weak")
+    used = tifffile.imread(tmp_path / "one" / "reference_deg.tiff")
+    assert np.ptp(used) == 0 and used.flat[0] == pytest.approx(result.reference_deg, abs=1e-3)
+    obs, angles, _, _, _ = wide_view(h=96, w=144)
+    for path, shot in zip(paths, obs):
+        tifffile.imwrite(path, shot, photometric="rgb")
+    result = separate_images(paths, angles, tmp_path / "field", run)
+    assert result.reference_kind == "estimated per pixel, a field"
+    assert np.ptp(tifffile.imread(tmp_path / "field" / "reference_deg.tiff")) > 20

@@ -43,8 +43,9 @@ def separate(images: np.ndarray, angles_deg: Sequence[float], method: str = "net
         angles_deg: the N polarizer angles (deg).
         method: "network" (default), "schechner", "kong", "farid", "li-brown",
             "arvanitopoulos", "ceilnet" or "none" (`separate.methods.METHODS`).
-        reference: "auto" (the glass's s-direction estimated per pixel), "global" (one angle for
-            the view) or an angle in degrees.
+        reference: "auto" (the glass's s-direction estimated per pixel, or one angle where the
+            polarization is weak and of one orientation), "global" (one angle for the view) or an
+            angle in degrees.
         options: the method's options, e.g. ``weights``, ``tile``, ``precision`` for the network.
 
     Returns:

@@ -204,29 +204,31 @@ def write_results(folder: Path, r_hat: np.ndarray, t_hat: np.ndarray, overwrite:
 @dataclasses.dataclass
 class Separation:
     """What a separation produced: files written, the reference angle used (deg), warnings
-    about the input, and PSNR/SSIM against ground truth where the scene has one."""
+    about the input, PSNR/SSIM against ground truth where the scene has one, and how the
+    reference was chosen (`reference_kind`)."""
 
     files: list[Path]
     reference_deg: float
     warnings: list[str]
     truth_metrics: dict | None = None
+    reference_kind: str = ""
 
 
 def separate_inspected(images: np.ndarray, angles: list[float], run, reference: str | float,
                        sees_polarization: bool = True) -> tuple[np.ndarray, np.ndarray, Inspection, float | np.ndarray]:
     """Inspect the stack and choose the reference as every separation in urd does
-    (`separate.reference.resolve_reference`: the estimated field for "auto", the estimated angle
-    for "global", or the given angle; an assumed side settled by separating both sides with
+    (`separate.reference.resolve_reference`: for "auto" the estimated field, or the estimated
+    angle where the polarization is weak and of one orientation; for "global" the estimated
+    angle; or the given angle; an assumed side settled by separating both sides with
     ``run(..., trial=True)``, unless the method does not ``sees_polarization``), then run the method there.
 
     Returns:
-        R̂, T̂, the inspection, and the reference used (deg: for "auto" the field on the reduced
-        grid, else the angle).
+        R̂, T̂, the inspection, and the reference used (deg: a field on the reduced grid, or an angle).
     """
     trial = functools.partial(run, trial=True) if sees_polarization else None      # silent, a fresnel network ungated
     inspection, chosen = resolve_reference(images, angles, reference, trial)
     r_hat, t_hat = run(images, angles, chosen)
-    return r_hat, t_hat, inspection, inspection.field if reference == "auto" else inspection.reference_deg
+    return r_hat, t_hat, inspection, inspection.field if np.ndim(chosen) == 2 else chosen
 
 
 @dataclasses.dataclass
@@ -269,9 +271,10 @@ def prepare_scene(scene: Scene, method: str, run, info: dict, reference: str | f
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
+    kind = reference_kind(reference, used) if sees_polarization else "not used"
     entry = {"angles_deg": angles, **info, "full_scale": FULL_SCALE, "reference_deg": round(reference_deg, 3),
-             "reference": _reference_kind(reference) if sees_polarization else "not used", "warnings": warnings, "truth_metrics": metrics_truth}
-    return Prepared(scene.path, method, staging, staged, entry, Separation([], reference_deg, warnings, metrics_truth))
+             "reference": kind, "warnings": warnings, "truth_metrics": metrics_truth}
+    return Prepared(scene.path, method, staging, staged, entry, Separation([], reference_deg, warnings, metrics_truth, kind))
 
 
 def commit_scene(prepared: Prepared, force: bool = False) -> Separation:
@@ -318,7 +321,7 @@ def add_maps(scene: Scene, method: str, reference: str | float = "auto") -> Sepa
             used = tifffile.imread(result.files["reference_deg.tiff"])
         else:
             inspection, chosen = resolve_reference(images, angles, reference, None)
-            used = inspection.field if reference == "auto" else chosen
+            used = inspection.field if np.ndim(chosen) == 2 else chosen
         polarization = _maps(images, angles, used)
         del images
         with scene.staging() as staging:
@@ -359,11 +362,16 @@ def _field_image(used: float | np.ndarray, inspection: Inspection) -> np.ndarray
     return used if np.ndim(used) == 2 else np.full(inspection.field.shape, float(used), np.float32)
 
 
-def _reference_kind(reference: str | float) -> str:
-    """How the reference was chosen, for the manifest."""
+def reference_kind(reference: str | float, used: float | np.ndarray) -> str:
+    """How the reference was chosen (``reference``: "auto", "global" or deg) and what was used
+    (a field or an angle), for the manifest and the CLI."""
+    if not isinstance(reference, str):
+        return "given"
+    if np.ndim(used) == 2:
+        return "estimated per pixel, a field"
     if reference == "auto":
-        return "estimated per pixel (field)"
-    return "estimated (one angle)" if reference == "global" else "given"
+        return "estimated, one angle: the polarization is weak and of one orientation, too little for a field"
+    return "estimated, one angle"
 
 
 #: The smallest image side `separate_images` takes (px): the reference field needs gradients.
@@ -411,7 +419,8 @@ def separate_images(paths: list[Path], angles_deg: list[float], out: Path, run, 
     if polarization is not None:
         paths += write_maps(Path(out) / "maps", polarization, overwrite=force)
     _remove_replaced(Path(out), paths)
-    return Separation(paths, inspection.reference_deg, inspection.warnings)
+    kind = reference_kind(reference, used) if sees_polarization else "not used"
+    return Separation(paths, inspection.reference_deg, inspection.warnings, reference_kind=kind)
 
 
 def check_no_results_in(out: Path, force: bool = False) -> None:

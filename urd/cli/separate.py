@@ -26,7 +26,7 @@ def separate(
     angles: str = typer.Option("0,45,90", help="Polarizer angles of --images (deg)."),
     transfer: str = typer.Option("linear", help="8-bit --images: linear (sensor codes) or srgb (ordinary photos). 16-bit files are always linear."),
     out: Path = typer.Option(Path("separated"), help="Output folder for --images."),
-    reference: str = typer.Option("auto", help="Reference angle (deg): the glass's s-direction, where the reflection is brightest; 'auto' estimates it per pixel from the shots (a smooth field, for wide views and curved panes), 'global' one angle for the whole view."),
+    reference: str = typer.Option("auto", help="Reference angle (deg): the glass's s-direction, where the reflection is brightest; 'auto' estimates it per pixel from the shots (a smooth field, for wide views and curved panes; one angle where the polarization is weak and of one orientation), 'global' one angle for the whole view."),
     weights: Optional[Path] = typer.Option(None, help="Weights file of the network or ceilnet, or a shipped one by name: urd-anchored (the default: the network anchored to the Fresnel inversion by a learned gate), urd-canonical (the same network without the gate), urd-canonical-transposed (the paper's decoder), urd-direct, ceilnet."),
     tile: Optional[int] = typer.Option(None, help="Network tile size (px, at least 320: twice the 160 px overlap; default 2048 for the network, 1024 for ceilnet: separate.infer.default_tile); memory grows with it, not with the image.", show_default=False),
     precision: str = typer.Option("auto", help="Network arithmetic: auto (bf16 where the CPU or GPU runs it natively, else fp32), fp32 or bf16."),
@@ -162,10 +162,9 @@ def separate(
     bar.close()
     for line in result.warnings:
         warn(line)
-    kinds = {"auto": "estimated; per pixel, a field around it: reference_deg.tiff", "global": "estimated"}
-    kind = kinds[forced] if isinstance(forced, str) else "given"
     if sees_polarization_of(info):
-        typer.echo(f"reference angle {result.reference_deg:.1f} deg ({kind})")
+        field = " around it: reference_deg.tiff" if result.reference_kind.endswith("a field") else ""
+        typer.echo(f"reference angle {result.reference_deg:.1f} deg ({result.reference_kind}{field})")
     if "incidence" in info:
         typer.echo(describe_incidence(info["incidence"]))
     for path in result.files:
