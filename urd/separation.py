@@ -271,7 +271,7 @@ def prepare_scene(scene: Scene, method: str, run, info: dict, reference: str | f
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
-    kind = reference_kind(reference, used) if sees_polarization else "not used"
+    kind = _reference_kind(reference, used, sees_polarization)
     entry = {"angles_deg": angles, **info, "full_scale": FULL_SCALE, "reference_deg": round(reference_deg, 3),
              "reference": kind, "warnings": warnings, "truth_metrics": metrics_truth}
     return Prepared(scene.path, method, staging, staged, entry, Separation([], reference_deg, warnings, metrics_truth, kind))
@@ -362,13 +362,19 @@ def _field_image(used: float | np.ndarray, inspection: Inspection) -> np.ndarray
     return used if np.ndim(used) == 2 else np.full(inspection.field.shape, float(used), np.float32)
 
 
-def reference_kind(reference: str | float, used: float | np.ndarray) -> str:
+#: `Separation.reference_kind` of a separation presented at a per-pixel reference field.
+FIELD_KIND = "estimated per pixel, a field"
+
+
+def _reference_kind(reference: str | float, used: float | np.ndarray, sees_polarization: bool) -> str:
     """How the reference was chosen (``reference``: "auto", "global" or deg) and what was used
-    (a field or an angle), for the manifest and the CLI."""
+    (a field or an angle), for the manifest and the CLI; "not used" by a method that sees S0 only."""
+    if not sees_polarization:
+        return "not used"
     if not isinstance(reference, str):
         return "given"
     if np.ndim(used) == 2:
-        return "estimated per pixel, a field"
+        return FIELD_KIND
     if reference == "auto":
         return "estimated, one angle: the polarization is weak and of one orientation, too little for a field"
     return "estimated, one angle"
@@ -419,8 +425,8 @@ def separate_images(paths: list[Path], angles_deg: list[float], out: Path, run, 
     if polarization is not None:
         paths += write_maps(Path(out) / "maps", polarization, overwrite=force)
     _remove_replaced(Path(out), paths)
-    kind = reference_kind(reference, used) if sees_polarization else "not used"
-    return Separation(paths, inspection.reference_deg, inspection.warnings, reference_kind=kind)
+    return Separation(paths, inspection.reference_deg, inspection.warnings,
+                      reference_kind=_reference_kind(reference, used, sees_polarization))
 
 
 def check_no_results_in(out: Path, force: bool = False) -> None:

@@ -54,7 +54,7 @@ def separate(
     from separate.methods import METHODS, NETWORKS, get_method
     from urd.core.images import Transfer
     from urd.core.raw import RAW_SUFFIXES
-    from urd.separation import add_maps, check_no_results_in, check_out_folder, describe_incidence, sees_polarization_of, separate_images, separate_scene
+    from urd.separation import FIELD_KIND, add_maps, check_no_results_in, check_out_folder, describe_incidence, sees_polarization_of, separate_images, separate_scene
 
     if method not in METHODS:
         raise bad("--method", f"expected one of {', '.join(sorted(METHODS))}, got {method!r}")
@@ -163,7 +163,7 @@ def separate(
     for line in result.warnings:
         warn(line)
     if sees_polarization_of(info):
-        field = " around it: reference_deg.tiff" if result.reference_kind.endswith("a field") else ""
+        field = " around it: reference_deg.tiff" if result.reference_kind == FIELD_KIND else ""
         typer.echo(f"reference angle {result.reference_deg:.1f} deg ({result.reference_kind}{field})")
     if "incidence" in info:
         typer.echo(describe_incidence(info["incidence"]))
