@@ -38,7 +38,8 @@ they were), on in training the physics-anchored network's gate (``configs/cpu-ga
   capture without glass from the training side of the split (`urd.core.samples.no_glass_captures`,
   its Stokes fit; scaled, flipped and turned with its polarization turned alike), where
   ../shared/data is present (else the photo);
-* ``mono_prob``: both layers grey (a mono polarization camera); ``defocus_prob``: the reflection
+* ``mono_prob``: both layers grey (a mono polarization camera; a mono capture's crop from
+  ``real_prob`` makes its sample grey too); ``defocus_prob``: the reflection
   out of focus (a Gaussian blur of σ 1–4 px per 128 px);
 * ``mosaic_prob`` (ANY modes): the shots taken by a polarization-mosaic sensor, as most
   polarization cameras take them (`through_mosaic`): the sample drawn at twice the patch size
@@ -451,9 +452,9 @@ class Synthesizer:
         i, j = rng.choice(len(self.pool), 2, replace=False)
         refl = photo_to_linear(random_crop(rng, self.pool[i], p))
         trans = photo_to_linear(random_crop(rng, self.pool[j], p))
-        stokes_t = self._transmitted(trans)
+        stokes_t, grey_capture = self._transmitted(trans)
         mono = cfg.mono_prob > 0 and rng.random() < cfg.mono_prob
-        if mono:
+        if mono or grey_capture:                      # a mono capture's view: the reflection grey too
             refl, trans = grey(refl), grey(trans)
             stokes_t = None if stokes_t is None else grey(stokes_t)
         if cfg.defocus_prob > 0 and rng.random() < cfg.defocus_prob:
@@ -500,25 +501,27 @@ class Synthesizer:
         exposed = self._expose(obs, r_obs, t_obs)
         return None if exposed is None else (*exposed, nominal, angles, theta, phi_perp)
 
-    def _transmitted(self, photo: np.ndarray) -> np.ndarray | None:
+    def _transmitted(self, photo: np.ndarray) -> tuple[np.ndarray | None, bool]:
         """The transmitted light's Stokes stack (3, P, P, 3) where the sample's transmitted layer
         is polarized: a real capture's crop (``real_prob``, scaled to the photo's mean) or the
-        photo with a polarization of its own (``t_polarized_prob``); None for the unpolarized photo."""
+        photo with a polarization of its own (``t_polarized_prob``); None for the unpolarized photo;
+        and whether it is a mono capture's (grey: the sample's reflection must be grey too)."""
         cfg, rng = self.cfg, self.rng
         if self.real and cfg.real_prob > 0 and rng.random() < cfg.real_prob:
-            crop = self._real_crop()
+            crop, mono = self._real_crop()
             if crop is not None:
-                return crop * float(photo.mean())
+                return crop * float(photo.mean()), mono
         if cfg.t_polarized_prob > 0 and rng.random() < cfg.t_polarized_prob:
             dolp, aolp = own_polarization(rng, photo, cfg.t_dolp_max)
-            return optics.stokes_from_polarization(photo, dolp[..., None], aolp[..., None]).astype(np.float32)
-        return None
+            return optics.stokes_from_polarization(photo, dolp[..., None], aolp[..., None]).astype(np.float32), False
+        return None, False
 
-    def _real_crop(self) -> np.ndarray | None:
-        """A crop of a random real capture (`real_crop`), grey for a mono capture; None where clipped."""
+    def _real_crop(self) -> tuple[np.ndarray | None, bool]:
+        """A crop of a random real capture (`real_crop`), grey for a mono capture (None where
+        clipped), and whether the capture is mono."""
         stokes, clipped, mono = self.real[int(self.rng.integers(len(self.real)))]
         crop = real_crop(self.rng, stokes, clipped, self.cfg.patch)
-        return crop if crop is None or not mono else grey(crop)
+        return (crop if crop is None or not mono else grey(crop)), mono
 
     def _expose(self, obs: np.ndarray, r_obs: np.ndarray, t_obs: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
@@ -538,7 +541,7 @@ class Synthesizer:
         """A view with no glass: one photo with a smooth polarization of its own, or a real capture's
         crop (``real_prob``) (module docstring)."""
         cfg, rng, p = self.cfg, self.rng, self.cfg.patch
-        stokes = self._real_crop() if self.real and cfg.real_prob > 0 and rng.random() < cfg.real_prob else None
+        stokes = self._real_crop()[0] if self.real and cfg.real_prob > 0 and rng.random() < cfg.real_prob else None
         if stokes is None:
             photo = photo_to_linear(random_crop(rng, self.pool[int(rng.integers(len(self.pool)))], p))
             dolp = rng.uniform(0.0, cfg.no_glass_dolp_max) * smooth_field(rng, p)

@@ -83,6 +83,22 @@ def _clean(cfg: SynthesisConfig) -> SynthesisConfig:
     return dataclasses.replace(cfg, noise=False, nrd_prob=0.0, angle_noise_deg=0.0)
 
 
+def test_a_mono_captures_sample_is_grey_in_both_layers():
+    """A mono capture behind the pane makes a mono sample: a colour reflection beside a grey
+    transmission would tell the layers apart by colour, which no mono camera can."""
+    pool = load_image_pool(None, 256)
+    rng = np.random.default_rng(0)
+    grey_view = np.repeat(rng.uniform(0.2, 0.8, (1, 96, 96, 1)).astype(np.float32), 3, axis=-1)
+    stokes = np.concatenate([grey_view, 0.1 * grey_view, np.zeros_like(grey_view)])
+    real = [(stokes, np.zeros((96, 96), bool), True)]
+    cfg = _clean(SynthesisConfig(patch=64, real_prob=1.0))
+    batch = Synthesizer(pool, cfg, seed=4, real=real).batch(4)
+    for layer in ("r", "t", "obs"):
+        np.testing.assert_array_equal(batch[layer][..., 0], batch[layer][..., 1])
+        np.testing.assert_array_equal(batch[layer][..., 0], batch[layer][..., 2])
+    assert batch["r"].std() > 0                                       # a reflection was there
+
+
 @pytest.mark.parametrize("switch", ["t_polarized_prob", "mono_prob", "defocus_prob"])
 def test_polarized_training_samples_keep_r_plus_t_the_shots_s0(switch):
     pool = load_image_pool(None, 256)
