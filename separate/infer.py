@@ -27,7 +27,12 @@ AVX-512 37.0 → 32.5 s). Other
 networks (the CEILNet baseline) run as modules, under bf16 autocast where chosen.
 
 Input handling: NaN or infinite pixels are an error; negative pixels (linear decoding noise
-below black) are clipped to 0; the angles must span at least `MIN_SPAN_DEG`. Monochrome shots (one
+below black) are clipped to 0; the angles must span at least `MIN_SPAN_DEG`. The outputs hold no
+negative light: each tile's R̂ and T̂ from urd's network (not the CEILNet baseline, whose R̂ is
+S0 − T̂ by design) are clipped below at 0, as the physics-anchored network's anchor clips them (`separate.model.SeparationNet.anchor`). Without its gate (a θ estimate that is
+not clear) that network's backbone alone can go below 0 where its training clipped it (views
+without glass: R̂ down to −9% of the light with T̂ right, so R̂ is clipped, not moved into T̂).
+Monochrome shots (one
 channel, or colour channels that are all equal, as urd stores a mono sensor's frames) carry no
 colour: the network sees the grey image in each of its colour channels and its outputs are
 averaged over them, so R̂ and T̂ are grey too (an RGB-trained network otherwise invents tints).
@@ -409,6 +414,7 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
             full = np.full((h, w), theta_deg, np.float32) if np.ndim(theta_deg) == 0 else field_at(theta_deg, (h, w))
             theta = torch.from_numpy(np.radians(full, out=full))          # in place: one full-size map, not two
     run = runner(model, precision, device)
+    clip = isinstance(model, SeparationNet)
     mono = c == 1 or _equal_channels(images)
     angles = [float(a) for a in np.radians(angles_deg)]
     unit = optics.code_scale(images)
@@ -461,6 +467,8 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
         for (x, x1), wx in zip(cols, col_weights):
             extra = {} if theta is None else {"theta": theta[y:y1, x:x1][None, None]}
             r_hat, t_hat = run(patch(y, y1, x, x1), angles, scale, **extra)      # a temporary: freed inside once used
+            if clip:
+                r_hat.clamp_(min=0.0), t_hat.clamp_(min=0.0)              # no negative light (module docstring)
             weight = torch.from_numpy(wy[:, None, None] * wx[None, :, None])
             for out, hat in ((r_out, r_hat), (t_out, t_hat)):
                 hat = hat[0].permute(1, 2, 0)                            # (h, w, C)

@@ -4,7 +4,7 @@ A canonical projection layer turns the polarization shots into I⊥ and I∥; th
 the two canonical images (15 channels for RGB) feed an encoder-decoder with skip connections:
 three down-sampling stages of two ResNet blocks each and a mirrored decoder that up-samples with
 transposed convolutions (kernel 2, stride 2: the paper's; ``urd-canonical-transposed.pt``), or,
-with ``upsample="resize"`` (``urd-canonical.pt``, the backbone of the shipped ``urd-anchored.pt``),
+with ``upsample="resize"`` (``urd-canonical.pt``, whose backbone the shipped ``urd-anchored.pt`` fine-tunes),
 with a 1×1 convolution followed by bilinear ×2 interpolation (`ResizeUp`), which has no per-phase
 weights and so leaves no 2/4/8-px grid texture (`tools/bench_texture.py`). The 8 output channels
 are residual images T̃, R̃ and weights ξ∥, ξ⊥:
@@ -30,7 +30,8 @@ both clipped below at 0 (bands weighed apart can overshoot where the two answers
 gates at 1 give the inversion, all at 0 the network. Where the shots are noisy the inversion is
 right in the coarse band only (noise averages out there) and the network keeps the detail;
 where they are clean and θ is right it is right in every band. The gate starts near 0
-(`with_fresnel_base`: the network's own answer) and is trained alone, the backbone frozen.
+(`with_fresnel_base`: the network's own answer) and is trained alone, the backbone frozen; the
+backbone may then be fine-tuned with the gate held (``trainable = "backbone"``).
 
 Inputs of any exposure are scaled so that mean(S0) = 0.25 before the network and back after.
 `separate.networks.build_model` makes a network from its config.

@@ -216,3 +216,18 @@ def test_precision_auto_follows_what_the_hardware_runs(monkeypatch):
     assert native_bf16()
     with pytest.raises(ValueError, match="expected precision auto, fp32 or bf16"):
         resolve("fp16")
+
+
+def test_separated_layers_hold_no_negative_light():
+    """A backbone whose R̂ goes below 0 (as the anchored network's does without its gate, where its
+    training clipped it) gives R̂ clipped at 0 and T̂ as the network has it."""
+    model = SeparationNet(width=8).eval()
+    with torch.no_grad():
+        model.tail.weight.zero_()
+        model.tail.bias.copy_(torch.tensor([0.3] * 3 + [-0.5] * 3 + [20.0, 20.0]))   # T̃ 0.3, R̃ −0.5, ξ∥ = ξ⊥ = 1
+        r_module, t_module = model(torch.from_numpy(SMALL.transpose(0, 3, 1, 2))[None], scale=torch.tensor([1.0]))
+    assert (r_module < 0).all()                                    # the network itself answers negative light
+    r_hat, t_hat = separate_stack(model, SMALL, [0, 45, 90], tile=128, overlap=0, precision="fp32")
+    np.testing.assert_array_equal(r_hat, 0.0)
+    assert (t_module > 0).all() and t_hat.min() > 0                  # T̂: the constant T̃ at the stack's exposure
+    np.testing.assert_allclose(t_hat, t_hat.mean(), rtol=1e-5)

@@ -98,11 +98,11 @@ def test_the_default_captures_folder_is_the_shared_data():
 @pytest.mark.slow
 def test_a_view_without_glass_keeps_its_own_polarization_in_the_transmission():
     """wen2019's scene61 (a castle under blue sky, no glass): the network's R̂ is a tinted copy
-    of the scene, which `separate.copies` returns to T̂ (measured at 512 px: 13.8% → 7.9%)."""
+    of the scene, which `separate.copies` returns to T̂ (measured at 512 px: 10.6% → 7.2%)."""
     capture = next(c for c in CAPTURES if c.name.endswith("scene61"))
     stack, angles = samples.load(capture, max_side=512)
     shares = []
     for keep in (True, False):
         r_hat, t_hat = get_method("network", return_copies=not keep)[0](stack, angles)
         shares.append(r_hat.sum() / (r_hat + t_hat).sum())
-    assert shares[0] > 0.12 and shares[1] < 0.10
+    assert shares[0] > 0.095 and shares[1] < 0.08
