@@ -29,10 +29,10 @@ networks (the CEILNet baseline) run as modules, under bf16 autocast where chosen
 Input handling: NaN or infinite pixels are an error; negative pixels (linear decoding noise
 below black) are clipped to 0; the angles must span at least `MIN_SPAN_DEG`. The outputs hold no
 negative light: each tile's R̂ and T̂ from urd's network (not the CEILNet baseline, whose R̂ is
-S0 − T̂ by design) are clipped below at 0, as the physics-anchored network's anchor clips them (`separate.model.SeparationNet.anchor`). Without its gate (a θ estimate that is
-not clear) that network's backbone alone can go below 0 where its training clipped it (views
-without glass: R̂ down to −9% of the light with T̂ right, so R̂ is clipped, not moved into T̂).
-Monochrome shots (one
+S0 − T̂ by design) are clipped below at 0, as the physics-anchored network's anchor clips them
+(`separate.model.SeparationNet.anchor`). Without its gate (a θ estimate that is not clear) that
+network's backbone alone can go below 0 where its training clipped it (views without glass: R̂
+down to −9% of the light with T̂ right, so R̂ is clipped, not moved into T̂). Monochrome shots (one
 channel, or colour channels that are all equal, as urd stores a mono sensor's frames) carry no
 colour: the network sees the grey image in each of its colour channels and its outputs are
 averaged over them, so R̂ and T̂ are grey too (an RGB-trained network otherwise invents tints).
