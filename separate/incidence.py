@@ -228,10 +228,12 @@ def information_by_incidence(i_perp: np.ndarray, i_par: np.ndarray, grid_deg: np
     small = (slice(None, None, max(1, i_perp.shape[0] // 256)), slice(None, None, max(1, i_perp.shape[1] // 256)))
     i_perp, i_par = np.asarray(i_perp[small], np.float64).ravel(), np.asarray(i_par[small], np.float64).ravel()
     thetas = np.radians(np.asarray(grid_deg, np.float64))
+    s0 = i_perp + i_par
     scores = []
     for start in range(0, thetas.size, chunk):
-        layers = [optics.mixture_inverse(i_perp, i_par, *optics.fresnel_reflectance(theta)) for theta in thetas[start : start + chunk]]
-        scores.extend(metrics.mutual_information_rows(np.stack([r for r, _ in layers]), np.stack([t for _, t in layers])))
+        r_s, r_p = optics.fresnel_reflectance(thetas[start : start + chunk, None])
+        r_obs, _ = optics.mixture_inverse(i_perp, i_par, r_s, r_p)            # (chunk, n): R_obs at each angle
+        scores.extend(metrics.mutual_information_rows(r_obs, s0 - r_obs))     # T_obs = S0 − R_obs, as mixture_inverse has it
     return np.array(scores)
 
 

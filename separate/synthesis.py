@@ -68,6 +68,8 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
+from collections.abc import Sequence
 from pathlib import Path
 
 import cv2
@@ -210,13 +212,14 @@ def load_image_pool(folders: list[Path] | None = None, max_side: int = 512) -> l
     return images
 
 
-def default_pool(split: str) -> list[np.ndarray]:
-    """The image pool for a split: shared BSDS500 (+ Sun–Hays for train) or bundled photos."""
+@functools.cache
+def default_pool(split: str) -> tuple[np.ndarray, ...]:
+    """The image pool for a split: shared BSDS500 (+ Sun–Hays for train) or bundled photos.
+    Read once per process (0.2–1.3 s; every training run, benchmark and semi-real scene set of a
+    process shares it) and read-only."""
     bsds = SHARED_NATURAL / "bsds500" / split
-    if not bsds.is_dir():
-        return load_image_pool(None)
-    folders = [bsds] + ([SHARED_NATURAL / "sunhays80"] if split == "train" else [])
-    return load_image_pool(folders)
+    folders = [bsds] + ([SHARED_NATURAL / "sunhays80"] if split == "train" else []) if bsds.is_dir() else None
+    return _read_only(load_image_pool(folders))
 
 
 def _shrink(img: np.ndarray, max_side: int) -> np.ndarray:
@@ -322,10 +325,18 @@ def capture_stokes(capture: samples.Capture, max_side: int = 512) -> tuple[np.nd
 CLIPPED = 0.98
 
 
-def real_pool(split: str = "train") -> list[tuple[np.ndarray, np.ndarray, bool]]:
+@functools.cache
+def real_pool(split: str = "train") -> tuple[tuple[np.ndarray, np.ndarray, bool], ...]:
     """The real no-glass captures of one side of the split as (Stokes, clipped, mono)
-    (`capture_stokes`); empty without ../shared/data."""
-    return [(*capture_stokes(c), c.mono) for c in samples.no_glass_captures(split=split)]
+    (`capture_stokes`); empty without ../shared/data. Read once per process (2–4 s) and read-only."""
+    return tuple((*_read_only(capture_stokes(c)), c.mono) for c in samples.no_glass_captures(split=split))
+
+
+def _read_only(arrays: Sequence[np.ndarray]) -> tuple[np.ndarray, ...]:
+    """The arrays, marked read-only: a cached pool is shared, so nothing may write into it."""
+    for array in arrays:
+        array.setflags(write=False)
+    return tuple(arrays)
 
 
 def grey(image: np.ndarray) -> np.ndarray:
@@ -410,8 +421,8 @@ class Synthesizer:
     (Stokes, clipped, mono) for ``cfg.real_prob`` (default: `real_pool`'s training side).
     """
 
-    def __init__(self, pool: list[np.ndarray], cfg: SynthesisConfig, seed: int,
-                 real: list[tuple[np.ndarray, np.ndarray, bool]] | None = None):
+    def __init__(self, pool: Sequence[np.ndarray], cfg: SynthesisConfig, seed: int,
+                 real: Sequence[tuple[np.ndarray, np.ndarray, bool]] | None = None):
         if len(pool) < 2:
             raise ValueError(f"expected at least 2 images in the pool, got {len(pool)}")
         self.pool = [img for img in pool if min(img.shape[:2]) >= cfg.patch]

@@ -9,13 +9,25 @@ from typer.testing import CliRunner
 
 from conftest import SHARED_DATA
 from separate import optics, semireal
-from separate.synthesis import Synthesizer, SynthesisConfig, load_image_pool, own_polarization, through_mosaic, turn_stokes
+from separate.synthesis import (Synthesizer, SynthesisConfig, default_pool, load_image_pool, own_polarization, real_pool, through_mosaic,
+                                turn_stokes)
 from urd.cli import app
 from urd.core import samples
 
 NO_GLASS = samples.no_glass_captures(SHARED_DATA / "polarization")
 needs_captures = pytest.mark.skipif(not NO_GLASS, reason=f"the real polarization captures (../shared/data, the team's "
                                     f"shared reference data) are not present: {SHARED_DATA / 'polarization'}")
+
+
+def test_photo_and_capture_pools_are_read_once_per_process_and_cannot_be_written():
+    """Training runs, benchmarks and semi-real scene sets of one process share one copy of each pool."""
+    pools = [default_pool("val")] + ([real_pool("train")] if NO_GLASS else [])
+    for pool, again in zip(pools, [default_pool("val"), real_pool("train")]):
+        assert again is pool and len(pool) >= 2
+        arrays = [a for entry in pool for a in (entry[:2] if isinstance(entry, tuple) else (entry,))]
+        assert arrays and not any(a.flags.writeable for a in arrays)
+        with pytest.raises(ValueError, match="read-only"):
+            arrays[0].flat[0] = 0
 
 
 def test_pane_of_unpolarized_layers_renders_as_eq_1():
