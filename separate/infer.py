@@ -467,8 +467,9 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
         for (x, x1), wx in zip(cols, col_weights):
             extra = {} if theta is None else {"theta": theta[y:y1, x:x1][None, None]}
             r_hat, t_hat = run(patch(y, y1, x, x1), angles, scale, **extra)      # a temporary: freed inside once used
-            if clip:
-                r_hat.clamp_(min=0.0), t_hat.clamp_(min=0.0)              # no negative light (module docstring)
+            if clip:                                                     # no negative light (module docstring)
+                r_hat.clamp_(min=0.0)
+                t_hat.clamp_(min=0.0)
             weight = torch.from_numpy(wy[:, None, None] * wx[None, :, None])
             for out, hat in ((r_out, r_hat), (t_out, t_hat)):
                 hat = hat[0].permute(1, 2, 0)                            # (h, w, C)
