@@ -15,6 +15,7 @@ from urd.core.errors import RawFormatError
 from urd.core.images import (
     Transfer,
     codes_to_linear,
+    U16_BLOCK,
     linear_to_u16,
     read_image,
     srgb_encode,
@@ -106,3 +107,6 @@ def test_16_bit_codes_of_linear_tiffs_round_trip_within_half_a_code(full_scale):
     np.testing.assert_array_less(np.abs(back - x)[inside], 0.5 * full_scale / 65535 + 1e-7)
     out = np.empty_like(back)
     assert u16_to_linear(codes, full_scale, out=out) is out
+    image = np.random.default_rng(1).uniform(-0.1, 1.1 * full_scale, (3, U16_BLOCK + 7, 3)).astype(np.float32)
+    expected = np.clip(np.rint(image.astype(np.float64) * (65535.0 / full_scale)), 0, 65535).astype(np.uint16)
+    assert np.abs(linear_to_u16(image, full_scale).astype(np.int32) - expected).max() <= 1     # across the blocks

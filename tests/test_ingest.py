@@ -215,3 +215,16 @@ def test_shots_aligned_and_written_two_at_a_time_are_the_bytes_of_one_at_a_time(
         ingest_scene(scene, IngestOptions())
         aligned[threads] = [p.read_bytes() for p in sorted((scene.path / "aligned").glob("*.tiff"))]
     assert len(aligned[1]) == 4 and aligned[1] == aligned[2]
+
+
+def test_a_reference_prepared_once_aligns_every_shot_as_the_reference_itself_and_is_not_changed(tmp_path):
+    from urd.core.align import align, prepare_target
+
+    ds = Dataset.open_or_create(tmp_path / "ds")                 # 320×240: sizes OpenCV's DFT takes as they are,
+    scene, _ = capture_virtual(ds, angles=(0, 45, 90, 135), size=(320, 240), shake_px=4, shake_deg=0.5, seed=7)
+    shots = [rawio.decode(path) for path in scene.raw_paths()]   # where phaseCorrelate windows its inputs in place
+    target = prepare_target(shots[0])
+    kept = [(rep.copy(), mask.copy()) for rep, mask in target.pyramid]
+    for shot in shots[1:]:
+        assert align(target, shot).record() == align(shots[0], shot).record()
+    assert all(np.array_equal(rep, a) and np.array_equal(mask, b) for (rep, mask), (a, b) in zip(target.pyramid, kept))

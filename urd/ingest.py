@@ -25,7 +25,7 @@ import dataclasses
 import datetime as _dt
 import re
 import shutil
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Iterable
 
@@ -33,7 +33,7 @@ import numpy as np
 import tifffile
 
 from urd.core import raw as rawio
-from urd.core.align import Motion, align, apply_warp
+from urd.core.align import Alignment, Motion, align, apply_warp, prepare_target
 from urd.core.dataset import DATASET_MANIFEST, STAGING_PREFIX, Dataset, Scene
 from urd.core.errors import AlignmentError, DatasetError, RawFormatError, UrdError
 from urd.core.files import atomic_path, sha256_file
@@ -194,19 +194,21 @@ def prepare_ingest(scene: Scene, opts: IngestOptions, progress: Progress | None 
     label = f"ingest {scene.name}"
     if progress:
         progress(0, len(paths), label)
-    reference = rawio.decode(paths[0], opts.half_size)
 
-    def aligned(path: Path):
-        image = rawio.decode(path, opts.half_size)
+    def aligned(i: int) -> tuple[Alignment, np.ndarray | None]:
+        image, decoding[i] = decoding[i].result(), None           # the decoded shot goes once warped
         if image.shape != reference.shape:
-            raise AlignmentError(f"{path}: size {image.shape[1]}×{image.shape[0]} differs from "
+            raise AlignmentError(f"{paths[i]}: size {image.shape[1]}×{image.shape[0]} differs from "
                                  f"{paths[0].name} ({reference.shape[1]}×{reference.shape[0]})")
-        result = align(reference, image, opts.motion)
+        result = align(target, image, opts.motion)
         return result, apply_warp(image, result.warp) if result.ok else None
 
-    results, images = [], {0: reference}
-    with ThreadPoolExecutor(INGEST_THREADS) as pool:
-        for i, (result, image) in enumerate(pool.map(aligned, paths[1:]), start=1):
+    with ThreadPoolExecutor(INGEST_THREADS) as pool:             # the reference decoded beside the next shot
+        decoding: list[Future | None] = [pool.submit(rawio.decode, path, opts.half_size) for path in paths]
+        reference, decoding[0] = decoding[0].result(), None
+        target = prepare_target(reference)                        # once for every shot
+        results, images = [], {0: reference}
+        for i, (result, image) in enumerate(pool.map(aligned, range(1, len(paths))), start=1):
             if progress:
                 progress(i, len(paths), label)
             results.append(result)

@@ -42,11 +42,8 @@ PREVIEW_SIDE = 2048
 
 
 def write_linear_tiff(path: Path, image: np.ndarray, overwrite: bool = False) -> None:
-    """Linear H×W×3 → 16-bit TIFF with full scale `FULL_SCALE`, atomically (row blocks, so
-    the conversion needs little memory)."""
-    data = np.empty(image.shape, np.uint16)
-    for y in range(0, image.shape[0], 512):
-        data[y : y + 512] = linear_to_u16(image[y : y + 512], FULL_SCALE)
+    """Linear H×W×3 → 16-bit TIFF with full scale `FULL_SCALE`, atomically."""
+    data = linear_to_u16(image, FULL_SCALE)
     with atomic_path(path, overwrite) as tmp:
         tifffile.imwrite(tmp, data, photometric="rgb")
 

@@ -105,38 +105,59 @@ def _reduce(image: np.ndarray, level: int) -> np.ndarray:
     return lum
 
 
-def align(reference: np.ndarray, shot: np.ndarray, motion: Motion = Motion.EUCLIDEAN,
+@dataclasses.dataclass
+class Target:
+    """A reference shot prepared once for `align`ing every other shot to it: its shape, the
+    finest pyramid level refined, and its representation and mask (`representation`) on each
+    level from that one to the coarsest (about 256 px on the short side)."""
+
+    shape: tuple[int, ...]
+    finest_level: int
+    pyramid: list[tuple[np.ndarray, np.ndarray]]
+
+
+def prepare_target(reference: np.ndarray, finest_level: int | None = None) -> Target:
+    """The `Target` of ``reference`` (H×W×C linear float32); ``finest_level`` as in `align`."""
+    if finest_level is None:
+        finest_level = finest_level_for(reference.shape)
+    pyramid = [representation(_reduce(reference, finest_level))]
+    levels = max(finest_level, int(np.floor(np.log2(min(reference.shape[:2]) / 256))))
+    for _ in range(levels - finest_level):
+        rep, mask = pyramid[-1]
+        size = ((rep.shape[1] + 1) // 2, (rep.shape[0] + 1) // 2)
+        pyramid.append((cv2.pyrDown(rep), cv2.resize(mask, size, interpolation=cv2.INTER_NEAREST)))
+    return Target(tuple(reference.shape), finest_level, pyramid)
+
+
+def align(reference: np.ndarray | Target, shot: np.ndarray, motion: Motion = Motion.EUCLIDEAN,
           finest_level: int | None = None, min_correlation: float = 0.6, max_shift_frac: float = 0.05,
           max_rotation_deg: float = 5.0) -> Alignment:
-    """Estimate the warp of ``shot`` onto ``reference`` (both H×W×C linear float32).
+    """Estimate the warp of ``shot`` onto ``reference`` (both H×W×C linear float32; the
+    reference may be prepared once for several shots, `prepare_target`).
 
     ``finest_level`` is the last pyramid level refined (0 = full resolution); by default the
-    finest with at most 8 megapixels.
-
+    finest with at most 8 megapixels (a prepared reference's own).
     A result is not ``ok`` when ECC fails to converge, its correlation on the finest level
     is below ``min_correlation``, or the warp is implausible for camera shake (shift above
     ``max_shift_frac`` of the width, rotation above ``max_rotation_deg``).
     """
-    if reference.shape != shot.shape:
-        raise AlignmentError(f"expected shots of equal size, got {reference.shape} and {shot.shape}")
-    if finest_level is None:
-        finest_level = finest_level_for(reference.shape)
-    ref_rep, ref_mask = representation(_reduce(reference, finest_level))
-    shot_rep, _ = representation(_reduce(shot, finest_level))
-    levels = max(finest_level, int(np.floor(np.log2(min(reference.shape[:2]) / 256))))
-    pyramid = [None] * finest_level + [(ref_rep, shot_rep, ref_mask)]
+    target = reference if isinstance(reference, Target) else prepare_target(reference, finest_level)
+    if target.shape != shot.shape:
+        raise AlignmentError(f"expected shots of equal size, got {target.shape} and {shot.shape}")
+    if finest_level is not None and finest_level != target.finest_level:
+        raise ValueError(f"expected finest_level {target.finest_level} (the prepared reference's), got {finest_level}")
+    finest_level, levels = target.finest_level, target.finest_level + len(target.pyramid) - 1
+    shots = [representation(_reduce(shot, finest_level))[0]]
     for _ in range(levels - finest_level):
-        r, s, m = pyramid[-1]
-        size = ((r.shape[1] + 1) // 2, (r.shape[0] + 1) // 2)
-        pyramid.append((cv2.pyrDown(r), cv2.pyrDown(s), cv2.resize(m, size, interpolation=cv2.INTER_NEAREST)))
+        shots.append(cv2.pyrDown(shots[-1]))
     warp = np.eye(3, dtype=np.float32) if motion is Motion.HOMOGRAPHY else np.eye(2, 3, dtype=np.float32)
-    coarse_ref, coarse_shot, _ = pyramid[levels]
+    coarse_ref, coarse_shot = target.pyramid[-1][0], shots[-1]
     window = cv2.createHanningWindow(coarse_ref.shape[::-1], cv2.CV_32F)
-    (dx, dy), _ = cv2.phaseCorrelate(coarse_ref, coarse_shot, window)
+    (dx, dy), _ = cv2.phaseCorrelate(coarse_ref.copy(), coarse_shot.copy(), window)    # it windows its inputs in place
     warp[0, 2], warp[1, 2] = dx, dy
     correlation = 0.0
     for level in range(levels, finest_level - 1, -1):
-        r, s, m = pyramid[level]
+        (r, m), s = target.pyramid[level - finest_level], shots[level - finest_level]
         criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, *((300, 1e-8) if level == finest_level else (100, 1e-5)))
         if level < levels:
             warp = _scale_warp(warp, 2.0)
@@ -145,7 +166,7 @@ def align(reference: np.ndarray, shot: np.ndarray, motion: Motion = Motion.EUCLI
         except cv2.error as exc:
             return Alignment(_scale_warp(warp, 2.0**finest_level), 0.0, False, f"ECC did not converge at level {level}: {str(exc).splitlines()[-1]}")
     warp = _scale_warp(warp, 2.0**finest_level)
-    width = reference.shape[1]
+    width = target.shape[1]
     shift = float(np.hypot(warp[0, 2], warp[1, 2]))
     rotation = float(np.degrees(np.arctan2(warp[1, 0], warp[0, 0])))
     if correlation < min_correlation:
