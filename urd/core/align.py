@@ -105,7 +105,7 @@ def _reduce(image: np.ndarray, level: int) -> np.ndarray:
     return lum
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class Target:
     """A reference shot prepared once for `align`ing every other shot to it: its shape, the
     finest pyramid level refined, and its representation and mask (`representation`) on each
@@ -137,6 +137,7 @@ def align(reference: np.ndarray | Target, shot: np.ndarray, motion: Motion = Mot
 
     ``finest_level`` is the last pyramid level refined (0 = full resolution); by default the
     finest with at most 8 megapixels (a prepared reference's own).
+
     A result is not ``ok`` when ECC fails to converge, its correlation on the finest level
     is below ``min_correlation``, or the warp is implausible for camera shake (shift above
     ``max_shift_frac`` of the width, rotation above ``max_rotation_deg``).
