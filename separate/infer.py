@@ -7,7 +7,8 @@ which leaves no seams: with the default 160 px overlap, tiled and whole-image re
 tile size, not the image size: besides the input stack and the two results, a tile takes about
 230 bytes per pixel of resident memory in bf16 and 310 in fp32 (measured on a 24 MP scene,
 whose 2048 px tiles are 1632×1456: 0.51 and 0.69 GiB; 0.16 and 0.26 GiB with 1024 px tiles),
-and memory that glibc would keep after each tile is handed back. The default 2048 px tiles put
+plus the freed blocks glibc keeps for the next tile while the tiles run (`_reuse_freed_memory`;
+24 MP peak 2.33–2.41 GiB in bf16, 2.43 GiB in fp32 with its 1536 px tiles, `FP32_TILE`). The default 2048 px tiles put
 a 24 MP image through the network as 1.19× its pixels (1.39× with 1024 px tiles; 3072 px gave
 no further gain): bf16 23.2 s instead of 26.3 s, fp32 38.4 s instead of 43.9 s on the
 development machine (2-core AMD EPYC with AVX-512 BF16; measured before the strips below). A stack of uint16 codes (as scenes are
@@ -73,6 +74,10 @@ STRIP_ROWS = 384
 #: Rows of the strips in which `separate_stack` converts, presents and clips a tile's shots: a 24 MP
 #: scene's 1632×1456 tiles with a reference field 0.21 → 0.06 s each (whole tile at once → 64 rows).
 PATCH_ROWS = 64
+#: The CPU tile (px) in fp32, whose activations take twice the memory of bf16's: with the freed
+#: blocks kept for reuse (`_reuse_freed_memory`) 2048 px tiles hold 2.70 GiB at 24 MP (AVX2: 38.5 s),
+#: 1536 px tiles 2.43 GiB (42.9 s; before the blocks were kept, 2048 px: 52.9 s, 2.27 GiB).
+FP32_TILE = 1536
 MODULE_TILE = 1024  # px for networks run as modules (CEILNet, or torch without oneDNN): their memory per pixel is higher
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "urd-anchored.pt"
 
@@ -274,7 +279,6 @@ class FusedNet:
         del obs
         held = [x]
         del x
-        _release_freed_memory()                              # the input's temporaries (saves ~50 B/px of peak)
         out = self.backbone(held.pop())[..., :h, :w]         # the only reference: x goes after the first level
         if self.model.variant != "canonical":
             return out[:, :c].float() / gain, out[:, c : 2 * c].float() / gain
@@ -339,14 +343,17 @@ def runner(model: torch.nn.Module, precision: str | Precision = "auto", device: 
 
 
 def default_tile(model: torch.nn.Module, device: torch.device | str = "cpu", precision: str | Precision = "auto") -> int:
-    """The default tile (px): on the CPU `TILE` for a network `runner` runs through `FusedNet`,
-    else `MODULE_TILE`; on a GPU the tile that fits its free memory
-    (`separate.precision.gpu_tile`), at least `MODULE_TILE`."""
+    """The default tile (px): on the CPU, for a network `runner` runs through `FusedNet`, `TILE`
+    in bf16 and `FP32_TILE` in fp32, else `MODULE_TILE`; on a GPU the tile that fits its free
+    memory (`separate.precision.gpu_tile`), at least `MODULE_TILE`."""
     device = torch.device(device)
+    bf16 = resolve(precision, device) is Precision.BF16
     if device.type == "cuda":
         free, _ = torch.cuda.mem_get_info(device)
-        return max(MODULE_TILE, gpu_tile(free, resolve(precision, device) is Precision.BF16))
-    return TILE if isinstance(model, SeparationNet) and FusedNet.available() else MODULE_TILE
+        return max(MODULE_TILE, gpu_tile(free, bf16))
+    if isinstance(model, SeparationNet) and FusedNet.available():
+        return TILE if bf16 else FP32_TILE
+    return MODULE_TILE
 
 
 @torch.inference_mode()
@@ -460,6 +467,8 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
     # torch's zeroing touches the memory on every thread up front; np.zeros leaves it to the first tile
     # of each row of tiles, which on the development VM took 80-160 ms each (huge-page faults)
     r_out, t_out = (torch.zeros((h, w, c), dtype=torch.float32).numpy() for _ in range(2))
+    _release_freed_memory()                                 # what the checks and estimates left
+    _reuse_freed_memory()
     rows, cols = tile_spans(h, tile, overlap), tile_spans(w, tile, overlap)
     row_weights, col_weights = blend_weights(rows, h, overlap), blend_weights(cols, w, overlap)
     done, total = 0, len(rows) * len(cols)
@@ -477,32 +486,49 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
                     hat = hat.mean(dim=-1, keepdim=True)
                 torch.from_numpy(out)[y:y1, x:x1].addcmul_(hat, weight)
             del r_hat, t_hat
-            _release_freed_memory()
             done += 1
             if progress:
                 progress(done, total)
+    _release_freed_memory()
     return r_out, t_out
 
 
 @functools.cache
-def _malloc_trim() -> Callable[[int], int] | None:
-    """glibc's ``malloc_trim``, or None where the C library is another."""
+def _glibc() -> ctypes.CDLL | None:
+    """The C library where it is glibc (``malloc_trim`` and ``mallopt``), else None."""
     if not sys.platform.startswith("linux"):
         return None
     try:
-        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
-    except (OSError, AttributeError):
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        return libc if hasattr(libc, "malloc_trim") and hasattr(libc, "mallopt") else None
+    except OSError:
         return None
 
 
+#: glibc's ``mallopt`` parameters, and the size up to which `_reuse_freed_memory` keeps freed blocks (bytes).
+M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
+REUSED_BLOCK_BYTES = 1 << 30
+
+
+def _reuse_freed_memory() -> None:
+    """Let glibc serve blocks of up to `REUSED_BLOCK_BYTES` from its heap and keep them when freed,
+    for the rest of the process: by default it maps each block above 32 MB (a tile's activations
+    take up to 70 MB) afresh and the kernel zeroes every page of it again, convolution after
+    convolution and tile after tile (24 MP: 2.7 M page faults and 11 s of system time, 0.5-0.8 M
+    and 5-7 s with the blocks kept). `separate_stack` hands what it kept back at its end
+    (`_release_freed_memory`)."""
+    libc = _glibc()
+    if libc is not None:
+        libc.mallopt(M_MMAP_THRESHOLD, REUSED_BLOCK_BYTES)
+        libc.mallopt(M_TRIM_THRESHOLD, REUSED_BLOCK_BYTES)
+
+
 def _release_freed_memory() -> None:
-    """Give the memory freed by a tile back to the system where the C library is glibc: it
-    keeps freed blocks below its (adaptive, up to 32 MB) mmap threshold, which a tile's 10-30 MB
-    temporaries are, and a 24 MP image's resident memory otherwise grows by ~0.3 GB over its
-    tiles (measured: 1.91 GB after the network without, 1.63 GB with, at no measurable cost in time)."""
-    trim = _malloc_trim()
-    if trim is not None:
-        trim(0)
+    """Give the memory freed so far back to the system where the C library is glibc
+    (``malloc_trim``: the free pages of its heaps)."""
+    libc = _glibc()
+    if libc is not None:
+        libc.malloc_trim(0)
 
 
 def _equal_channels(images: np.ndarray) -> bool:

@@ -6,7 +6,7 @@ import torch
 from typer.testing import CliRunner
 
 from separate import precision
-from separate.infer import FusedNet, default_tile, load_model, runner
+from separate.infer import FP32_TILE, FusedNet, default_tile, load_model, runner
 from separate.tiling import TILE
 from separate.precision import Device, gpu_tile, resolve_device
 from urd.cli import app
@@ -41,7 +41,7 @@ def test_the_cpu_path_is_unchanged():
     model, _ = load_model()
     if FusedNet.available():
         assert isinstance(runner(model, "fp32", torch.device("cpu")), FusedNet)
-        assert default_tile(model, "cpu") == TILE
+        assert default_tile(model, "cpu", "bf16") == TILE and default_tile(model, "cpu", "fp32") == FP32_TILE < TILE
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on a machine without CUDA")
