@@ -7,7 +7,7 @@ which leaves no seams: with the default 160 px overlap, tiled and whole-image re
 tile size, not the image size: besides the input stack and the two results, a tile takes about
 230 bytes per pixel of resident memory in bf16 and 310 in fp32 (measured on a 24 MP scene,
 whose 2048 px tiles are 1632×1456: 0.51 and 0.69 GiB; 0.16 and 0.26 GiB with 1024 px tiles),
-plus the freed blocks glibc keeps for the next tile while the tiles run (`_reuse_freed_memory`;
+plus the freed blocks glibc keeps for the next tile while the tiles run (`_freed_blocks_kept`;
 24 MP peak 2.33–2.41 GiB in bf16, 2.43 GiB in fp32 with its 1536 px tiles, `FP32_TILE`). The default 2048 px tiles put
 a 24 MP image through the network as 1.19× its pixels (1.39× with 1024 px tiles; 3072 px gave
 no further gain): bf16 23.2 s instead of 26.3 s, fp32 38.4 s instead of 43.9 s on the
@@ -41,6 +41,7 @@ averaged over them, so R̂ and T̂ are grey too (an RGB-trained network otherwis
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import ctypes.util
 import functools
@@ -48,7 +49,7 @@ import hashlib
 import json
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Iterator, Sequence
 
 import numpy as np
 import torch
@@ -75,7 +76,7 @@ STRIP_ROWS = 384
 #: scene's 1632×1456 tiles with a reference field 0.21 → 0.06 s each (whole tile at once → 64 rows).
 PATCH_ROWS = 64
 #: The CPU tile (px) in fp32, whose activations take twice the memory of bf16's: with the freed
-#: blocks kept for reuse (`_reuse_freed_memory`) 2048 px tiles hold 2.70 GiB at 24 MP (AVX2: 38.5 s),
+#: blocks kept for reuse (`_freed_blocks_kept`) 2048 px tiles hold 2.70 GiB at 24 MP (AVX2: 38.5 s),
 #: 1536 px tiles 2.43 GiB (42.9 s; before the blocks were kept, 2048 px: 52.9 s, 2.27 GiB).
 FP32_TILE = 1536
 MODULE_TILE = 1024  # px for networks run as modules (CEILNet, or torch without oneDNN): their memory per pixel is higher
@@ -468,28 +469,27 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
     # of each row of tiles, which on the development VM took 80-160 ms each (huge-page faults)
     r_out, t_out = (torch.zeros((h, w, c), dtype=torch.float32).numpy() for _ in range(2))
     _release_freed_memory()                                 # what the checks and estimates left
-    _reuse_freed_memory()
     rows, cols = tile_spans(h, tile, overlap), tile_spans(w, tile, overlap)
     row_weights, col_weights = blend_weights(rows, h, overlap), blend_weights(cols, w, overlap)
     done, total = 0, len(rows) * len(cols)
-    for (y, y1), wy in zip(rows, row_weights):
-        for (x, x1), wx in zip(cols, col_weights):
-            extra = {} if theta is None else {"theta": theta[y:y1, x:x1][None, None]}
-            r_hat, t_hat = run(patch(y, y1, x, x1), angles, scale, **extra)      # a temporary: freed inside once used
-            if clip:                                                     # no negative light (module docstring)
-                r_hat.clamp_(min=0.0)
-                t_hat.clamp_(min=0.0)
-            weight = torch.from_numpy(wy[:, None, None] * wx[None, :, None])
-            for out, hat in ((r_out, r_hat), (t_out, t_hat)):
-                hat = hat[0].permute(1, 2, 0)                            # (h, w, C)
-                if mono:
-                    hat = hat.mean(dim=-1, keepdim=True)
-                torch.from_numpy(out)[y:y1, x:x1].addcmul_(hat, weight)
-            del r_hat, t_hat
-            done += 1
-            if progress:
-                progress(done, total)
-    _release_freed_memory()
+    with _freed_blocks_kept():
+        for (y, y1), wy in zip(rows, row_weights):
+            for (x, x1), wx in zip(cols, col_weights):
+                extra = {} if theta is None else {"theta": theta[y:y1, x:x1][None, None]}
+                r_hat, t_hat = run(patch(y, y1, x, x1), angles, scale, **extra)      # a temporary: freed inside once used
+                if clip:                                                     # no negative light (module docstring)
+                    r_hat.clamp_(min=0.0)
+                    t_hat.clamp_(min=0.0)
+                weight = torch.from_numpy(wy[:, None, None] * wx[None, :, None])
+                for out, hat in ((r_out, r_hat), (t_out, t_hat)):
+                    hat = hat[0].permute(1, 2, 0)                            # (h, w, C)
+                    if mono:
+                        hat = hat.mean(dim=-1, keepdim=True)
+                    torch.from_numpy(out)[y:y1, x:x1].addcmul_(hat, weight)
+                del r_hat, t_hat
+                done += 1
+                if progress:
+                    progress(done, total)
     return r_out, t_out
 
 
@@ -505,22 +505,33 @@ def _glibc() -> ctypes.CDLL | None:
         return None
 
 
-#: glibc's ``mallopt`` parameters, and the size up to which `_reuse_freed_memory` keeps freed blocks (bytes).
+#: glibc's ``mallopt`` parameters; the size up to which `_freed_blocks_kept` keeps freed blocks
+#: (bytes); and the thresholds it leaves: glibc's own once it has freed a block of 32 MB or more
+#: (its adaptive mmap threshold at its ceiling, the trim threshold twice that).
 M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
-REUSED_BLOCK_BYTES = 1 << 30
+KEPT_BLOCK_BYTES = 1 << 30
+ADAPTED_MMAP_BYTES = 32 << 20
 
 
-def _reuse_freed_memory() -> None:
-    """Let glibc serve blocks of up to `REUSED_BLOCK_BYTES` from its heap and keep them when freed,
-    for the rest of the process: by default it maps each block above 32 MB (a tile's activations
-    take up to 70 MB) afresh and the kernel zeroes every page of it again, convolution after
-    convolution and tile after tile (24 MP: 2.7 M page faults and 11 s of system time, 0.5-0.8 M
-    and 5-7 s with the blocks kept). `separate_stack` hands what it kept back at its end
-    (`_release_freed_memory`)."""
+@contextlib.contextmanager
+def _freed_blocks_kept() -> Iterator[None]:
+    """Within the block, glibc serves blocks of up to `KEPT_BLOCK_BYTES` from its heap and keeps
+    them when freed: by default it maps each block above 32 MB (a tile's activations take up to
+    70 MB) afresh, and the kernel zeroes every page of it again, convolution after convolution
+    and tile after tile (24 MP: 2.7 M page faults and 11 s of system time; 0.5 M and 4-5 s with
+    the blocks kept). On leaving, the thresholds are glibc's adapted ones (`ADAPTED_MMAP_BYTES`)
+    and what was kept is handed back (`_release_freed_memory`)."""
     libc = _glibc()
     if libc is not None:
-        libc.mallopt(M_MMAP_THRESHOLD, REUSED_BLOCK_BYTES)
-        libc.mallopt(M_TRIM_THRESHOLD, REUSED_BLOCK_BYTES)
+        libc.mallopt(M_MMAP_THRESHOLD, KEPT_BLOCK_BYTES)
+        libc.mallopt(M_TRIM_THRESHOLD, KEPT_BLOCK_BYTES)
+    try:
+        yield
+    finally:
+        if libc is not None:
+            libc.mallopt(M_MMAP_THRESHOLD, ADAPTED_MMAP_BYTES)
+            libc.mallopt(M_TRIM_THRESHOLD, 2 * ADAPTED_MMAP_BYTES)
+            libc.malloc_trim(0)
 
 
 def _release_freed_memory() -> None:

@@ -1,5 +1,6 @@
 """separate.infer: tile and overlap checks, tiling at the default tile size, the fused network."""
 
+import os
 import warnings
 from pathlib import Path
 
@@ -7,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from separate import infer
 from separate.infer import STRIP_ROWS, FusedNet, load_model, runner, separate_stack, shipped_weights
 from separate.tiling import OVERLAP, TILE, tile_spans
 from separate.model import FresnelGate, ResizeUp, SeparationNet
@@ -231,3 +233,17 @@ def test_separated_layers_hold_no_negative_light():
     np.testing.assert_array_equal(r_hat, 0.0)
     assert (t_module > 0).all() and t_hat.min() > 0                  # T̂: the constant T̃ at the stack's exposure
     np.testing.assert_allclose(t_hat, t_hat.mean(), rtol=1e-5)
+
+
+@pytest.mark.skipif(infer._glibc() is None, reason="glibc's malloc only")
+def test_a_tiles_freed_blocks_are_kept_inside_the_block_and_handed_back_after_it():
+    def resident_mb() -> float:
+        return int(Path("/proc/self/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+    with infer._freed_blocks_kept():
+        before = resident_mb()
+        block = np.ones(200 * 2**20, np.uint8)          # 200 MB: glibc maps it afresh unless the block keeps it
+        del block
+        kept = resident_mb() - before
+    handed_back = resident_mb() - before
+    assert kept > 150 and handed_back < 50, (kept, handed_back)
