@@ -80,3 +80,27 @@ def test_bad_parameters_exit_2_with_the_reason(tmp_path, monkeypatch):
                          (("bench", "--ablation", "--steps", "0"), "--steps")):
         out = CliRunner().invoke(app, list(args))
         assert out.exit_code == 2 and reason in out.stderr, (args, out.output)
+
+
+def test_the_installed_urd_command_is_main_with_its_sigterm_handling_and_quick_exit():
+    import tomllib
+    from pathlib import Path
+
+    project = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())["project"]
+    assert project["scripts"]["urd"] == "urd.cli:main"
+
+
+@pytest.mark.parametrize("code,status,stderr", [(3, 3, ""), (None, 0, ""), ("Error: gone", 1, "Error: gone\n")])
+def test_the_quick_exit_runs_the_exit_handlers_flushes_and_keeps_the_status(code, status, stderr):
+    program = ("import atexit, sys; from urd.cli import exit_now; atexit.register(print, 'handler ran'); "
+               f"print('work done', end=' '); exit_now({code!r})")
+    done = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, timeout=60)
+    assert (done.returncode, done.stdout, done.stderr) == (status, "work done handler ran\n", stderr)
+
+
+def test_the_quick_exit_waits_for_a_running_thread_as_a_normal_exit_does(tmp_path):
+    program = ("import threading, time, pathlib; from urd.cli import exit_now; "
+               f"threading.Thread(target=lambda: (time.sleep(0.5), pathlib.Path({str(tmp_path / 'late')!r}).write_text('x'))).start(); "
+               "exit_now(0)")
+    done = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0 and (tmp_path / "late").read_text() == "x"
