@@ -531,7 +531,7 @@ def _freed_blocks_kept() -> Iterator[None]:
         if libc is not None:
             libc.mallopt(M_MMAP_THRESHOLD, ADAPTED_MMAP_BYTES)
             libc.mallopt(M_TRIM_THRESHOLD, 2 * ADAPTED_MMAP_BYTES)
-            libc.malloc_trim(0)
+        _release_freed_memory()
 
 
 def _release_freed_memory() -> None:

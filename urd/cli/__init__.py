@@ -8,7 +8,8 @@ checks and parsers) is in `common`. This module assembles them into one typer ap
 
 Angles are degrees here and in manifests. Errors print one line in one voice, "Error: ...":
 bad arguments name the option ("Invalid value for '--method': ...") and exit with status 2,
-failures exit with status 1 (130 after Ctrl-C). Output paths are printed absolute.
+failures exit with status 1 (130 after Ctrl-C). Output paths are printed absolute. `main` is the
+installed ``urd`` command: SIGTERM handling, the app, then a quick exit (`exit_now`).
 """
 
 from __future__ import annotations
