@@ -468,7 +468,6 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
     # torch's zeroing touches the memory on every thread up front; np.zeros leaves it to the first tile
     # of each row of tiles, which on the development VM took 80-160 ms each (huge-page faults)
     r_out, t_out = (torch.zeros((h, w, c), dtype=torch.float32).numpy() for _ in range(2))
-    _release_freed_memory()                                 # what the checks and estimates left
     rows, cols = tile_spans(h, tile, overlap), tile_spans(w, tile, overlap)
     row_weights, col_weights = blend_weights(rows, h, overlap), blend_weights(cols, w, overlap)
     done, total = 0, len(rows) * len(cols)
@@ -519,8 +518,10 @@ def _freed_blocks_kept() -> Iterator[None]:
     them when freed: by default it maps each block above 32 MB (a tile's activations take up to
     70 MB) afresh, and the kernel zeroes every page of it again, convolution after convolution
     and tile after tile (24 MP: 2.7 M page faults and 11 s of system time; 0.5 M and 4-5 s with
-    the blocks kept). On leaving, the thresholds are glibc's adapted ones (`ADAPTED_MMAP_BYTES`)
-    and what was kept is handed back (`_release_freed_memory`)."""
+    the blocks kept). What was freed before is handed back on entering (`_release_freed_memory`);
+    on leaving, the thresholds are glibc's adapted ones (`ADAPTED_MMAP_BYTES`) and what was kept
+    is handed back too."""
+    _release_freed_memory()
     libc = _glibc()
     if libc is not None:
         libc.mallopt(M_MMAP_THRESHOLD, KEPT_BLOCK_BYTES)
