@@ -95,6 +95,17 @@ def test_display_encoding_inverts_the_srgb_decoding_and_clips():
     np.testing.assert_array_equal(to_display(grey[..., None], gain=0.25)[0, 1], [188, 188, 188])   # 2.0 × 0.25
 
 
+
+def test_display_encoding_in_blocks_gives_the_codes_of_the_whole_image_at_once():
+    rng = np.random.default_rng(3)
+    image = rng.uniform(-0.1, 1.3, (301, 257, 3)).astype(np.float32)      # 3.5 blocks of U16_BLOCK values
+    image.flat[::911], image.flat[::1237] = np.nan, np.inf
+    for gain in (1.0, 0.7351):
+        whole = np.rint(srgb_encode(image * np.float32(gain)) * 255.0).astype(np.uint8)
+        np.testing.assert_array_equal(to_display(image, gain), whole)
+    grey = image[::-1, :, :1]                                                # strided, one channel
+    np.testing.assert_array_equal(to_display(grey), np.rint(srgb_encode(np.repeat(grey, 3, axis=-1)) * 255.0).astype(np.uint8))
+
 @pytest.mark.parametrize("full_scale", [1.0, 2.0])
 def test_16_bit_codes_of_linear_tiffs_round_trip_within_half_a_code(full_scale):
     x = np.linspace(-0.1, 1.1 * full_scale, 1001, dtype=np.float32)
