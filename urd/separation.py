@@ -254,14 +254,16 @@ def prepare_scene(scene: Scene, method: str, run, info: dict, reference: str | f
     sees_polarization = sees_polarization_of(info)
     r_hat, t_hat, inspection, used = separate_inspected(images, angles, run, reference, sees_polarization)
     polarization = _maps(images, angles, used) if maps else None
-    metrics_truth = truth_metrics(scene, r_hat, t_hat, images, angles)
-    del images                                            # the largest array: free it before writing
     reference_deg, warnings = inspection.reference_deg, inspection.warnings
     staging = scene.new_staging()
     try:
-        paths = write_results(staging, r_hat, t_hat, overwrite=False, confidence=inspection.presence_at(r_hat.shape[:2]),
-                              clipped=inspection.clipped,
-                              reference_field=_field_image(used, inspection) if sees_polarization else None)
+        with concurrent.futures.ThreadPoolExecutor(max_workers=1) as pool:     # beside the writing (GIL released)
+            measured = pool.submit(truth_metrics, scene, r_hat, t_hat, images, angles)
+            paths = write_results(staging, r_hat, t_hat, overwrite=False, confidence=inspection.presence_at(r_hat.shape[:2]),
+                                  clipped=inspection.clipped,
+                                  reference_field=_field_image(used, inspection) if sees_polarization else None)
+            metrics_truth = measured.result()
+        del images                                        # the largest array
         staged = {f"results/{method}/{p.name}": p for p in paths}
         if polarization is not None:
             staged |= {f"results/{method}/maps/{p.name}": p for p in write_maps(staging / "maps", polarization)}
