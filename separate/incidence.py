@@ -20,7 +20,7 @@ import numpy as np
 
 from separate import metrics, optics
 from separate.presentation import check_stack, field_at
-from separate.reference import INCIDENCE_RANGE_DEG, INCIDENCE_STEP_DEG, MAX_SIDE, _reduce_stack
+from separate.reference import INCIDENCE_RANGE_DEG, INCIDENCE_STEP_DEG, MAX_SIDE, reduce_luminance
 
 
 def estimate_incidence_deg(images: np.ndarray, angles_deg: Sequence[float], reference: float | np.ndarray,
@@ -48,14 +48,12 @@ def _canonical_luminances(images: np.ndarray, angles_deg: Sequence[float], refer
     """I⊥, I∥ (h×w float64) of the stack's luminance at the reference (deg, a number or an H×W
     field), area-averaged to at most ``side`` px on the long side (≤ `MAX_SIDE`)."""
     phi = check_stack(images, angles_deg)
-    lum, _ = _reduce_stack(images, np.zeros(images.shape[1:3], bool))
+    lum = reduce_luminance(images)
     scale = min(1.0, side / max(lum.shape[1:]))
     if scale < 1:
         size = (max(1, round(lum.shape[2] * scale)), max(1, round(lum.shape[1] * scale)))
         lum = np.stack([cv2.resize(shot, size, interpolation=cv2.INTER_AREA) for shot in lum])
-    reference = np.asarray(reference, np.float64)
-    if reference.ndim == 2:
-        reference = field_at(reference, lum.shape[1:])
+    reference = field_at(reference, lum.shape[1:]) if np.ndim(reference) == 2 else np.float64(reference)
     stokes = optics.rotate_stokes(optics.stokes_from_images(lum, phi), np.radians(reference))
     return optics.canonical_intensities(stokes, 0.0)
 

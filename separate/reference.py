@@ -151,23 +151,29 @@ def clipped_mask(images: np.ndarray, white: float = 1.0, rows: int = 512) -> np.
     return out
 
 
-def _reduce_stack(images: np.ndarray, clipped: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def reduce_luminance(images: np.ndarray) -> np.ndarray:
     """The stack's luminance area-averaged to at most `MAX_SIDE` px on the long side, (N, h, w)
-    float64 (averaging commutes with the Stokes fit), and where a reduced pixel covers a
-    clipped pixel (`clipped_mask`), h×w bool."""
+    float64 (averaging commutes with the Stokes fit)."""
     n, h, w = images.shape[:3]
     scale = min(1.0, MAX_SIDE / max(h, w))
     size = (max(1, round(w * scale)), max(1, round(h * scale)))
     lum = np.empty((n, size[1], size[0]))
     unit = optics.code_scale(images)
-    saturated = clipped.view(np.uint8) * np.uint8(255)               # 255 keeps one pixel in 500 visible
     for k, shot in enumerate(images):
         small = shot if shot.dtype == np.uint16 else shot.astype(np.float32, copy=False)    # cv2 takes both
         if scale < 1:
             small = cv2.resize(small, size, interpolation=cv2.INTER_AREA)
         lum[k] = small.reshape(size[1], size[0], -1).mean(axis=-1) * unit
-    if scale < 1:
-        saturated = cv2.resize(saturated, size, interpolation=cv2.INTER_AREA)
+    return lum
+
+
+def _reduce_stack(images: np.ndarray, clipped: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`reduce_luminance`, and where a reduced pixel covers a clipped pixel (`clipped_mask`),
+    h×w bool."""
+    lum = reduce_luminance(images)
+    saturated = clipped.view(np.uint8) * np.uint8(255)               # 255 keeps one pixel in 500 visible
+    if lum.shape[1:] != clipped.shape:
+        saturated = cv2.resize(saturated, lum.shape[:0:-1], interpolation=cv2.INTER_AREA)
     return lum, saturated > 0
 
 
