@@ -5,6 +5,7 @@ commit point (`SceneSwap._commit`); a swap that a killed run left committed is f
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import os
 import re
@@ -113,12 +114,12 @@ class SceneSwap:
         before = {rec["file"] for rec in _file_records(data)}
         folder = self.new_staging()
         try:
-            records = []
-            for relative, path in staged.items():
-                target = folder / relative
+            targets = [folder / relative for relative in staged]
+            for path, target in zip(staged.values(), targets):
                 target.parent.mkdir(parents=True, exist_ok=True)
                 shutil.move(path, target)
-                records.append(self.file_record(target))
+            with concurrent.futures.ThreadPoolExecutor(max_workers=2) as pool:    # hashing releases the GIL
+                records = list(pool.map(self.file_record, targets))
             change(records)
             after = {_final_name(rec["file"]) for rec in _file_records(data)}
             data["swap"] = {"remove": sorted(before - after)}
