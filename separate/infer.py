@@ -8,7 +8,7 @@ tile size, not the image size: besides the input stack and the two results, a ti
 230 bytes per pixel of resident memory in bf16 and 310 in fp32 (measured on a 24 MP scene,
 whose 2048 px tiles are 1632×1456: 0.51 and 0.69 GiB; 0.16 and 0.26 GiB with 1024 px tiles),
 plus the freed blocks glibc keeps for the next tile while the tiles run (`_freed_blocks_kept`;
-24 MP peak 2.33–2.41 GiB in bf16, 2.43 GiB in fp32 with its 1536 px tiles, `FP32_TILE`). The default 2048 px tiles put
+24 MP peak 2.33–2.43 GiB in bf16, 2.32–2.42 GiB in fp32 with its 1408 px tiles, `FP32_TILE`). The default 2048 px tiles put
 a 24 MP image through the network as 1.19× its pixels (1.39× with 1024 px tiles; 3072 px gave
 no further gain): bf16 23.2 s instead of 26.3 s, fp32 38.4 s instead of 43.9 s on the
 development machine (2-core AMD EPYC with AVX-512 BF16; measured before the strips below). A stack of uint16 codes (as scenes are
@@ -76,9 +76,9 @@ STRIP_ROWS = 384
 #: scene's 1632×1456 tiles with a reference field 0.21 → 0.06 s each (whole tile at once → 64 rows).
 PATCH_ROWS = 64
 #: The CPU tile (px) in fp32, whose activations take twice the memory of bf16's: with the freed
-#: blocks kept for reuse (`_freed_blocks_kept`) 2048 px tiles hold 2.70 GiB at 24 MP (AVX2: 38.5 s),
-#: 1536 px tiles 2.43 GiB (42.9 s; before the blocks were kept, 2048 px: 52.9 s, 2.27 GiB).
-FP32_TILE = 1536
+#: blocks kept for reuse (`_freed_blocks_kept`) a 24 MP scene peaks at 2.70 GiB with 2048 px tiles,
+#: 2.44-2.59 GiB with 1536 px and 2.32-2.42 GiB with 1408 px, as fast (AVX2: 39.6-39.9 s either way).
+FP32_TILE = 1408
 MODULE_TILE = 1024  # px for networks run as modules (CEILNet, or torch without oneDNN): their memory per pixel is higher
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "urd-anchored.pt"
 

@@ -28,7 +28,7 @@ def separate(
     out: Path = typer.Option(Path("separated"), help="Output folder for --images."),
     reference: str = typer.Option("auto", help="Reference angle (deg): the glass's s-direction, where the reflection is brightest; 'auto' estimates it per pixel from the shots (a smooth field, for wide views and curved panes; one angle where the polarization is weak and of one orientation), 'global' one angle for the whole view."),
     weights: Optional[Path] = typer.Option(None, help="Weights file of the network or ceilnet, or a shipped one by name: urd-anchored (the default: the network anchored to the Fresnel inversion by a learned gate), urd-canonical (the same network without the gate), urd-canonical-transposed (the paper's decoder), urd-direct, ceilnet."),
-    tile: Optional[int] = typer.Option(None, help="Network tile size (px, at least 320: twice the 160 px overlap; default for the network 2048 in bf16, 1536 in fp32 (CPU), for ceilnet 1024: separate.infer.default_tile); memory grows with it, not with the image.", show_default=False),
+    tile: Optional[int] = typer.Option(None, help="Network tile size (px, at least 320: twice the 160 px overlap; default for the network 2048 in bf16, 1408 in fp32 (CPU), for ceilnet 1024: separate.infer.default_tile); memory grows with it, not with the image.", show_default=False),
     precision: str = typer.Option("auto", help="Network arithmetic: auto (bf16 where the CPU or GPU runs it natively, else fp32), fp32 or bf16."),
     device: str = typer.Option("auto", help="Where the network runs: auto (a CUDA GPU where torch sees one, else the CPU), cpu or cuda."),
     colour_match: bool = typer.Option(False, help="Match each colour channel's histogram of T to the darkest observation's (paper §3.4)."),
