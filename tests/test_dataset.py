@@ -112,3 +112,24 @@ def test_interrupted_write_leaves_old_manifest_intact(tmp_path):
             raise RuntimeError("boom")
     assert json.loads(path.read_text()) == {"version": "old"}
     assert not [p for p in tmp_path.iterdir() if "tmp" in p.name and p.stat().st_size == len("partial")]
+
+
+@pytest.mark.parametrize("replacement", ["float32", "smaller"])
+def test_an_aligned_stack_of_mixed_images_is_refused_by_name(tmp_path_factory, replacement):
+    import numpy as np
+    import tifffile
+
+    from conftest import ingested_dataset
+
+    scene = dataset.Dataset.open(ingested_dataset(tmp_path_factory, f"mixed-{replacement}")).scene("scene_01")
+    codes, _ = scene.load_stack(codes=True)
+    path = scene.path / "aligned" / "shot_01.tiff"
+    shot = codes[1].astype(np.float32) if replacement == "float32" else codes[1, :-8]
+    tifffile.imwrite(path, shot, photometric="rgb")
+    record = scene.load()                                   # the manifest made to name the new file, as if urd wrote it
+    for rec in record["ingest"]["aligned"]:
+        if rec["file"] == "aligned/shot_01.tiff":
+            rec.update(size=path.stat().st_size, sha256=files.sha256_file(path))
+    files.write_json_atomic(scene.manifest_path, record)
+    with pytest.raises(DatasetError, match="not one stack of 16-bit images of one size.*--redo"):
+        scene.reload().load_stack(codes=True)

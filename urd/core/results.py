@@ -89,17 +89,24 @@ class SceneResults:
             raise DatasetError(f"{self.name}: {ingest['error']}")
         self.check_files(ingest["aligned"])
         paths = [confined_path(self.path, f["file"], str(self.manifest_path)) for f in ingest["aligned"]]
-        images = None
+        layouts = []
+        for path in paths:
+            with tifffile.TiffFile(path) as tif:
+                layouts.append((tif.series[0].shape, tif.series[0].dtype))
+        if len(set(layouts)) != 1 or layouts[0][1] != np.uint16:
+            raise DatasetError(f"{self.name}: the aligned shots are not one stack of 16-bit images of one size "
+                               f"({', '.join(f'{shape} {dtype}' for shape, dtype in layouts)}); ingest the scene "
+                               f"again: urd ingest {self.path} --redo")
+        images = np.empty((len(paths),) + layouts[0][0], np.uint16 if codes else np.float32)
+
+        def read(k: int) -> None:                  # into the stack itself: no second copy of a shot
+            if codes:
+                tifffile.imread(paths[k], out=images[k])
+            else:
+                u16_to_linear(tifffile.imread(paths[k]), out=images[k])
+
         with concurrent.futures.ThreadPoolExecutor(max_workers=2) as pool:     # the next file decodes meanwhile
-            for i, stored in enumerate(pool.map(tifffile.imread, paths)):
-                if images is None:
-                    dtype = np.uint16 if codes else np.float32
-                    images = np.empty((len(paths),) + stored.shape, dtype)    # filled in place: no 2x peak
-                if codes:
-                    images[i] = stored
-                else:
-                    u16_to_linear(stored, out=images[i])
-                del stored
+            list(pool.map(read, range(len(paths))))
         return images, self.angles_deg()
 
     def set_ingest(self, ok: bool, options: dict, alignment: list | str, staged: dict[str, Path],
