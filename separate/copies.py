@@ -84,7 +84,7 @@ def copy_share(r_hat: np.ndarray, t_hat: np.ndarray, sigma: float = SIGMA,
         weight = np.clip((cov / np.sqrt(var_r * var_t) - rho[0]) / (rho[1] - rho[0]), 0.0, 1.0)
         share[..., c] = weight * np.maximum(cov, 0.0) / var_t
 
-    with concurrent.futures.ThreadPoolExecutor(max_workers=2) as pool:     # the blurs release the GIL: 0.29 → 0.17 s
+    with concurrent.futures.ThreadPoolExecutor(max_workers=2) as pool:     # the blurs release the GIL: 0.29 → 0.2 s
         list(pool.map(channel, range(small_t.shape[2])))
     if scale < 1:
         share = cv2.resize(share, (w, h), interpolation=cv2.INTER_LINEAR).reshape(h, w, -1)
