@@ -58,6 +58,7 @@ urd's image-plane convention (`separate.optics`).
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import enum
 from typing import Callable, Sequence
@@ -143,11 +144,15 @@ def clipped_mask(images: np.ndarray, white: float = 1.0, rows: int = 512) -> np.
     them; ``rows`` rows at a time."""
     limit = SATURATION * white / optics.code_scale(images)
     out = np.zeros(images.shape[1:3], bool)
-    for y in range(0, images.shape[1], rows):
+
+    def mark(y: int) -> None:
         block = out[y : y + rows]
         for shot in images[:, y : y + rows]:
             for k in range(shot.shape[-1]):               # per channel: 5× faster than any() over small axes
                 block |= shot[..., k] >= limit
+
+    with concurrent.futures.ThreadPoolExecutor(max_workers=2) as pool:     # numpy releases the GIL: 24 MP 0.2 → 0.1 s
+        list(pool.map(mark, range(0, images.shape[1], rows)))
     return out
 
 
@@ -396,7 +401,7 @@ def _warnings(images: np.ndarray, angles_deg: Sequence[float], lum: np.ndarray, 
                         "lost and R and T there are guesses (marked in clipped.png); expose for the highlights")
     for i in range(n):
         for j in range(i + 1, n):
-            if np.array_equal(images[i], images[j]):
+            if _identical(images[i], images[j]):
                 warnings.append(f"shots {i} and {j} ({angles_deg[i]:g} and {angles_deg[j]:g} deg) are identical: "
                                 "the same file given twice?")
     lum = np.stack([cv2.blur(shot, (BLUR, BLUR)) for shot in lum])
@@ -419,6 +424,12 @@ def _warnings(images: np.ndarray, angles_deg: Sequence[float], lum: np.ndarray, 
                         f"usually does when the glass is seen within ~35 deg of head-on with a bright reflection, "
                         f"pass --reference {other:.1f}")
     return warnings
+
+
+def _identical(a: np.ndarray, b: np.ndarray) -> bool:
+    """True if two shots are equal, pixel for pixel (a coarse sample first, as shots of a
+    turning polarizer differ: a 24 MP pair 0.08 s → well under 1 ms)."""
+    return np.array_equal(a[::61, ::67], b[::61, ::67]) and np.array_equal(a, b)
 
 
 @dataclasses.dataclass(frozen=True)
