@@ -48,3 +48,16 @@ def test_a_log_file_gets_a_line_every_ten_seconds_not_every_step(monkeypatch):
         now[0] += 1.0
     lines = out.getvalue().split("\r")[1:]
     assert [line.split()[3] for line in lines] == [f"{k}/100" for k in range(0, 101, 10)]
+
+
+def test_training_bar_ends_where_the_time_cap_stops_the_run():
+    from urd.cli.train import projected_steps
+
+    first = {"step": 0, "wall_s": 0.0}
+    assert projected_steps(100000, 330.0, first, {"step": 300, "wall_s": 165.0}) == 600      # the cap comes first
+    assert projected_steps(500, 330.0, first, {"step": 300, "wall_s": 165.0}) == 500         # the steps do
+    assert projected_steps(100000, 0.0, first, {"step": 300, "wall_s": 165.0}) == 100000     # no cap
+    resumed = {"step": 400, "wall_s": 1000.0}                                                 # the cap counts this session
+    assert projected_steps(100000, 60.0, resumed, {"step": 430, "wall_s": 1030.0}) == 460
+    assert projected_steps(100000, 60.0, resumed, resumed) == 100000                          # no pace yet
+    assert projected_steps(100000, 60.0, first, {"step": 50, "wall_s": 70.0}) == 50           # past the cap: where it is

@@ -34,9 +34,11 @@ def train(
         cfg = dataclasses.replace(cfg, seed=seed)
     typer.echo(f"precision: {describe(resolve(cfg.precision))}", err=True)
     bar = TerminalProgress()
+    first: list[dict] = []                                   # this session's first record
 
     def show(record: dict) -> None:
-        bar(record["step"], cfg.steps, "train")
+        first[:] = first or [record]
+        bar(record["step"], projected_steps(cfg.steps, cfg.max_minutes * 60, first[0], record), "train")
         if "psnr_t" in record:
             loss = f"loss {record['loss']:.5f}" if "loss" in record else "the --init weights"
             bar.break_line()
@@ -54,3 +56,14 @@ def train(
     bar.close()
     if os.environ.get("RANK", "0") == "0":                   # under torchrun, rank 0 reports
         typer.echo(f"stopped at step {record.get('step')}; checkpoints in {Path(run_dir).resolve()}")
+
+
+def projected_steps(steps: int, cap_s: float, first: dict, record: dict) -> int:
+    """The step a run will stop at: ``steps``, or fewer where its time cap (``cap_s`` seconds of
+    this session; 0: none) comes first at the pace since this session's ``first`` record (both
+    records hold ``step`` and ``wall_s``)."""
+    session = record["wall_s"] - first["wall_s"]
+    if cap_s <= 0 or session <= 0 or record["step"] <= first["step"]:
+        return steps
+    pace = (record["step"] - first["step"]) / session
+    return min(steps, max(record["step"], round(record["step"] + pace * (cap_s - session))))
