@@ -89,6 +89,9 @@ from separate.infer import load_model  # noqa: E402
 width, height = (int(v) for v in args.size.split("x"))
 network_gflop = flops_per_mp(load_model()[0]) * width * height / 1e15
 rate = max(rate_before, rate_after)
-print(f"network {network_gflop:.0f} GFLOP in urd separate's {separate_s:.1f} s: {network_gflop / separate_s:.0f} GFLOP/s end to end, "
-      f"{network_gflop / separate_s / rate:.0%} of this CPU's fp32 matmul rate ({rate:.0f} GFLOP/s, the higher of "
-      f"{rate_before:.0f} before and {rate_after:.0f} after the commands)")
+end_to_end = f"network {network_gflop:.0f} GFLOP in urd separate's {separate_s:.1f} s: {network_gflop / separate_s:.0f} GFLOP/s end to end"
+if precision.endswith("on cuda"):                   # the CLI's "precision: bf16 (native) on cuda": no CPU ratio
+    print(f"{end_to_end}, the network on the GPU (this CPU's fp32 matmul rate, {rate:.0f} GFLOP/s, does not bound it)")
+else:
+    print(f"{end_to_end}, {network_gflop / separate_s / rate:.0%} of this CPU's fp32 matmul rate ({rate:.0f} GFLOP/s, "
+          f"the higher of {rate_before:.0f} before and {rate_after:.0f} after the commands)")

@@ -4,16 +4,20 @@
 #   2. urd separate on the GPU: tools/bench_24mp.py (a 24 MP scene of the simulated rig, ingest,
 #      two separations, --device auto: the GPU), then urd demo's scene on the GPU and again with
 #      --device cpu, and the two T.tiff compared;
-#   3. two backbone fine-tunes side by side (configs/gpu-semireal-a.toml and -b.toml, 7 synthesis
-#      processes each), from the shipped weights, with snapshots of each run's weights about every
-#      75 s;
-#   4. back under $OUT (7 files): session.log, each run's console log and log.jsonl, and each run's
-#      snapshots, last and best checkpoints as float16 weights in one file (RUN-snapshots.pt: a
-#      dict of checkpoints without their optimizer state, tools/export_weights.py reads each).
+#   3. the training configs of $CONFIGS side by side (default configs/gpu-semireal-a.toml and -b.toml,
+#      $WORKERS synthesis processes each), from the shipped weights, with snapshots of each run's
+#      weights every $SNAPSHOT_S s;
+#   4. back under $OUT (at most 8 files: two configs): session.log, each run's console log and
+#      log.jsonl, and each run's snapshots, last and best checkpoints as float16 weights in one file
+#      (RUN-snapshots.pt: a dict of checkpoints without their optimizer state, each one a file
+#      tools/export_weights.py reads once saved alone).
 # Before the call, here: python tools/gpu_pool.py (the training data, ~50 MB, in .pool) and the
-# rawpy and pyserial wheels in .whl (the device README says how); carry .pool and .whl.
+# rawpy and pyserial wheels in .whl (the device README says how); carry .pool and .whl. The tree
+# that travels and both must stay within the device's 64 MiB: move the tracked files the call does
+# not read (docs/bench/ablation*/weights, docs/report, the weights other than urd-anchored.pt and
+# urd-canonical.pt, ~35 MB) out of the tree for the call, and back after it.
 # There:  bash tools/gpu_session.sh
-# Here, to try it on the CPU in about 3 minutes:
+# Here, to try it on the CPU in about 2 minutes:
 #   OUT=/tmp/gpu-out MINUTES=0.5 WORKERS=1 BENCH_SIZE=1536x1024 bash tools/gpu_session.sh
 set -u
 OUT=${OUT:?set OUT to the folder that comes back}
@@ -21,6 +25,9 @@ MINUTES=${MINUTES:-5.5}
 WORKERS=${WORKERS:-7}
 BENCH_SIZE=${BENCH_SIZE:-6000x4000}
 SNAPSHOT_S=${SNAPSHOT_S:-75}
+CONFIGS=${CONFIGS:-configs/gpu-semireal-a.toml configs/gpu-semireal-b.toml}
+RUNS=$(for config in $CONFIGS; do basename "$config" .toml; done | xargs)
+export RUNS
 export PYTHONUNBUFFERED=1
 LOG=$OUT/session.log
 mkdir -p "$OUT"
@@ -64,14 +71,15 @@ print(f"T.tiff, cuda against cpu (codes / 65535): PSNR {psnr(t['cuda'], t['cpu']
       f"largest difference {diff.max():.2e}, mean {diff.mean():.2e}")
 EOF
 
-say "3. training: two runs, $MINUTES minutes, $WORKERS synthesis processes each"
+say "3. training: $RUNS, $MINUTES minutes, $WORKERS synthesis processes each"
 mkdir -p /tmp/snaps
 pids=()
-for run in a b; do
+for config in $CONFIGS; do
+  run=$(basename "$config" .toml)
   sed -e "s/^max_minutes = .*/max_minutes = $MINUTES/" -e "s/^schedule_minutes = .*/schedule_minutes = $MINUTES/" \
-      -e "s/^workers = .*/workers = $WORKERS/" "configs/gpu-semireal-$run.toml" > "/tmp/gpu-$run.toml"
-  rm -rf "runs/gpu-$run"
-  timeout $(( ${MINUTES%.*} * 60 + 120 )) python3 -m urd.cli train "/tmp/gpu-$run.toml" "runs/gpu-$run" --init separate/weights/urd-anchored.pt > "$OUT/$run.log" 2>&1 &
+      -e "s/^workers = .*/workers = $WORKERS/" "$config" > "/tmp/gpu-$run.toml"
+  rm -rf "runs/$run"
+  timeout $(( ${MINUTES%.*} * 60 + 120 )) python3 -m urd.cli train "/tmp/gpu-$run.toml" "runs/$run" --init separate/weights/urd-anchored.pt > "$OUT/$run.log" 2>&1 &
   pids+=($!)
 done
 started=$SECONDS
@@ -79,20 +87,20 @@ next=$SNAPSHOT_S
 while kill -0 "${pids[@]}" 2>/dev/null; do
   sleep 2
   if (( SECONDS - started >= next )); then
-    for run in a b; do
-      [ -f "runs/gpu-$run/last.pt" ] && cp "runs/gpu-$run/last.pt" "/tmp/snaps/$run-$(printf %04d $((SECONDS - started))).pt"
+    for run in $RUNS; do
+      [ -f "runs/$run/last.pt" ] && cp "runs/$run/last.pt" "/tmp/snaps/$run-$(printf %04d $((SECONDS - started))).pt"
     done
     next=$((next + SNAPSHOT_S))
   fi
 done
 wait
-for run in a b; do tail -3 "$OUT/$run.log" | tee -a "$LOG"; cp "runs/gpu-$run/log.jsonl" "$OUT/$run-log.jsonl"; done
+for run in $RUNS; do tail -3 "$OUT/$run.log" | tee -a "$LOG"; cp "runs/$run/log.jsonl" "$OUT/$run-log.jsonl"; done
 
 say "4. snapshots"
 python3 - 2>&1 <<'EOF' | tee -a "$LOG"
 import glob, os, torch
-for run in "ab":
-    paths = sorted(glob.glob(f"/tmp/snaps/{run}-*.pt")) + [f"runs/gpu-{run}/last.pt", f"runs/gpu-{run}/best.pt"]
+for run in os.environ["RUNS"].split():
+    paths = sorted(glob.glob(f"/tmp/snaps/{run}-[0-9][0-9][0-9][0-9].pt")) + [f"runs/{run}/last.pt", f"runs/{run}/best.pt"]
     states = {}
     for path in paths:
         state = torch.load(path, map_location="cpu", weights_only=True)
