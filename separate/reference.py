@@ -178,7 +178,7 @@ def _reduce_stack(images: np.ndarray, clipped: np.ndarray) -> tuple[np.ndarray, 
     lum = reduce_luminance(images)
     saturated = clipped.view(np.uint8) * np.uint8(255)               # 255 keeps one pixel in 500 visible
     if lum.shape[1:] != clipped.shape:
-        saturated = cv2.resize(saturated, lum.shape[:0:-1], interpolation=cv2.INTER_AREA)
+        saturated = cv2.resize(saturated, (lum.shape[2], lum.shape[1]), interpolation=cv2.INTER_AREA)
     return lum, saturated > 0
 
 

@@ -186,7 +186,11 @@ class SynthesisConfig:
         return cls(patch=patch, angles=AngleMode(angles), **settings[name])
 
 
-def load_image_pool(folders: list[Path] | None = None, max_side: int = 512) -> list[np.ndarray]:
+#: The long side (px) to which photos and real captures are reduced when read for synthesis.
+POOL_MAX_SIDE = 512
+
+
+def load_image_pool(folders: list[Path] | None = None, max_side: int = POOL_MAX_SIDE) -> list[np.ndarray]:
     """Natural photos as uint8 RGB arrays, at most ``max_side`` pixels on the long side.
 
     With no folders, scikit-image's bundled photos are used (no download needed).
@@ -314,7 +318,7 @@ def true_side_deg(reference_deg: float, phi_perp_deg: float) -> float:
     return reference_deg + 90.0 if abs(optics.axis_gap_deg(reference_deg, phi_perp_deg)) > 45.0 else reference_deg
 
 
-def capture_stokes(capture: samples.Capture, max_side: int = 512) -> tuple[np.ndarray, np.ndarray]:
+def capture_stokes(capture: samples.Capture, max_side: int = POOL_MAX_SIDE) -> tuple[np.ndarray, np.ndarray]:
     """A real capture's Stokes stack (3, H, W, 3) from the least-squares fit of its shots, scaled
     to a mean S0 of 1, and its clipped pixels (H×W bool: ≥ `CLIPPED` in any shot), at most
     ``max_side`` px long."""

@@ -27,8 +27,6 @@ import numpy as np
 from separate import synthesis
 from urd.core import samples
 
-MAX_SIDE = 512
-
 
 def size_mb(folder: Path) -> float:
     return sum(f.stat().st_size for f in folder.rglob("*") if f.is_file()) / 1e6
@@ -43,7 +41,7 @@ def copy_natural(out: Path) -> None:
         bgr = cv2.imread(str(photo), cv2.IMREAD_COLOR)
         if bgr is None:
             continue
-        scale = MAX_SIDE / max(bgr.shape[:2])
+        scale = synthesis.POOL_MAX_SIDE / max(bgr.shape[:2])
         if scale < 1:
             bgr = cv2.resize(bgr, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
         cv2.imwrite(str(target / (photo.stem + ".jpg")), bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
@@ -51,7 +49,7 @@ def copy_natural(out: Path) -> None:
 
 def copy_captures(out: Path) -> None:
     for capture in samples.no_glass_captures(split="train"):
-        stack, _ = samples.load(capture, max_side=MAX_SIDE)
+        stack, _ = samples.load(capture, max_side=synthesis.POOL_MAX_SIDE)
         for k, path in enumerate(capture.files):
             target = out / "polarization" / path.relative_to(samples.SHARED)
             target.parent.mkdir(parents=True, exist_ok=True)

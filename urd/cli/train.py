@@ -37,7 +37,8 @@ def train(
     first: list[dict] = []                                   # this session's first record
 
     def show(record: dict) -> None:
-        first[:] = first or [record]
+        if not first:
+            first.append(record)
         bar(record["step"], projected_steps(cfg.steps, cfg.max_minutes * 60, first[0], record), "train")
         if "psnr_t" in record:
             loss = f"loss {record['loss']:.5f}" if "loss" in record else "the --init weights"
