@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from urd.core.dataset import SCENE_MANIFEST, Dataset, Scene
-from urd.core.errors import ManifestError
+from urd.core.errors import ManifestError, UrdError
 from urd.core.progress import plural
 
 
@@ -64,9 +64,15 @@ def _shrink(image, max_side: int):
     return image if scale >= 1 else cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
 
 
+def _px(size: tuple[int, int]) -> str:
+    """An image size (H, W) as "W×H px"."""
+    return f"{size[1]}×{size[0]} px"
+
+
 def scene_view(scene, max_side: int = 2048):
     """What the HTML report shows of one scene (`urd.report_html.SceneView`), images at most
-    ``max_side`` px long."""
+    ``max_side`` px long. Shots or results that cannot be read, and results of another size than
+    the shots (or than the first result shown), are left out with a note saying why."""
     import tifffile
 
     from urd.core.images import u16_to_linear
@@ -76,22 +82,34 @@ def scene_view(scene, max_side: int = 2048):
     notes = [status.problem] if status.problem else []
     if status.state == "broken":
         return SceneView(scene.name, status.describe(), [], None, None, [], notes)
-    shots, reference, results = [], None, []
+    shots, reference, results, size = [], None, [], None
     if status.state == "ingested":
-        stack, angles = scene.load_stack()
-        shots = [(angle, _shrink(image, max_side)) for angle, image in zip(angles, stack)]
-        del stack
+        try:
+            stack, angles = scene.load_stack()
+        except (OSError, ValueError) as exc:
+            notes.append(f"shots not shown: {exc}")
+        else:
+            shots, size = [(angle, _shrink(image, max_side)) for angle, image in zip(angles, stack)], stack.shape[1:3]
+            del stack
     for method in scene.methods():
         try:
             result = scene.result(method)
+            r, t = (u16_to_linear(tifffile.imread(result.files[f"{name}.tiff"]), result.full_scale) for name in ("R", "T"))
+            confidence, field = (result.files.get(name) for name in ("confidence.tiff", "reference_deg.tiff"))
+            confidence = None if confidence is None else tifffile.imread(confidence)
+            field = None if field is None else tifffile.imread(field)
         except (OSError, ValueError) as exc:
             notes.append(f"{method}: {exc}")
             continue
-        r, t = (_shrink(u16_to_linear(tifffile.imread(result.files[f"{name}.tiff"]), result.full_scale), max_side)
-                for name in ("R", "T"))
-        confidence, field = (result.files.get(name) for name in ("confidence.tiff", "reference_deg.tiff"))
-        confidence = None if confidence is None else _shrink(tifffile.imread(confidence), max_side)
-        field = None if field is None else tifffile.imread(field)
+        size = size or r.shape[:2]
+        odd = next((image.shape[:2] for image in (r, t, confidence) if image is not None and image.shape[:2] != size), None)
+        if odd is not None:
+            notes.append(f"{method}: not shown: its results are {_px(odd)}, the {'shots' if shots else 'results shown'} "
+                         f"{_px(size)}; separate it again: urd separate {scene.name} --dataset {scene.path.parent} "
+                         f"--method {method} --force")
+            continue
+        r, t = (_shrink(image, max_side) for image in (r, t))
+        confidence = None if confidence is None else _shrink(confidence, max_side)
         reference = result.reference_deg if result.reference_deg is not None else reference
         notes += [f"{method}: {w}" for w in result.warnings]
         exports = [path.resolve() for path in result.files.values() if path.parent.name == "maps"]
@@ -101,7 +119,8 @@ def scene_view(scene, max_side: int = 2048):
 
 
 def calibration_view(ds):
-    """The Malus-law sweep behind the dataset's offset calibration (`urd.report_html.CalibrationView`)."""
+    """The Malus-law sweep behind the dataset's offset calibration (`urd.report_html.CalibrationView`),
+    None when there is none; an unreadable calibration or sweep gives a view with a note saying why."""
     import numpy as np
 
     from calib.polarizer import malus_fit
@@ -110,21 +129,30 @@ def calibration_view(ds):
     from urd.core.dataset import Scene
     from urd.report_html import CalibrationView
 
-    calibration = ds.calibration()
+    try:
+        calibration = ds.calibration()
+    except (ManifestError, OSError) as exc:
+        return CalibrationView([], [], [], [], None, None, notes=[f"the calibration cannot be read: {exc}"])
     if calibration is None or calibration.sweep is None:
         return None
-    angles, values = sweep_intensities(Scene(calibration.sweep))
-    stokes, rms, _ = malus_fit(angles, values)
+    try:
+        angles, values = sweep_intensities(Scene(calibration.sweep))
+        stokes, rms, _ = malus_fit(angles, values)
+    except (UrdError, OSError, ValueError) as exc:
+        return CalibrationView([], [], [], [], calibration.offset_deg, calibration.uncertainty_deg,
+                               notes=[f"the sweep {calibration.sweep} cannot be shown: {exc}"])
     grid = np.arange(0.0, 180.5, 1.0)
     return CalibrationView(angles, values, grid.tolist(), (stokes_matrix(np.radians(grid)) @ stokes).tolist(),
                            calibration.offset_deg, calibration.uncertainty_deg, rms)
 
 
 def report_html(root, out, overwrite: bool = False, progress=None):
-    """Write the static HTML report of the dataset at ``root`` into ``out``; returns index.html."""
-    from urd.report_html import write_html_report
+    """Write the static HTML report of the dataset at ``root`` into ``out``; returns index.html.
+    Damaged scenes and calibrations are shown with a note saying what is wrong."""
+    from urd.report_html import check_report_folder, write_html_report
 
     ds = Dataset.open(root)
+    check_report_folder(out, overwrite)              # before the scenes are read, which takes a while
     scenes = ds.scenes()
     views = []
     for i, scene in enumerate(scenes):

@@ -7,6 +7,7 @@ and writes one folder that opens from disk with no server and no external assets
     OUT/img/s000-NAME/shot_00.jpg     full-resolution sRGB views (JPEG, quality 95)
     OUT/img/s000-NAME/shot_00_t.jpg   thumbnails (long side ``thumb_px``, JPEG, quality 90)
     OUT/img/s000-NAME/m00_T_m.jpg     medium views of R̂/T̂ for the comparison slider (2 × thumb_px)
+    OUT/.urd-report-contents          every file and folder the report wrote (`CONTENTS`)
 
 Every string from the data is HTML-escaped; images are referenced by relative paths and
 load lazily. What the page shows of each scene:
@@ -23,7 +24,8 @@ The images, and the display gain they are shown with, come from `urd.report_imag
 
 The report folder is built in a fresh staging folder beside ``out_dir`` and renamed into place
 when complete; an existing folder is replaced only with ``overwrite=True`` and only when it is
-an urd HTML report (or empty).
+empty or an urd HTML report holding nothing but what the report wrote; a folder inside an urd
+dataset is refused (`check_report_folder`).
 """
 
 from __future__ import annotations
@@ -42,6 +44,7 @@ from typing import Callable, Sequence
 import numpy as np
 import tifffile
 
+from urd.core.dataset import enclosing_dataset
 from urd.core.errors import DatasetError
 from urd.core.images import srgb_encode, to_display
 from urd.report_assets import CSS, JS, calibration_svg, compare_html, wheel_svg
@@ -61,7 +64,11 @@ from urd.report_images import (
 )
 
 #: Written into index.html; `write_html_report` replaces only folders whose index.html has it.
-GENERATOR = "urd report_html 1"
+GENERATOR = "urd report_html 2"
+
+#: In the report folder: every file and folder the report wrote, itself included (relative POSIX
+#: paths, one a line); a report holding anything else is not replaced.
+CONTENTS = ".urd-report-contents"
 
 
 class ReportExistsError(DatasetError, FileExistsError):
@@ -96,15 +103,18 @@ class ResultView:
 @dataclasses.dataclass
 class CalibrationView:
     """A Malus-law sweep and its fit of the polarizer mounting offset (angles in degrees), with
-    the fit's RMS residual (intensity units, `calib.polarizer.malus_fit`) when known."""
+    the fit's RMS residual (intensity units, `calib.polarizer.malus_fit`) when known. The offset
+    and its uncertainty are None when the calibration cannot be read; ``notes`` say what is wrong
+    (the sweep lists are then empty)."""
 
     angles_deg: list[float]
     intensities: list[float]
     fit_angles_deg: list[float]
     fit_intensities: list[float]
-    offset_deg: float
-    uncertainty_deg: float
+    offset_deg: float | None
+    uncertainty_deg: float | None
     residual_rms: float | None = None
+    notes: list[str] = dataclasses.field(default_factory=list)
 
 
 @dataclasses.dataclass
@@ -180,7 +190,8 @@ def _slug(text: str) -> str:
 
 
 def is_report_folder(path: Path) -> bool:
-    """Whether ``path`` is an empty folder or an HTML report urd wrote (which --force may replace)."""
+    """Whether ``path`` is an empty folder or an HTML report urd wrote (which --force may replace
+    when it holds nothing else: `check_report_folder`)."""
     if path.is_dir() and not any(path.iterdir()):
         return True
     index = path / "index.html"
@@ -188,6 +199,55 @@ def is_report_folder(path: Path) -> bool:
         return index.is_file() and f'content="{GENERATOR}"' in index.read_text(encoding="utf-8", errors="replace")[:2000]
     except OSError:
         return False
+
+
+def _contents(folder: Path) -> list[str]:
+    """Every file, link and folder under ``folder`` (links not followed), as sorted relative POSIX paths."""
+    return sorted(Path(top, name).relative_to(folder).as_posix()
+                  for top, dirs, files in os.walk(folder) for name in dirs + files)
+
+
+def _foreign_entry(folder: Path) -> str | None:
+    """The first entry under the report folder ``folder`` that its `CONTENTS` list does not name
+    (relative POSIX path), or None when it holds only what the report wrote."""
+    try:
+        listed = set((folder / CONTENTS).read_text(encoding="utf-8", errors="replace").splitlines())
+    except OSError:
+        listed = set()
+    return next((entry for entry in _contents(folder) if entry not in listed), None)
+
+
+def check_report_folder(out_dir: Path, overwrite: bool = False) -> None:
+    """Check, before any work, that a report may be written into ``out_dir``: outside any urd
+    dataset; absent, or with ``overwrite`` empty or an urd report holding only what it wrote; its
+    parent writable (made when missing).
+
+    Raises:
+        ReportExistsError: ``out_dir`` exists and may not be replaced (the message says why).
+        DatasetError: ``out_dir`` lies inside a dataset, or its parent cannot be written.
+    """
+    out_dir = Path(out_dir)
+    dataset = enclosing_dataset(out_dir)
+    if dataset is not None:
+        raise DatasetError(f"{out_dir} is inside the dataset {dataset}, whose folders urd reads as scenes and "
+                           "their files; write the report into a folder outside the dataset")
+    if out_dir.exists() or out_dir.is_symlink():
+        if not overwrite:
+            raise ReportExistsError(f"{out_dir}: report folder already exists; pass --force to replace it, or "
+                                    "another folder")
+        if out_dir.is_symlink() or not is_report_folder(out_dir):
+            raise ReportExistsError(f"{out_dir}: exists and is not an urd HTML report; choose another folder for the report")
+        foreign = _foreign_entry(out_dir)
+        if foreign is not None:
+            raise ReportExistsError(f"{out_dir}: holds {out_dir / foreign}, which urd's report did not write; "
+                                    "move it out of the folder, or choose another folder for the report")
+    try:
+        out_dir.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=out_dir.parent):
+            pass
+    except OSError as exc:
+        raise DatasetError(f"cannot write the report folder {out_dir} ({exc.strerror or exc}); choose another "
+                           "folder for the report, or make its parent writable") from exc
 
 
 # ---------------------------------------------------------------------------------------------
@@ -222,8 +282,11 @@ def _colorbar(lo: str, hi: str, what: str) -> str:
 
 
 def _calibration_html(cal: CalibrationView) -> str:
-    facts = [f"<dt>polarizer offset</dt><dd><b>{_fmt(cal.offset_deg, 3)}° ± {_fmt(cal.uncertainty_deg, 3)}°</b></dd>",
-             f"<dt>sweep</dt><dd>{len(cal.angles_deg)} stage angles</dd>"]
+    offset = ("unknown" if cal.offset_deg is None
+              else f"<b>{_fmt(cal.offset_deg, 3)}° ± {_fmt(cal.uncertainty_deg, 3)}°</b>")
+    facts = [f"<dt>polarizer offset</dt><dd>{offset}</dd>"]
+    if cal.angles_deg:
+        facts.append(f"<dt>sweep</dt><dd>{len(cal.angles_deg)} stage angles</dd>")
     if cal.fit_intensities:
         peak = float(cal.fit_angles_deg[int(np.argmax(cal.fit_intensities))])
         facts.append(f"<dt>fit maximum</dt><dd>stage angle {_fmt(peak, 1)}° (shaded: ± the offset's uncertainty)</dd>")
@@ -231,10 +294,12 @@ def _calibration_html(cal: CalibrationView) -> str:
         swing = max(cal.fit_intensities) - min(cal.fit_intensities) if cal.fit_intensities else 0.0
         rel = f" ({100 * cal.residual_rms / swing:.1f}% of the modulation)" if swing > 0 else ""
         facts.append(f"<dt>RMS residual</dt><dd>{cal.residual_rms:.3g}{rel}</dd>")
-    return (f'<section class="card" id="calibration"><h2>Polarizer calibration</h2>'
+    notes = '<ul class="notes">' + "".join(f"<li>{_e(note)}</li>" for note in cal.notes) + "</ul>" if cal.notes else ""
+    plot = f'<div class="plotbox">{calibration_svg(cal)}</div>' if cal.angles_deg or cal.fit_angles_deg else ""
+    return (f'<section class="card" id="calibration"><h2>Polarizer calibration</h2>{notes}'
             '<p class="muted">Malus-law sweep of a polarized target: measured mean intensity per stage angle (dots) '
             "and the least-squares fit I(a) = c0 + c1·cos 2a + c2·sin 2a (line).</p>"
-            f'<div class="row"><div class="plotbox">{calibration_svg(cal)}</div><dl class="facts">{"".join(facts)}</dl>'
+            f'<div class="row">{plot}<dl class="facts">{"".join(facts)}</dl>'
             "</div></section>")
 
 
@@ -486,15 +551,16 @@ def write_html_report(scenes: list[SceneView], out_dir: Path, title: str, calibr
         thumb_px: long side of the thumbnails on the page (px, 32..4096); the comparison slider
             uses 2 × thumb_px views, clicks open the full resolution.
         progress: called as ``progress(done, total)`` with counts of scenes written.
-        overwrite: replace an existing report folder (one this function wrote, or an empty
-            folder); anything else is never replaced.
+        overwrite: replace an existing report folder (one this function wrote and nothing else
+            was added to, or an empty folder); anything else is never replaced.
 
     Returns:
         The path of ``out_dir / "index.html"``.
 
     Raises:
         ReportExistsError (a FileExistsError): ``out_dir`` exists and ``overwrite`` is false, or it
-            is not an urd HTML report.
+            is not an urd HTML report, or it holds files the report did not write.
+        DatasetError: ``out_dir`` lies inside an urd dataset, or cannot be written.
         TypeError, ValueError: malformed views (wrong types, shapes, dtypes, non-finite angles).
     """
     if not isinstance(thumb_px, int) or isinstance(thumb_px, bool):
@@ -512,14 +578,7 @@ def write_html_report(scenes: list[SceneView], out_dir: Path, title: str, calibr
     for i, scene in enumerate(scenes):
         _check_scene(scene, i)
     out_dir = Path(out_dir)
-    if out_dir.exists() or out_dir.is_symlink():
-        if not overwrite:
-            raise ReportExistsError(f"{out_dir}: report folder already exists; pass --force to replace it, or "
-                                   "another folder")
-        if out_dir.is_symlink() or not is_report_folder(out_dir):
-            raise ReportExistsError(f"{out_dir}: exists and is not an urd HTML report; refusing to replace it")
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-
+    check_report_folder(out_dir, overwrite)
     staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.staging-", dir=out_dir.parent))
     try:
         sections = []
@@ -533,7 +592,8 @@ def write_html_report(scenes: list[SceneView], out_dir: Path, title: str, calibr
                 f'<meta name="generator" content="{GENERATOR}"><title>{_e(title)}</title>'
                 f'<link rel="icon" href="data:,"><style>{CSS}</style></head><body><main>'
                 f'<header><h1>{_e(title)}</h1><p class="muted">{count}'
-                f'{" · polarizer calibrated" if calibration else ""} · static report written by urd</p></header>'
+                f'{" · polarizer calibrated" if calibration is not None and calibration.offset_deg is not None else ""}'
+                " · static report written by urd</p></header>"
                 + _toc_html(scenes) + _howto_html()
                 + (_calibration_html(calibration) if calibration is not None else "")
                 + "".join(sections)
@@ -541,6 +601,7 @@ def write_html_report(scenes: list[SceneView], out_dir: Path, title: str, calibr
                 '<button type="button">close ✕</button></div><div class="holder"></div></div>'
                 f"<script>{JS}</script></body></html>\n")
         (staging / "index.html").write_text(page, encoding="utf-8")
+        (staging / CONTENTS).write_text("\n".join(sorted([*_contents(staging), CONTENTS])) + "\n", encoding="utf-8")
         os.chmod(staging, 0o755)
         if out_dir.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.old-", dir=out_dir.parent))

@@ -26,14 +26,11 @@ def report(
     """
     from urd.report import report_html, report_text
 
-    from urd.report_html import is_report_folder
+    from urd.report_html import check_report_folder
 
     root = existing_dataset(dataset)
-    if html is not None and (html.exists() or html.is_symlink()):
-        if html.is_symlink() or not is_report_folder(html):
-            fail(f"{html}: exists and is not an urd HTML report; choose another folder for the report")
-        if not force:
-            fail(f"{html}: report folder already exists; pass --force to replace it, or another folder")
+    if html is not None:
+        run_guarded(check_report_folder, html, force)          # before the text report: a refusal says only that
     typer.echo(run_guarded(report_text, root))
     if html is not None:
         index = run_guarded(report_html, root, html, force, progress=TerminalProgress())
