@@ -24,8 +24,10 @@ same for every presentation, so they skip it (and its full-resolution copy).
 from __future__ import annotations
 
 import math
+import numbers
 from functools import partial
 from pathlib import Path
+from types import ModuleType
 from typing import Callable
 
 import numpy as np
@@ -42,12 +44,13 @@ ESTIMATED = ("auto", "global")
 
 
 def check_reference(reference: Reference) -> Reference:
-    """``reference`` as "auto", "global" or a finite float (deg); ValueError otherwise."""
+    """``reference`` as "auto", "global" or a float (deg) from any finite real number (NumPy's
+    included, bool not); ValueError otherwise."""
     if isinstance(reference, str):
         if reference in ESTIMATED:
             return reference
         raise ValueError(f"expected reference 'auto', 'global' or an angle in degrees, got {reference!r}")
-    if isinstance(reference, bool) or not isinstance(reference, (int, float)) or not math.isfinite(reference):
+    if isinstance(reference, bool) or not isinstance(reference, numbers.Real) or not math.isfinite(reference):
         raise ValueError(f"expected reference 'auto', 'global' or a finite angle in degrees, got {reference!r}")
     return float(reference)
 
@@ -89,9 +92,11 @@ def network(weights: Path | None = None, tile: int | None = None, precision: str
             progress=None, reference: Reference = "auto", uses_reference: bool = True,
             return_copies: bool = True, incidence_deg: float | None = None, device: str = "auto") -> tuple[Run, dict]:
     """The paper's network (`separate.model`) with shipped or given weights, tiled
-    (`separate.infer.separate_stack`, ``tile`` px, default `separate.infer.default_tile`) on
+    (`separate.infer.separate_stack`, ``tile`` px, default `separate.infer.default_tile`, rounded down
+    by `separate.tiling.check_tiling` and recorded as used) on
     ``device`` (auto, cpu or cuda: `separate.precision.resolve_device`); the
-    shots presented at the reference unless ``uses_reference`` is False (a network that sees only S0);
+    shots presented at the reference unless ``uses_reference`` is False (a network that sees only S0,
+    `ceilnet`; CEILNet's weights are refused otherwise);
     with ``return_copies`` the part of R̂ that copies T̂ moved back into T̂ (`separate.copies`).
     A physics-anchored network takes the angle of incidence ``incidence_deg`` (deg) where given,
     else estimates it per pixel from each stack; the returned info's ``"incidence"`` records the
@@ -101,18 +106,20 @@ def network(weights: Path | None = None, tile: int | None = None, precision: str
     against 31.78 with its own backbone's (bsds500-test: 33.89 against 33.38)."""
     from separate.copies import return_copies as returned
     from separate.infer import default_tile, load_model, match_histograms, separate_stack
-    from separate.tiling import OVERLAP
+    from separate.tiling import OVERLAP, check_tiling
     from separate.precision import resolve, resolve_device
 
     target = resolve_device(device)
     model, weights_info = load_model(weights)
+    name = Path(weights_info["file"]).name
+    if uses_reference and weights_info["config"].get("variant") == "ceilnet":
+        raise ValueError(f"weights {name} hold CEILNet, not the polarization network: use --method ceilnet for them")
     anchored = getattr(model, "base", "canonical") == "fresnel"
     if incidence_deg is not None and not anchored:
-        raise ValueError(f"an angle of incidence is for a physics-anchored network (urd-anchored), not "
-                         f"{Path(weights_info['file']).name}")
+        raise ValueError(f"an angle of incidence is for a physics-anchored network (urd-anchored), not {name}")
     if incidence_deg is not None and not 0 < incidence_deg < 90:
         raise ValueError(f"expected an angle of incidence in (0, 90) deg, got {incidence_deg}")
-    tile = default_tile(model, target, precision) if tile is None else tile
+    tile = check_tiling(default_tile(model, target, precision) if tile is None else tile, OVERLAP)[0]
     chosen = resolve(precision, target).value
     choose = chooser(reference)
     side_trial = METHODS["schechner"]()[0]
@@ -139,7 +146,7 @@ def network(weights: Path | None = None, tile: int | None = None, precision: str
             t_hat = match_histograms(t_hat, optics.to_float(images[darkest]))
         return r_hat, t_hat
 
-    info = {"weights": {"file": Path(weights_info["file"]).name, "sha256": weights_info["sha256"],
+    info = {"weights": {"file": name, "sha256": weights_info["sha256"],
                         "config": weights_info["config"]},
             "parameters": {"tile": tile, "overlap": OVERLAP, "precision": chosen, "colour_match": colour_match,
                            "return_copies": return_copies, **({"incidence_deg": incidence_deg} if anchored else {}),
@@ -161,7 +168,8 @@ def ceilnet(weights: Path | None = None, reference: Reference = "auto", **option
     check_reference(reference)
     run, info = network(weights or module.WEIGHTS, uses_reference=False, return_copies=False, **options)
     if info["weights"]["config"].get("variant") != "ceilnet":
-        raise ValueError(f"weights {weights} hold a {info['weights']['config'].get('variant')} network, not CEILNet")
+        raise ValueError(f"weights {weights} hold a {info['weights']['config'].get('variant')} network, not CEILNet: "
+                         "use --method network for them")
     return run, {**info, "paper": citation(module)}
 
 
@@ -179,9 +187,27 @@ def no_separation(reference: Reference = "auto") -> tuple[Run, dict]:
     return run, {"parameters": {}, "reference_policy": "not used: S0 only"}
 
 
+def check_param(module: ModuleType, name: str, value: object, default: object) -> int | float | None:
+    """``value`` of the baseline ``module``'s parameter ``name``, of its ``default``'s type: an
+    integer (NumPy's included) for an int, as int; a finite real number for a float, as float, or
+    also None for None; within the module's ``PARAM_RANGES[name]``. ValueError naming the
+    parameter, its type and range otherwise."""
+    method = module.__name__.rsplit(".", 1)[1]
+    if default is None and value is None:
+        return None
+    integer = isinstance(default, int)
+    number = not isinstance(value, bool) and isinstance(value, numbers.Integral if integer else numbers.Real)
+    if number and (integer or math.isfinite(value)) and value in module.PARAM_RANGES[name]:
+        return int(value) if integer else float(value)
+    kind = "an integer" if integer else "a finite number"
+    none = " or null" if default is None else ""
+    raise ValueError(f"expected {method} parameter {name} to be {kind} {module.PARAM_RANGES[name]}{none}, got {value!r}")
+
+
 def baseline(module_name: str, s0_only: bool) -> Callable[..., tuple[Run, dict]]:
     """A factory for the baseline in ``separate.baselines.<module_name>``; options are its
-    keyword parameters (paper defaults when omitted), ``reference`` and ``progress`` (called with
+    keyword parameters (paper defaults when omitted; each checked when the method is made,
+    `check_param`), ``reference`` and ``progress`` (called with
     (done, total) where the baseline reports progress; not a recorded parameter). Polarization baselines
     get the shots presented at the reference; S0-only ones get them as they are."""
 
@@ -191,10 +217,12 @@ def baseline(module_name: str, s0_only: bool) -> Callable[..., tuple[Run, dict]]
         import inspect
 
         module = importlib.import_module(f"separate.baselines.{module_name}")
-        accepted = [name for name in list(inspect.signature(module.separate).parameters)[2:] if name != "progress"]
-        unknown = sorted(set(params) - set(accepted))
+        defaults = {name: parameter.default for name, parameter in list(inspect.signature(module.separate).parameters.items())[2:]
+                    if name != "progress"}
+        unknown = sorted(set(params) - set(defaults))
         if unknown:
-            raise ValueError(f"unknown parameters {unknown} for {module_name}; expected some of {accepted}")
+            raise ValueError(f"unknown parameters {unknown} for {module_name}; expected some of {list(defaults)}")
+        params = {name: check_param(module, name, value, defaults[name]) for name, value in params.items()}
         choose = chooser(reference)
         reports = {"progress": progress} if progress is not None and "progress" in inspect.signature(module.separate).parameters else {}
 

@@ -15,9 +15,12 @@ from typing import Callable
 import numpy as np
 
 from separate import optics
-from separate.baselines.common import half_quadratic
+from separate.baselines.common import Interval, half_quadratic
 
 BETA_MAX = 1e5
+#: The valid values of `separate`'s parameters: 0 < λ < β_max / 2, so that β, doubling from 2λ,
+#: takes at least one step.
+PARAM_RANGES = {"lam": Interval(above=0.0, below=BETA_MAX / 2)}
 
 
 def suppress(image: np.ndarray, lam: float = 0.002, eps: float = 1e-8,

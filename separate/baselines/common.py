@@ -1,11 +1,32 @@
-"""Helpers shared by the baselines: canonical images, Fresnel inversion, FFT operators."""
+"""Helpers shared by the baselines: parameter ranges, canonical images, Fresnel inversion, FFT operators."""
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 
 from separate import optics
 from separate.optics import Array, mixture_inverse
+
+
+class Interval(NamedTuple):
+    """The valid values of a numeric parameter: each bound that is not None holds
+    (``above < x``, ``at_least ≤ x``, ``x < below``, ``x ≤ at_most``)."""
+
+    above: float | None = None
+    at_least: float | None = None
+    below: float | None = None
+    at_most: float | None = None
+
+    def __contains__(self, value: float) -> bool:
+        return ((self.above is None or value > self.above) and (self.at_least is None or value >= self.at_least)
+                and (self.below is None or value < self.below) and (self.at_most is None or value <= self.at_most))
+
+    def __str__(self) -> str:
+        """E.g. "> 0 and < 90"."""
+        bounds = zip(("> ", "≥ ", "< ", "≤ "), self)
+        return " and ".join(f"{sign}{bound:g}" for sign, bound in bounds if bound is not None)
 
 
 def canonical(images: np.ndarray, angles_deg: list[float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -39,7 +39,7 @@ import numpy as np
 import torch
 
 from separate import optics
-from separate.baselines.common import canonical, fresnel_inverse, luminance, mixture_coefficient_slopes
+from separate.baselines.common import Interval, canonical, fresnel_inverse, luminance, mixture_coefficient_slopes
 
 PENALTY = 1e3
 
@@ -164,6 +164,11 @@ def theta_map(i_perp: np.ndarray, i_par: np.ndarray, smoothness: float = 1.0, st
                 progress(level * steps + step + 1, total)
         theta = _bounded(logit, lo, hi)[0]
     return theta
+
+
+#: The valid values of `separate`'s parameters: λ ≥ 0 (0: no smoothness term), at least one Adam
+#: step per level, and a coarsest side (px) of at least 2, which θ's differences need.
+PARAM_RANGES = {"smoothness": Interval(at_least=0.0), "steps": Interval(at_least=1), "min_side": Interval(at_least=2)}
 
 
 def separate(images: np.ndarray, angles_deg: list[float], smoothness: float = 1.0, steps: int = 150,

@@ -15,9 +15,11 @@ from typing import Callable
 import numpy as np
 
 from separate import optics
-from separate.baselines.common import half_quadratic
+from separate.baselines.common import Interval, half_quadratic
 
 BETA_MAX = 1e5
+#: The valid values of `separate`'s parameters: λ ≥ 0 (0: no gradient prior).
+PARAM_RANGES = {"lam": Interval(at_least=0.0)}
 
 
 def layer_separation(image: np.ndarray, lam: float = 100.0, beta0: float = 20.0, eps: float = 1e-3,
