@@ -22,9 +22,10 @@ from typing import Callable, Iterator
 
 from acquire.camera import Camera
 from acquire.ell14 import Ell14
-from urd.core.dataset import SCENE_NAME, Dataset, Scene
+from urd.core.dataset import DATASET_MANIFEST, SCENE_NAME, Dataset, Scene
 from urd.core.errors import CaptureInterrupted, DatasetError, DeviceError, ManifestError, UrdError
 from urd.core.files import atomic_path, sha256_file
+from urd.core.processes import Terminated
 from urd.core.progress import Progress
 
 
@@ -252,41 +253,53 @@ def capture_scene(root: Path, stage: str, camera: str, angles_deg: list[float] |
     if scene_name is not None and not SCENE_NAME.match(scene_name):
         raise DatasetError(f"expected a scene name like scene_01, got {scene_name!r}")
     with open_rig(stage, camera, address, sim) as rig:
+        made, folder_is_new = not (Path(root) / DATASET_MANIFEST).exists(), not Path(root).exists()
         ds = Dataset.open_or_create(root)
-        with ds.lock():
-            ds.remove_stale()
-            scene = None
-            if scene_name and (ds.root / scene_name).is_dir():
-                scene = ds.scene(scene_name)
-            elif scene_name is None and not new:
-                scene = ds.latest_incomplete()
-                if scene is not None:
-                    announce(f"resuming the incomplete capture {scene.path.resolve()} ({len(scene.shots())} of "
-                             f"{len(scene.capture_angles_deg() or [])} shots; --new-scene starts another)")
-            if scene is None:
-                offset_deg, line = offset_for_stage(ds, rig.info["stage"])
-                announce(line)
-                scene = new_capture_scene(ds, list(angles_deg or DEFAULT_ANGLES_DEG), offset_deg,
-                                          0.5 if tolerance_deg is None else tolerance_deg, rig.info, scene_name)
-            elif scene.is_complete() and not _truth_missing(scene, rig.info):
-                raise DatasetError(f"{scene.name} is complete ({len(scene.shots())} shots); capture another scene: "
-                                   "--new-scene, or --scene with a new name")
-            else:
-                check_resumable(scene, rig.info, angles_deg, tolerance_deg, resume_command(ds.root, scene))
-                announce(f"mounting offset: {scene.capture_settings()[0]:.3f} deg, as {scene.name} recorded when it was started")
-            planned = scene.capture_angles_deg()
-            done = {shot.index for shot in scene.shots()}
-            steps = len(plan_capture(planned, done))
-            announce(f"capturing {scene.path.resolve()} at {planned} deg ({len(planned) - len(done)} shots to take)")
-            try:
-                with _shown(rig.stage, progress, steps, f"capture {scene.name}", announce) as show:
-                    run_capture(scene, rig.stage, rig.camera, planned, progress=show)
-                if not scene.truth_dir().exists():
-                    rig.camera.write_truth(scene.truth_dir())
-            except KeyboardInterrupt:
-                raise CaptureInterrupted(f"capture interrupted; {_stopped(scene, ds.root)}") from None
-            except (UrdError, OSError) as exc:
-                raise UrdError(f"{exc}\ncapture of {scene.name} stopped; {_stopped(scene, ds.root)}") from exc
+        try:
+            with ds.lock():
+                ds.remove_stale()
+                scene = None
+                if scene_name and (ds.root / scene_name).is_dir():
+                    scene = ds.scene(scene_name)
+                elif scene_name is None and not new:
+                    scene = ds.latest_incomplete()
+                    if scene is not None:
+                        announce(f"resuming the incomplete capture {scene.path.resolve()} ({len(scene.shots())} of "
+                                 f"{len(scene.capture_angles_deg() or [])} shots; --new-scene starts another)")
+                    else:
+                        scene = _lost_truth(ds, rig.info)
+                        if scene is not None:
+                            announce(f"writing the ground truth of {scene.path.resolve()}, which its capture did not "
+                                     "finish (--new-scene starts another scene)")
+                if scene is None:
+                    offset_deg, line = offset_for_stage(ds, rig.info["stage"])
+                    announce(line)
+                    scene = new_capture_scene(ds, list(angles_deg or DEFAULT_ANGLES_DEG), offset_deg,
+                                              0.5 if tolerance_deg is None else tolerance_deg, rig.info, scene_name)
+                elif scene.is_complete() and not _truth_missing(scene, rig.info):
+                    raise DatasetError(f"{scene.name} is complete ({len(scene.shots())} shots); capture another scene: "
+                                       "--new-scene, or --scene with a new name")
+                else:
+                    check_resumable(scene, rig.info, angles_deg, tolerance_deg, resume_command(ds.root, scene))
+                    announce(f"mounting offset: {scene.capture_settings()[0]:.3f} deg, as {scene.name} recorded when it was started")
+                planned = scene.capture_angles_deg()
+                done = {shot.index for shot in scene.shots()}
+                steps = len(plan_capture(planned, done))
+                announce(f"capturing {scene.path.resolve()} at {planned} deg ({len(planned) - len(done)} shots to take)")
+                try:
+                    with _shown(rig.stage, progress, steps, f"capture {scene.name}", announce) as show:
+                        run_capture(scene, rig.stage, rig.camera, planned, progress=show)
+                    if not scene.truth_dir().exists():
+                        rig.camera.write_truth(scene.truth_dir())
+                except KeyboardInterrupt as exc:
+                    stopped = "stopped by SIGTERM" if isinstance(exc, Terminated) else "interrupted"
+                    raise CaptureInterrupted(f"capture {stopped}; {_stopped(scene, ds.root)}", isinstance(exc, Terminated)) from None
+                except (UrdError, OSError) as exc:
+                    raise UrdError(f"{exc}\ncapture of {scene.name} stopped; {_stopped(scene, ds.root)}") from exc
+        except BaseException:
+            if made:                                 # a capture that failed before its first shot leaves no dataset
+                ds.remove_if_unused(folder_is_new)
+            raise
     return scene
 
 
@@ -320,6 +333,19 @@ def _truth_missing(scene: Scene, rig_info: dict) -> bool:
     """Whether a virtual-camera scene lacks its ground truth (a capture stopped while writing it:
     the dataset's recovery set the torn folder aside); resuming it writes the truth again."""
     return rig_info["camera"].get("kind") == "virtual" and not scene.truth_dir().exists()
+
+
+def _lost_truth(ds: Dataset, rig_info: dict) -> Scene | None:
+    """The newest complete virtual-camera scene without its ground truth (`_truth_missing`), when
+    ``rig_info``'s camera is the virtual one: resuming it writes the truth."""
+    if rig_info["camera"].get("kind") != "virtual":
+        return None
+    for scene in reversed(ds.scenes()):
+        if scene.status().state in ("broken", "incomplete") or scene.truth_dir().exists():
+            continue
+        if scene.load(verify=False).get("capture", {}).get("camera", {}).get("kind") == "virtual":
+            return scene
+    return None
 
 
 def _set_aside(path: Path) -> None:

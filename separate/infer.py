@@ -455,7 +455,7 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
             else:
                 shots = torch.from_numpy(source)[:, r:r1, x:x1]
             shots = shots.permute(0, 3, 1, 2).to(torch.float32, memory_format=torch.contiguous_format)
-            mixed = torch.matmul(mixing, shots.view(n, -1)).view(-1, c, r1 - r, x1 - x)
+            mixed = torch.matmul(mixing, shots.reshape(n, -1)).view(-1, c, r1 - r, x1 - x)
             if field:                                       # Stokes → each pixel's frame → its 0/45/90° shots
                 local = optics.rotate_stokes(mixed, torch.from_numpy(np.radians(reference_field[r:r1, x:x1])))
                 for k, phi in enumerate(angles):

@@ -31,6 +31,10 @@ def check_stack(images: np.ndarray, angles_deg: Sequence[float]) -> np.ndarray:
     optics.code_scale(images)
     if images.ndim != 4 or images.shape[0] < 3:
         raise ValueError(f"expected a stack of shape (N>=3, H, W, C), got {images.shape}")
+    short, long = sorted(images.shape[1:3])
+    if short < 2 or long > 128 * short:                # the side trial's frame, reduced to 256 px, keeps 2 px
+        raise ValueError(f"expected images of at least 2 px on a side, at most 128 times as long as wide, "
+                         f"got {images.shape[2]}×{images.shape[1]}")
     angles = np.asarray(angles_deg, dtype=np.float64)
     if angles.ndim != 1 or angles.size != images.shape[0]:
         raise ValueError(f"expected {images.shape[0]} angles (one per shot), got {np.asarray(angles_deg).tolist()}")

@@ -68,7 +68,7 @@ def test_bad_parameters_exit_2_with_the_reason(tmp_path, monkeypatch):
     monkeypatch.setenv("COLUMNS", "200")
     for args, reason in ((("separate", "--images", "a.tif", "--angles", "0,45,nan"), "finite"),
                          (("separate", "--images", "a.tif", "--angles", "0,45,180"), "same mod 180"),
-                         (("capture", "--stage", "sim", "--sim-size", "0x10"), "between 16 and 20000"),
+                         (("capture", "--stage", "sim", "--sim-size", "0x10"), "between 32 and 20000"),
                          (("capture", "--stage", "sim", "--address", "G"), "one hex digit 0-F"),
                          (("separate", "scene_01", "--reference", "east"), "'auto', 'global' or an angle"),
                          (("separate", "scene_01", "--method", "kong", "--precision", "bf16"), "--precision: for the networks"),

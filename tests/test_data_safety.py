@@ -275,8 +275,9 @@ def test_a_kill_while_writing_ground_truth_stops_no_separation_and_the_truth_is_
     with pytest.raises(Killed):
         cam.write_truth(scene.truth_dir())
     monkeypatch.undo()
-    force(killed)                                          # no error, and nothing named missing
-    assert_clean(killed)
+    force(killed)                                          # separation goes on without the truth
+    problems = verify(killed)[SCENE]                       # and verify names the lost truth, nothing else
+    assert len(problems) == 1 and "no ground truth: a capture was stopped while writing it" in problems[0]
     again = Dataset.open(killed).scene(SCENE)
     assert not again.truth_dir().exists()                  # so resuming the capture writes it again
     cam.write_truth(again.truth_dir())

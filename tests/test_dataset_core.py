@@ -111,7 +111,7 @@ def test_interrupted_capture_is_incomplete_and_resumes(tmp_path):
     scene = ds.scene("scene_01")
     assert scene.status().state == "incomplete" and len(scene.shots()) == 1
     outcome = ingest_scene(scene, IngestOptions())
-    assert outcome.state == "incomplete" and "urd capture --scene scene_01" in outcome.error
+    assert outcome.state == "incomplete" and "--camera virtual --angles 0,45,90,135 --scene scene_01" in outcome.error
     assert "INCOMPLETE (1 of 4 shots" in report_text(tmp_path / "ds")
     stale = scene.path / "raw" / ".shot-leftover.dng"
     stale.write_bytes(b"half a shot")

@@ -20,6 +20,7 @@ from calib.polarizer import fit_offset
 from calib.store import sweep_intensities
 from urd.core.dataset import Dataset, Scene
 from urd.core.errors import CaptureInterrupted, UrdError
+from urd.core.processes import Terminated
 from urd.core.progress import Progress
 
 
@@ -41,13 +42,18 @@ def sweep_and_calibrate(root: Path, stage: str, camera: str, step_deg: float, ta
     with open_rig(stage, camera, address, sim=sim) as rig:
         ds = Dataset.open_or_create(root)
         with ds.lock():
+            try:
+                ds.calibration()                    # a damaged record stops it before the sweep, not after
+            except UrdError as exc:
+                raise UrdError(f"{exc}; the sweep was not started: repair the file, or move it away to measure anew") from exc
             sweep = ds.new_sweep(capture_plan_record(angles, 0.0, 0.5, rig.info))
             counter = iter(range(1, len(angles) + 1))
             try:
                 run_capture(sweep, rig.stage, rig.camera, angles,
                             progress=lambda st: progress and st.kind == "record" and progress(next(counter), len(angles), "sweep"))
-            except KeyboardInterrupt:
-                raise CaptureInterrupted(f"calibration sweep interrupted; {_left(sweep)}") from None
+            except KeyboardInterrupt as exc:
+                stopped = "stopped by SIGTERM" if isinstance(exc, Terminated) else "interrupted"
+                raise CaptureInterrupted(f"calibration sweep {stopped}; {_left(sweep)}", isinstance(exc, Terminated)) from None
             except (UrdError, OSError) as exc:
                 raise UrdError(f"{exc}\ncalibration sweep stopped; {_left(sweep)}") from exc
             except BaseException:

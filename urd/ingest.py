@@ -32,6 +32,7 @@ from typing import Iterable
 import numpy as np
 import tifffile
 
+from acquire.plan import resume_command
 from urd.core import raw as rawio
 from urd.core.align import Alignment, Motion, align, apply_warp, prepare_target
 from urd.core.dataset import DATASET_MANIFEST, STAGING_PREFIX, Dataset, Scene
@@ -301,7 +302,7 @@ def _not_to_ingest(scene: Scene, opts: IngestOptions) -> SceneOutcome | None:
         return SceneOutcome(scene.name, [], status.problem, "failed")
     if status.state == "incomplete":
         return SceneOutcome(scene.name, [], f"incomplete capture ({status.shots} of {status.expected} shots); "
-                            f"resume it with: urd capture --scene {scene.name} (same --stage and --angles)", "incomplete")
+                            f"resume it with: {resume_command(scene.path.parent, scene)}", "incomplete")
     if scene.is_ingested() and not opts.redo:
         return SceneOutcome(scene.name, [], "already ingested (--redo decodes and aligns it again)", "skipped")
     return None

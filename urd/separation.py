@@ -22,6 +22,7 @@ import contextlib
 import dataclasses
 import functools
 import json
+import os
 import shutil
 import tempfile
 from pathlib import Path
@@ -72,9 +73,10 @@ def _read_mapped(path: Path, shape: tuple[int, ...], scene: Scene) -> np.ndarray
         if image.shape == shape:
             return image
         problem = f"has shape {image.shape}, expected {shape} (the results' shape)"
+    from acquire.plan import resume_command
+
     raise DatasetError(f"{scene.name}: ground truth {path} {problem}; move {scene.truth_dir()} away to separate "
-                       f"without ground-truth figures, or resume the capture with 'urd capture --scene {scene.name}' "
-                       "to write it again")
+                       f"without ground-truth figures, or resume the capture to write it again: {resume_command(scene.path.parent, scene)}")
 
 
 def truth_metrics(scene: Scene, r_hat: np.ndarray, t_hat: np.ndarray, images: np.ndarray, angles_deg: list[float],
@@ -406,7 +408,21 @@ def separate_images(paths: list[Path], angles_deg: list[float], out: Path, run, 
         raise ValueError(f"expected one angle per image ({len(paths)} images), got {len(angles_deg)} angles")
     check_out_folder(Path(out))
     check_no_results_in(Path(out), force)
+    made = not Path(out).exists()
     check_writable(Path(out))
+    try:
+        return _separate_into(paths, angles_deg, Path(out), run, transfer, reference, maps, sees_polarization)
+    except BaseException:
+        if made:
+            with contextlib.suppress(OSError):
+                Path(out).rmdir()                         # the folder this run made, when nothing is in it
+        raise
+
+
+def _separate_into(paths: list[Path], angles_deg: list[float], out: Path, run, transfer: Transfer,
+                   reference: str | float, maps: bool, sees_polarization: bool) -> Separation:
+    """The work of `separate_images` once ``out`` is checked: the results written into a
+    staging folder inside ``out``, then moved into place."""
     loaded = [read_image(p, transfer) for p in paths]
     if len({im.shape for im in loaded}) > 1:
         raise ValueError(f"expected images of one size, got {[im.shape[:2] for im in loaded]}")
@@ -418,12 +434,22 @@ def separate_images(paths: list[Path], angles_deg: list[float], out: Path, run, 
     r_hat, t_hat, inspection, used = separate_inspected(stack, angles_deg, run, reference, sees_polarization)
     polarization = _maps(stack, angles_deg, used) if maps else None
     del stack
-    paths = write_results(Path(out), r_hat, t_hat, overwrite=force, confidence=inspection.presence_at(r_hat.shape[:2]),
-                          clipped=inspection.clipped,
-                          reference_field=_field_image(used, inspection) if sees_polarization else None)
-    if polarization is not None:
-        paths += write_maps(Path(out) / "maps", polarization, overwrite=force)
-    _remove_replaced(Path(out), paths)
+    staging = Path(tempfile.mkdtemp(prefix=".urd-staging-", dir=out))   # a failed run leaves the folder as it was
+    try:
+        staged = write_results(staging, r_hat, t_hat, overwrite=False, confidence=inspection.presence_at(r_hat.shape[:2]),
+                               clipped=inspection.clipped,
+                               reference_field=_field_image(used, inspection) if sees_polarization else None)
+        if polarization is not None:
+            staged += write_maps(staging / "maps", polarization)
+        paths = []
+        for path in staged:
+            final = out / path.relative_to(staging)
+            final.parent.mkdir(exist_ok=True)
+            os.replace(path, final)
+            paths.append(final)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    _remove_replaced(out, paths)
     return Separation(paths, inspection.reference_deg, inspection.warnings,
                       reference_kind=_reference_kind(reference, used, sees_polarization))
 

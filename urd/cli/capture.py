@@ -36,14 +36,14 @@ def capture(
     new_scene: bool = typer.Option(False, "--new-scene", help="Start a new scene even if an incomplete one exists."),
     tolerance: float = typer.Option(0.5, callback=within(0.0), help="Largest accepted difference of read-back and commanded angle (deg)."),
     address: str = typer.Option("0", help="ELL14 device address 0-F.", callback=check_address),
-    sim_offset: float = typer.Option(0.0, help="[sim] polarizer mounting offset (deg)."),
+    sim_offset: float = typer.Option(0.0, callback=within(-360.0, 360.0), help="[sim] polarizer mounting offset (deg)."),
     sim_jitter: float = typer.Option(0.0, callback=within(0.0), help="[sim] per-move angle error the encoder does not see, std (deg)."),
     sim_faults: str = typer.Option("", help="[sim] fault probabilities per command, e.g. drop=0.05,garble=0.05,mech_timeout=0.02,miss=0.02,vanish=0.01."),
     sim_size: str = typer.Option("1536x1024", help="[virtual] sensor size WIDTHxHEIGHT."),
     sim_shake: float = typer.Option(4.0, callback=within(0.0), help="[virtual] camera shake between shots, max translation (px)."),
     reflection: Optional[Path] = typer.Option(None, help="[virtual] image file reflected in the glass (default: bundled photo)."),
     transmission: Optional[Path] = typer.Option(None, help="[virtual] image file seen through the glass (default: bundled photo)."),
-    seed: int = typer.Option(0, help="[sim/virtual] random seed."),
+    seed: int = typer.Option(0, callback=within(0), help="[sim/virtual] random seed."),
 ) -> None:
     """Capture one scene: home the polarizer stage, then move, verify, trigger and download at each angle.
 
@@ -69,10 +69,10 @@ def capture(
 
 def sim_stage(
     address: str = typer.Option("0", help="Device address 0-F.", callback=check_address),
-    offset: float = typer.Option(0.0, help="Polarizer mounting offset the encoder does not see (deg)."),
+    offset: float = typer.Option(0.0, callback=within(-360.0, 360.0), help="Polarizer mounting offset the encoder does not see (deg)."),
     jitter: float = typer.Option(0.0, callback=within(0.0), help="Per-move angle error the encoder does not see, std (deg)."),
     faults: str = typer.Option("", help="Fault probabilities per command, e.g. drop=0.05,garble=0.05,mech_timeout=0.02,miss=0.02,vanish=0.01."),
-    seed: int = typer.Option(0, help="Random seed of jitter and faults."),
+    seed: int = typer.Option(0, callback=within(0), help="Random seed of jitter and faults."),
 ) -> None:
     """Serve a simulated ELL14 rotation mount on a pseudo-terminal until Ctrl-C (to test any Elliptec client).
 

@@ -18,6 +18,7 @@ from typing import Optional
 import typer
 
 from urd.core.dataset import default_root
+from urd.core.manifest import MAX_ANGLE_DEG
 from urd.core.errors import CaptureInterrupted, UrdError
 from urd.core.processes import Terminated
 from urd.core.progress import TerminalProgress
@@ -71,6 +72,8 @@ def usage(message: str) -> OptionClash:
 def within(low: float | None = None, high: float | None = None):
     """An option callback: the value, or a usage error naming the option when it is below ``low`` or above ``high``."""
     def check(value):
+        if isinstance(value, float) and not math.isfinite(value):
+            raise typer.BadParameter(f"expected a finite number, got {value}")
         if value is not None and ((low is not None and value < low) or (high is not None and value > high)):
             expected = (f"between {low:g} and {high:g}" if low is not None and high is not None
                         else f"at least {low:g}" if low is not None else f"at most {high:g}")
@@ -123,10 +126,13 @@ def run_guarded(func, *args, **kwargs):
         return func(*args, **kwargs)
     except CaptureInterrupted as exc:
         end_line(bar)
-        fail(str(exc), 130)
+        fail(str(exc), 143 if exc.terminated else 130)
     except (UrdError, ValueError, OSError) as exc:
         end_line(bar)
         fail(str(exc))
+    except MemoryError:
+        end_line(bar)
+        fail("out of memory: the work stopped (completed files are kept); try smaller images, or a machine with more memory")
     except KeyboardInterrupt as exc:
         end_line(bar)
         stopped = "stopped by SIGTERM" if isinstance(exc, Terminated) else "interrupted"
@@ -151,6 +157,8 @@ def parse_angles(text: str, min_distinct: int = 3, option: str = "--angles") -> 
         raise bad(option, f"expected comma-separated degrees like 0,45,90, got {text!r}") from None
     if not all(math.isfinite(a) for a in angles):
         raise bad(option, f"expected finite angles in degrees, got {text!r}")
+    if any(abs(a) > MAX_ANGLE_DEG for a in angles):
+        raise bad(option, f"expected angles within ±{MAX_ANGLE_DEG:g} deg, got {text!r}")
     directions = [round(a % 180.0, 6) for a in angles]
     if len(set(directions)) != len(directions):
         raise bad(option, f"expected each polarizer direction once (angles are the same mod 180 deg), got {text!r}")
@@ -174,13 +182,14 @@ def parse_params(items: list[str], option: str = "--param") -> dict:
 
 
 def parse_size(text: str, option: str = "--size") -> tuple[int, int]:
-    """'1536x1024' → (1536, 1024), each side 16 to 20000 px."""
+    """'1536x1024' → (1536, 1024): the virtual camera's sensor, each side even (its Bayer
+    mosaic), 32 to 20000 px."""
     try:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise bad(option, f"expected WIDTHxHEIGHT like 1536x1024, got {text!r}") from None
-    if not (16 <= w <= 20000 and 16 <= h <= 20000):
-        raise bad(option, f"expected each side between 16 and 20000 px, got {text!r}")
+    if not (32 <= w <= 20000 and 32 <= h <= 20000) or w % 2 or h % 2:
+        raise bad(option, f"expected each side an even number of px between 32 and 20000, got {text!r}")
     return w, h
 
 

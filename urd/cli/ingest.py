@@ -56,6 +56,14 @@ def ingest(
     if recorded and given(ctx, "angles"):
         raise usage("a scene's angles are in its manifest; --angles is for a folder of RAW files. To "
                                  "record other angles, move the scene folder away and ingest its raw/ files again")
+    if recorded and dataset is not None:
+        own = source if (source / "dataset.json").is_file() else source.parent
+        if dataset.resolve() != own.resolve():
+            raise usage(f"{source} is a {'dataset' if own == source else 'scene'} and is ingested where it is; "
+                        "DATASET is for a folder of RAW files or mosaic frames: leave it out")
+    if not recorded and dataset is not None and source.is_dir() and dataset.resolve() == source.resolve():
+        raise usage(f"expected a DATASET other than the RAW folder {source} itself (the shots go into "
+                    "DATASET/scene_NN/raw/): name another folder")
     if jobs > 1 and (not recorded or mosaic):
         raise usage("--jobs is for a dataset or scene folder; a RAW folder or mosaic frames are ingested "
                                  "by one process (ingest them, then the dataset with --jobs)")

@@ -120,6 +120,18 @@ def separate(
         run_guarded(check_no_results_in, out, force)
     target = None if images or all_scenes else run_guarded(resolve_scene, scene, dataset)
     adding_maps = target is not None and maps and not force and method in target.methods()
+    if adding_maps:
+        fixed = ("reference",) if "reference_deg.tiff" in run_guarded(target.result, method).files else ()
+        ignored = [f"--{name.replace('_', '-')}" for name in ("weights", "tile", "precision", "device", "colour_match",
+                                                             "return_copies", "incidence", "param", *fixed)
+                   if given(ctx, name)]
+        if ignored:
+            raise usage(f"{', '.join(ignored)}: {target.name} has {method} results, to which --maps adds the maps "
+                        "without separating again (at the reference they were separated at); pass --force to "
+                        "separate again with these options")
+        if target.status().stale and method in target.status().stale:
+            raise usage(f"{target.name}'s {method} results are stale (the scene was ingested again since): maps of "
+                        "the new shots would not match them; pass --force to separate again with maps")
     if target is not None and not force and not adding_maps:
         run_guarded(target.check_no_results, method)
     network_device = chosen = None

@@ -147,6 +147,8 @@ class Scene(SceneShots, SceneResults, SceneTruth, SceneSwap):
 
     def __init__(self, path: Path):
         self.path = Path(path)
+        if self.path.name in ("", ".."):                  # "." or "..": the folder's own name, and its parent
+            self.path = Path(os.path.abspath(self.path))
         self.name = self.path.name
         self._record: dict | None = None
 
@@ -522,6 +524,11 @@ def _create_scene(path: Path, source: str, capture: dict, exist_ok: bool = False
     except OSError as exc:
         raise DatasetError(f"cannot create scene folder {path}: {exc.strerror or exc}") from exc
     scene = Scene(path)
-    scene._record = new_scene_record(path.name, source, capture)
-    scene._save()
+    try:
+        scene._record = new_scene_record(path.name, source, capture)
+        scene._save()
+    except BaseException:
+        if not exist_ok:                                    # a refused record leaves no scene without a manifest
+            shutil.rmtree(path, ignore_errors=True)
+        raise
     return scene

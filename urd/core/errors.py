@@ -50,7 +50,12 @@ class DatasetBusyError(DatasetError):
 
 
 class CaptureInterrupted(UrdError):
-    """A capture was stopped by the user (Ctrl-C); its completed shots are kept."""
+    """A capture was stopped by the user (Ctrl-C, or SIGTERM where ``terminated``); its completed
+    shots are kept."""
+
+    def __init__(self, message: str, terminated: bool = False):
+        super().__init__(message)
+        self.terminated = terminated
 
 
 class TrainingError(UrdError):

@@ -88,14 +88,20 @@ def read_raw_codes(path: Path) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise DatasetError(f"{path}: no such file")
-    try:
-        data = tifffile.imread(path) if path.suffix.lower() in (".tif", ".tiff") else cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    except (OSError, ValueError) as exc:
-        raise RawFormatError(f"{path}: not an image file urd can read ({exc})") from exc
+    data, problem, bgr = None, "", True
+    if path.suffix.lower() in (".tif", ".tiff"):
+        try:
+            data, bgr = tifffile.imread(path), False
+        except (OSError, ValueError) as exc:        # e.g. a compression only imagecodecs decodes: OpenCV reads LZW
+            problem = f" ({exc})"
     if data is None:
-        raise RawFormatError(f"{path}: not an image file urd can read")
-    if data.ndim == 3 and path.suffix.lower() not in (".tif", ".tiff"):
-        data = data[..., 2::-1] if data.shape[-1] >= 3 else data[..., 0]
+        data = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if data is None:
+        raise RawFormatError(f"{path}: not an image file urd can read{problem}")
+    if data.ndim == 3 and data.shape[-1] < 3:           # grey with alpha: the grey
+        return data[..., 0]
+    if data.ndim == 3 and bgr:
+        data = data[..., 2::-1]
     return data
 
 

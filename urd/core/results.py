@@ -82,7 +82,8 @@ class SceneResults:
         ingest = self._data().get("ingest")
         if not self.is_complete():
             raise DatasetError(f"{self.name} is an incomplete capture ({len(self.shots())} of "
-                               f"{len(self.capture_angles_deg() or [])} shots); resume it with urd capture --scene {self.name}")
+                               f"{len(self.capture_angles_deg() or [])} shots); resume it with 'urd capture {self.path.parent} --scene {self.name}' "
+                               "and the options it was started with (urd ingest prints the whole command)")
         if not ingest:
             raise DatasetError(f"{self.name} is not ingested yet; run: urd ingest {self.path}")
         if not ingest["ok"]:
@@ -151,10 +152,16 @@ class SceneResults:
         return earlier
 
     def check_no_results(self, method: str) -> None:
-        """DatasetError if the manifest already records results of ``method`` (replacing them takes --force)."""
+        """DatasetError if the manifest already records results of ``method``, or its results folder
+        holds files the manifest does not list (replacing them takes --force)."""
         if method in self.methods():
             raise DatasetError(f"{self.name} already has {method} results ({self.results_dir(method)}); "
                                "pass --force to replace them")
+        folder = self.results_dir(method)
+        unlisted = sorted(p.name for p in folder.iterdir() if not p.name.startswith(".")) if folder.is_dir() else []
+        if unlisted:
+            raise DatasetError(f"{folder} holds files no manifest lists ({', '.join(unlisted[:3])}"
+                               f"{', …' if len(unlisted) > 3 else ''}); move them away, or pass --force to replace them")
 
     def add_result(self, method: str, staged: dict[str, Path], entry: dict, replace: bool = False) -> Result:
         """Record a method's results: staged files (final name → staged path) are swapped in

@@ -76,7 +76,7 @@ def _hash(scene_dir: Path, path: Path, cache: dict, full: bool) -> str:
 class SceneShots:
     """The shots of a `urd.core.dataset.Scene` and the integrity checks of its files (uses the
     scene's ``path``, ``name``, ``manifest_path``, ``_data``, ``reload``, ``_save``,
-    ``file_record``, ``refuse_links`` and ``_truth_records``)."""
+    ``file_record``, ``refuse_links``, ``_truth_records`` and ``lost_truth``)."""
 
     def shots(self) -> list[Shot]:
         """The recorded shots, in index order."""
@@ -241,6 +241,9 @@ class SceneShots:
             records += self._truth_records()
         except (ManifestError, DatasetError) as exc:
             problems.append(str(exc))
+        lost = self.lost_truth()
+        if lost:
+            problems.append(lost)
         cache = {}
         for rec in records:
             try:

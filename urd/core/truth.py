@@ -43,10 +43,21 @@ class SceneTruth:
             record = read_json(where)
         except ManifestError as exc:
             raise DatasetError(f"{folder}: incomplete ground truth ({exc}; a capture was stopped while writing it); "
-                               f"move the folder away and resume the capture with 'urd capture --scene {self.name}' "
-                               "to write it again") from exc
+                               f"move the folder away and resume the capture with 'urd capture {self.path.parent} --scene {self.name}' "
+                               "and the options it was started with, to write it again") from exc
         validate_truth(record, str(where), folder)
         return [{**rec, "file": f"{folder.name}/{rec['file']}"} for rec in record.get("files", [])]
+
+    def lost_truth(self) -> str | None:
+        """What `urd verify` says of a scene without its ground truth where a stopped capture left
+        it incomplete (set aside as ``truth-incomplete-N`` by the dataset's recovery), else None.
+        Separation goes on without it; resuming the capture writes it again."""
+        aside = sorted(self.path.glob("truth-incomplete-*"))
+        if self.truth_dir().is_dir() or not aside:
+            return None
+        return (f"no ground truth: a capture was stopped while writing it (set aside as {aside[-1]}); write it "
+                f"again with 'urd capture {self.path.parent}' and the options the scene was captured with, or "
+                "remove that folder to go on without it")
 
     def truth_files(self) -> dict[str, Path] | None:
         """The virtual camera's ground truth files by name (``R_obs.tiff`` → path), checked

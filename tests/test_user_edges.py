@@ -1,0 +1,201 @@
+"""The edges a new user meets on the simulated rig: values the options refuse before anything
+is made, failures that leave nothing half-made, ground truth that a stopped capture lost, and
+image files and arrays of unusual kinds."""
+
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+import tifffile
+import typer
+from typer.testing import CliRunner
+
+import urd
+from acquire import plan
+from acquire.rig import SimSettings
+from conftest import ingested_dataset
+from urd.cli import app
+from urd.cli.common import run_guarded
+from urd.core.dataset import Dataset, Scene
+from urd.core.errors import CaptureInterrupted, DatasetError, ManifestError
+from urd.core.images import read_image
+from urd.core.processes import Terminated
+from separate.methods import get_method
+from urd.separation import separate_images
+
+pytestmark = pytest.mark.usefixtures("wide_terminal")
+SIM = ("--stage", "sim", "--camera", "virtual", "--sim-size", "96x64")
+
+
+def invoke(*args):
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    return ingested_dataset(tmp_path_factory, "edges")
+
+
+@pytest.mark.parametrize("options, message", [
+    (("--angles", "370,45,1000"), "within ±720 deg"),
+    (("--tolerance", "nan"), "expected a finite number"),
+    (("--sim-shake", "nan"), "expected a finite number"),
+    (("--sim-offset", "inf"), "expected a finite number"),
+    (("--seed", "-1"), "expected at least 0"),
+    (("--sim-size", "65x49"), "even number of px between 32 and 20000"),
+])
+def test_capture_refuses_bad_values_as_usage_errors_and_makes_nothing(tmp_path, options, message):
+    out = invoke("capture", tmp_path / "ds", *SIM, *options)
+    assert out.exit_code == 2 and message in out.output
+    assert not (tmp_path / "ds").exists()
+
+
+@pytest.mark.parametrize("option", ["--offset", "--jitter"])
+def test_sim_stage_refuses_nan_before_serving(option):
+    out = invoke("sim-stage", option, "nan")
+    assert out.exit_code == 2 and "expected a finite number" in out.output
+
+
+def test_a_refused_scene_record_leaves_no_scene_folder(tmp_path):
+    ds = Dataset.open_or_create(tmp_path / "ds")
+    with pytest.raises(ManifestError):
+        ds.new_scene("capture", {"angles_deg": [0.0, 45.0, 1000.0], "offset_deg": 0.0, "tolerance_deg": 0.5})
+    assert ds.scene_names() == [] and not (tmp_path / "ds" / "scene_01").exists()
+
+
+def test_a_capture_that_fails_before_its_first_shot_leaves_no_dataset(tmp_path):
+    out = invoke("capture", tmp_path / "ds", *SIM, "--sim-faults", "vanish=0.15", "--seed", "2")
+    assert out.exit_code == 1 and "no shot was taken" in out.output
+    assert not (tmp_path / "ds").exists()
+
+
+def test_sigterm_during_a_capture_exits_143_and_ctrl_c_130(tmp_path, monkeypatch):
+    def stopped(kind):
+        def run_capture(*args, **kwargs):
+            raise kind("stopped")
+        return run_capture
+
+    for kind, code, said in ((Terminated, 143, "capture stopped by SIGTERM"), (KeyboardInterrupt, 130, "capture interrupted")):
+        monkeypatch.setattr(plan, "run_capture", stopped(kind))
+        with pytest.raises(CaptureInterrupted, match=said) as caught:
+            plan.capture_scene(tmp_path / "ds", "sim", "virtual", sim=SimSettings(width=96, height=64),
+                               announce=lambda line: None)
+        def capture():
+            raise caught.value
+
+        with pytest.raises(typer.Exit) as exited:
+            run_guarded(capture)
+        assert exited.value.exit_code == code
+
+
+def test_ground_truth_a_stopped_capture_lost_is_reported_and_written_by_the_next_capture(tmp_path):
+    root = tmp_path / "ds"
+    assert invoke("capture", root, *SIM).exit_code == 0
+    (root / "scene_01" / "truth").rename(root / "scene_01" / "truth-incomplete-1")   # what the recovery does
+    out = invoke("verify", root)
+    assert out.exit_code == 1 and "no ground truth" in out.output and "truth-incomplete-1" in out.output
+    out = invoke("capture", root, *SIM)
+    assert out.exit_code == 0 and "writing the ground truth of" in out.output
+    assert Dataset.open(root).scene_names() == ["scene_01"]
+    assert invoke("verify", root).exit_code == 0
+
+
+def test_ingest_refuses_a_dataset_argument_it_would_ignore(dataset, tmp_path):
+    out = invoke("ingest", dataset / "scene_01", tmp_path / "elsewhere")
+    assert out.exit_code == 2 and "is ingested where it is" in out.output
+    assert not (tmp_path / "elsewhere").exists()
+    raw = tmp_path / "raw"
+    raw.mkdir()
+    out = invoke("ingest", raw, raw)
+    assert out.exit_code == 2 and "other than the RAW folder" in out.output and not (raw / "dataset.json").exists()
+
+
+def test_calibrate_offset_refuses_a_damaged_calibration_before_the_sweep(tmp_path):
+    root = tmp_path / "ds"
+    Dataset.open_or_create(root)
+    (root / "calibration.json").write_text("{bad")
+    out = invoke("calibrate", "offset", root, "--stage", "sim", "--camera", "virtual")
+    assert out.exit_code == 1 and "the sweep was not started" in out.output
+    assert not (root / "calibration").exists()
+
+
+def test_a_scene_given_as_its_own_folder_dot_is_named(dataset, monkeypatch):
+    monkeypatch.chdir(dataset / "scene_01")
+    assert Scene(".").name == "scene_01"
+    out = invoke("verify", ".")
+    assert out.exit_code == 0 and "scene_01: ok" in out.output
+
+
+def test_files_no_manifest_lists_in_a_results_folder_are_not_replaced_without_force(dataset):
+    folder = dataset / "scene_01" / "results" / "none"
+    folder.mkdir(parents=True)
+    (folder / "T.tiff").write_text("my notes")
+    try:
+        out = invoke("separate", "scene_01", "--dataset", dataset, "--method", "none")
+        assert out.exit_code == 1 and "holds files no manifest lists (T.tiff)" in out.output
+        assert (folder / "T.tiff").read_text() == "my notes"
+    finally:
+        shutil.rmtree(folder)
+
+
+def test_maps_on_existing_results_refuse_options_they_would_ignore(dataset):
+    assert invoke("separate", "scene_01", "--dataset", dataset, "--method", "schechner", "--force").exit_code == 0
+    out = invoke("separate", "scene_01", "--dataset", dataset, "--method", "schechner", "--maps", "--reference", "45")
+    assert out.exit_code == 2 and "--reference" in out.output and "pass --force" in out.output
+    assert not (dataset / "scene_01" / "results" / "schechner" / "maps").exists()
+
+
+def test_a_failed_images_run_with_force_keeps_the_earlier_results_whole(tmp_path, monkeypatch):
+    rng = np.random.default_rng(0)
+    paths = []
+    for k in range(3):
+        paths.append(tmp_path / f"shot_{k}.tiff")
+        tifffile.imwrite(paths[-1], (rng.random((48, 64, 3)) * 30000).astype(np.uint16))
+    out = tmp_path / "out"
+    run, _ = get_method("schechner")
+    separate_images(paths, [0.0, 45.0, 90.0], out, run)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+
+    def broken(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr("urd.separation.write_preview", broken)
+    with pytest.raises(OSError, match="disk full"):
+        separate_images(paths[::-1], [0.0, 45.0, 90.0], out, run, force=True)
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+def test_a_failed_images_run_leaves_no_output_folder_it_made(tmp_path):
+    run, _ = get_method("none")
+    with pytest.raises(DatasetError, match="no such file"):
+        separate_images([tmp_path / "nope.tiff"] * 3, [0.0, 45.0, 90.0], tmp_path / "new", run)
+    assert not (tmp_path / "new").exists()
+
+
+def test_lzw_and_grey_with_alpha_tiffs_are_read(tmp_path):
+    rgb = (np.arange(32 * 40 * 3).reshape(32, 40, 3) % 65536).astype(np.uint16)
+    assert cv2.imwrite(str(tmp_path / "lzw.tiff"), rgb[..., ::-1])          # OpenCV writes LZW
+    with tifffile.TiffFile(tmp_path / "lzw.tiff") as tif:
+        assert tif.pages[0].compression == 5
+    np.testing.assert_array_equal(read_image(tmp_path / "lzw.tiff"), rgb / np.float32(65535))
+    grey_alpha = np.stack([rgb[..., 0], np.full((32, 40), 65535, np.uint16)], axis=-1)
+    tifffile.imwrite(tmp_path / "ga.tiff", grey_alpha, photometric="minisblack", extrasamples=["unassalpha"])
+    image = read_image(tmp_path / "ga.tiff")
+    assert image.shape == (32, 40, 3)
+    np.testing.assert_array_equal(image[..., 1], rgb[..., 0] / np.float32(65535))
+
+
+def test_the_network_takes_a_stack_of_any_memory_layout():
+    rng = np.random.default_rng(1)
+    stack = (rng.random((3, 40, 56, 3)) * 0.5).astype(np.float32)
+    plain = urd.separate(stack, [0, 45, 90]).transmission
+    transposed = np.ascontiguousarray(stack.transpose(0, 3, 1, 2)).transpose(0, 2, 3, 1)
+    np.testing.assert_array_equal(urd.separate(transposed, [0, 45, 90]).transmission, plain)
+    np.testing.assert_array_equal(urd.separate(np.asfortranarray(stack), [0, 45, 90]).transmission, plain)
+
+
+@pytest.mark.parametrize("shape", [(3, 2, 900, 3), (3, 1, 1, 3), (3, 0, 8, 3)])
+def test_frames_too_thin_to_inspect_are_refused_with_their_size(shape):
+    with pytest.raises(ValueError, match="at least 2 px on a side, at most 128 times as long as wide"):
+        urd.separate(np.full(shape, 0.2, np.float32), [0, 45, 90], method="schechner")
