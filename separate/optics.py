@@ -294,8 +294,8 @@ def check_angles(angles: Sequence[float], min_span: float = 0.0) -> np.ndarray:
         raise ValueError(f"expected at least 3 polarizer angles, got {np.degrees(phi).round(2).tolist()} deg")
     if np.linalg.cond(stokes_matrix(phi)) > 100:
         raise ValueError(
-            "expected polarizer angles that determine S0, S1, S2 (at least 3 distinct "
-            f"directions mod 180 deg), got {np.degrees(phi).round(2).tolist()} deg"
+            "expected polarizer angles that determine S0, S1, S2: at least 3 directions (mod 180 deg) spread "
+            f"over the half turn, like 0, 45, 90; got {np.degrees(phi).round(2).tolist()} deg"
         )
     if min_span > 0:
         wrapped = np.sort(np.mod(phi, np.pi))

@@ -11,12 +11,14 @@ import tifffile
 from acquire.virtual_camera import shot_truth
 from calib.polarizer import _solve_angles, estimate_shot_errors, fit_offset
 from calib.store import calibrate_shots
+from separate.methods import get_method
 from conftest import shared_data
 from rig import capture_virtual
 from separate import optics
 from urd.core.dataset import Dataset
 from urd.core.errors import CalibrationError
 from urd.ingest import IngestOptions, ingest_scene
+from urd.separation import separate_scene
 
 
 def urd(*args):
@@ -77,11 +79,13 @@ def test_per_shot_errors_on_the_virtual_rig_and_their_effect_on_the_stokes_fit(t
     angles = (0, 30, 60, 90, 120, 150)
     scene, cam = capture_virtual(ds, angles=angles, size=(768, 512), shake_px=4, shake_deg=0.5, seed=11, jitter_deg=2.0)
     ingest_scene(scene, IngestOptions())
+    separate_scene(scene, "none", *get_method("none"))
     before = (scene.path / "scene.json").read_bytes()
     dry = calibrate_shots(scene, apply=False)
     assert (scene.path / "scene.json").read_bytes() == before                 # --no-apply: the manifest as it was
     result = calibrate_shots(scene)
     assert result.errors_deg == dry.errors_deg
+    assert scene.reload().status().stale == ("none",)          # separated at the nominal angles
     record = scene.load()
     true = np.array([shot_truth(scene.path / s["file"])["true_angle_deg"] for s in record["shots"]])
     true_err = true - np.array(angles)

@@ -111,7 +111,7 @@ def test_a_dataset_is_never_made_inside_another(tmp_path):
     (tmp_path / "tool" / "dataset.json").write_text('{"name": "another tool\'s dataset"}')
     assert invoke("capture", tmp_path / "tool" / "shoot", *SIM, "--sim-size", "96x64").exit_code == 0
     out = invoke("capture", tmp_path / "other", *SIM, "--sim-size", "96x64", "--scene", "../evil")
-    assert out.exit_code == 1 and "expected a scene name like scene_01" in out.stderr
+    assert out.exit_code == 2 and "expected a scene name like scene_01" in out.stderr
     assert not (tmp_path / "other").exists()
 
 

@@ -42,7 +42,7 @@ def test_8_bit_codes_follow_the_transfer_and_16_bit_and_float_stay_linear():
     assert to_linear(u8, Transfer.SRGB)[2] == pytest.approx(0.21586, abs=1e-5)      # sRGB mid-grey
     u16 = np.array([0, 32768, 65535], np.uint16)
     np.testing.assert_array_equal(to_linear(u16, Transfer.SRGB), u16 / np.float32(65535))
-    floats = np.array([0.25, 1.5], np.float32)
+    floats = np.array([0.25] * 39 + [1.5], np.float32)               # a highlight above white stays
     np.testing.assert_array_equal(to_linear(floats, Transfer.SRGB), floats)
     with pytest.raises(RawFormatError, match="int32"):
         to_linear(np.array([1], np.int32))

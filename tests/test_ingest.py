@@ -72,6 +72,8 @@ def test_unalignable_scene_is_flagged_and_no_stack_is_written(tmp_path):
     assert out.returncode == 1 and "alignment failed" in out.stderr
     assert not (scene.path / "aligned").exists()
     assert scene.load()["ingest"]["ok"] is False
+    again = urd("ingest", scene.path)                      # not "already ingested": what failed, and the way out
+    assert again.returncode == 0 and "its alignment failed" in again.stdout and "--redo tries again" in again.stdout
 
 
 def test_ingest_folder_groups_by_time_and_reports_bad_files(tmp_path, monkeypatch):

@@ -18,9 +18,9 @@ from conftest import ingested_dataset
 from urd.cli import app
 from urd.cli.common import run_guarded
 from urd.core.dataset import Dataset, Scene
-from urd.core.errors import CaptureInterrupted, DatasetError, ManifestError
+from urd.core.errors import CaptureInterrupted, DatasetError, ManifestError, RawFormatError
 from urd.core.images import read_image
-from urd.core.processes import Terminated
+from urd.core.processes import Terminated, kept_note
 from separate.methods import get_method
 from urd.separation import separate_images
 
@@ -44,6 +44,9 @@ def dataset(tmp_path_factory):
     (("--sim-offset", "inf"), "expected a finite number"),
     (("--seed", "-1"), "expected at least 0"),
     (("--sim-size", "65x49"), "even number of px between 32 and 20000"),
+    (("--tolerance", "0"), "expected at least 0.01"),
+    (("--scene", "foo"), "expected a scene name like scene_01"),
+    (("--reflection", "/nonexistent.png"), "no such image file"),
 ])
 def test_capture_refuses_bad_values_as_usage_errors_and_makes_nothing(tmp_path, options, message):
     out = invoke("capture", tmp_path / "ds", *SIM, *options)
@@ -151,7 +154,7 @@ def test_a_failed_images_run_with_force_keeps_the_earlier_results_whole(tmp_path
     paths = []
     for k in range(3):
         paths.append(tmp_path / f"shot_{k}.tiff")
-        tifffile.imwrite(paths[-1], (rng.random((48, 64, 3)) * 30000).astype(np.uint16))
+        tifffile.imwrite(paths[-1], (rng.random((48, 64, 3)) * 30000).astype(np.uint16), photometric="rgb")
     out = tmp_path / "out"
     run, _ = get_method("schechner")
     separate_images(paths, [0.0, 45.0, 90.0], out, run)
@@ -199,3 +202,55 @@ def test_the_network_takes_a_stack_of_any_memory_layout():
 def test_frames_too_thin_to_inspect_are_refused_with_their_size(shape):
     with pytest.raises(ValueError, match="at least 2 px on a side, at most 128 times as long as wide"):
         urd.separate(np.full(shape, 0.2, np.float32), [0, 45, 90], method="schechner")
+
+
+def test_the_demo_refuses_a_sensor_too_small_to_align_and_makes_nothing(tmp_path):
+    out = invoke("demo", tmp_path / "demo", "--size", "64x48")
+    assert out.exit_code == 2 and "between 128 and 20000" in out.output and not (tmp_path / "demo").exists()
+
+
+def test_calibrate_offset_refuses_a_nan_target_angle_before_the_sweep(tmp_path):
+    out = invoke("calibrate", "offset", tmp_path / "ds", "--stage", "sim", "--camera", "virtual", "--target-angle", "nan")
+    assert out.exit_code == 2 and "expected a finite number" in out.output and not (tmp_path / "ds").exists()
+
+
+def test_float_files_are_read_with_white_at_one_and_named_when_not(tmp_path):
+    tifffile.imwrite(tmp_path / "ok.tiff", np.full((8, 8, 3), 0.5, np.float32), photometric="rgb")
+    np.testing.assert_array_equal(read_image(tmp_path / "ok.tiff"), 0.5)
+    tifffile.imwrite(tmp_path / "hdr.tiff", np.full((8, 8, 3), 10.0, np.float32), photometric="rgb")
+    with pytest.raises(RawFormatError, match=r"hdr.tiff: float pixels are read with 1.0 as white, and 100.0% of these exceed it"):
+        read_image(tmp_path / "hdr.tiff")
+    tifffile.imwrite(tmp_path / "nan.tiff", np.full((8, 8, 3), np.nan, np.float32), photometric="rgb")
+    with pytest.raises(RawFormatError, match=r"nan.tiff: 192 NaN or infinite pixel values"):
+        read_image(tmp_path / "nan.tiff")
+    with pytest.raises(DatasetError, match="is a folder, not an image file"):
+        read_image(tmp_path)
+
+
+def test_images_of_different_sizes_are_named_with_their_sizes(tmp_path):
+    for name, (h, w) in (("a.tiff", (32, 40)), ("b.tiff", (32, 40)), ("c.tiff", (30, 40))):
+        tifffile.imwrite(tmp_path / name, np.full((h, w, 3), 1000, np.uint16), photometric="rgb")
+    out = invoke("separate", "--images", tmp_path / "a.tiff", "--images", tmp_path / "b.tiff", "--images",
+                 tmp_path / "c.tiff", "--method", "none", "--out", tmp_path / "out")
+    assert out.exit_code == 1 and "a.tiff 40×32, b.tiff 40×32, c.tiff 40×30" in out.output
+
+
+def test_a_dataset_given_as_the_scene_is_named_as_one(dataset):
+    out = invoke("separate", dataset, "--method", "none")
+    assert out.exit_code == 2 and "is a dataset; give one of its scenes (scene_01)" in out.output
+
+
+def test_separate_all_refuses_bad_weights_once(dataset, tmp_path):
+    out = invoke("separate", "--all", "--dataset", dataset, "--weights", tmp_path / "nosuch.pt", "--force")
+    assert out.exit_code == 1 and out.output.count("nosuch.pt") == 1 and "failed" not in out.output
+
+
+def test_an_empty_folder_of_mosaic_frames_is_an_error_and_makes_no_dataset(tmp_path):
+    (tmp_path / "frames").mkdir()
+    out = invoke("ingest", tmp_path / "frames", tmp_path / "ds", "--mosaic", "imx250mzr")
+    assert out.exit_code == 1 and "no image files to ingest" in out.output and not (tmp_path / "ds").exists()
+
+
+def test_an_interrupted_forced_run_says_that_running_it_again_redoes_the_kept_scenes():
+    assert kept_note(["scene_01"], "separated").endswith("run the same command again to do them")
+    assert "it does the kept ones again too" in kept_note(["scene_01"], "separated", forced=True)

@@ -107,7 +107,7 @@ def separate_all(root: Path, method: str, options: dict, force: bool = False, re
                 if progress:
                     progress(done, len(chosen), label)
         except KeyboardInterrupt as exc:
-            exc.add_note(kept_note([o.scene for o in outcomes if o.state == "separated"], "separated"))
+            exc.add_note(kept_note([o.scene for o in outcomes if o.state == "separated"], "separated", force))
             raise
     return sorted(outcomes, key=lambda o: o.scene)
 

@@ -303,6 +303,9 @@ def _not_to_ingest(scene: Scene, opts: IngestOptions) -> SceneOutcome | None:
     if status.state == "incomplete":
         return SceneOutcome(scene.name, [], f"incomplete capture ({status.shots} of {status.expected} shots); "
                             f"resume it with: {resume_command(scene.path.parent, scene)}", "incomplete")
+    if status.state == "alignment failed" and not opts.redo:
+        return SceneOutcome(scene.name, [], f"its alignment failed ({scene.load(verify=False)['ingest'].get('error', '')}); "
+                            "--redo tries again, e.g. with another --motion", "skipped")
     if scene.is_ingested() and not opts.redo:
         return SceneOutcome(scene.name, [], "already ingested (--redo decodes and aligns it again)", "skipped")
     return None
@@ -366,7 +369,7 @@ def ingest_scenes(scenes: list[Scene], opts: IngestOptions, jobs: int, progress:
                     progress(done, len(todo), label)
     except KeyboardInterrupt as exc:
         names = {scene.name for scene in todo}
-        exc.add_note(kept_note([o.name for o in outcomes if o.name in names and o.state == "ingested"], "ingested"))
+        exc.add_note(kept_note([o.name for o in outcomes if o.name in names and o.state == "ingested"], "ingested", opts.redo))
         raise
     order = {scene.name: k for k, scene in enumerate(scenes)}
     return sorted(outcomes, key=lambda o: order.get(o.name, len(order)))
@@ -523,11 +526,15 @@ def _ingest_into(ds: Dataset, source: Path, scenes: list[str] | None, opts: Inge
         ds.remove_stale()
         if mosaic is not None:
             files = [source] if source.is_file() else sorted(p for p in source.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+            if not files:
+                raise DatasetError(f"{source}: no image files to ingest (expected {', '.join(sorted(IMAGE_SUFFIXES))})")
             outcomes = []
             for i, f in enumerate(files):
                 if progress:
                     progress(i, len(files), "ingest mosaics")
                 outcomes.append(ingest_mosaic(ds, f, mosaic, demosaic, transfer))
+            if progress:
+                progress(len(files), len(files), "ingest mosaics")
             return IngestReport(outcomes, [])
         if scenes == []:
             return ingest_folder(source, ds, opts, progress)

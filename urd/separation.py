@@ -425,7 +425,8 @@ def _separate_into(paths: list[Path], angles_deg: list[float], out: Path, run, t
     staging folder inside ``out``, then moved into place."""
     loaded = [read_image(p, transfer) for p in paths]
     if len({im.shape for im in loaded}) > 1:
-        raise ValueError(f"expected images of one size, got {[im.shape[:2] for im in loaded]}")
+        sizes = ", ".join(f"{Path(p).name} {im.shape[1]}×{im.shape[0]}" for p, im in zip(paths, loaded))
+        raise ValueError(f"expected images of one size, got {sizes}")
     height, width = loaded[0].shape[:2]
     if min(height, width) < MIN_SIDE_PX:
         raise ValueError(f"expected images of at least {MIN_SIDE_PX}×{MIN_SIDE_PX} pixels, got {width}×{height}")

@@ -25,7 +25,7 @@ def calibrate_offset_cmd(
     stage: str = typer.Option(..., help="Serial port of the ELL14 stage, or 'sim'."),
     camera: str = typer.Option("gphoto2", help="Camera driver: gphoto2 or virtual."),
     step: float = typer.Option(10.0, callback=within(1.0, 45.0), help="Sweep step (deg) over 180 deg."),
-    target_angle: float = typer.Option(0.0, help="Polarization angle of the target's light (deg, image plane, CCW from x)."),
+    target_angle: float = typer.Option(0.0, callback=within(-360.0, 360.0), help="Polarization angle of the target's light (deg, image plane, CCW from x)."),
     address: str = typer.Option("0", help="ELL14 device address 0-F.", callback=check_address),
     sim_offset: float = typer.Option(0.0, help="[sim] true mounting offset of the simulated polarizer (deg)."),
     seed: int = typer.Option(0, help="[sim/virtual] random seed."),

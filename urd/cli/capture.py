@@ -9,7 +9,7 @@ from typing import Optional
 import typer
 
 from urd.cli.common import DATASET_HELP, bad, check_address, choice, given, parse_angles, parse_size, run_guarded, within
-from urd.core.dataset import default_root
+from urd.core.dataset import SCENE_NAME, default_root
 from urd.core.progress import TerminalProgress
 
 
@@ -34,7 +34,7 @@ def capture(
     angles: str = typer.Option("0,45,90", help="Polarizer angles in degrees, comma-separated (at least 3 distinct)."),
     scene: Optional[str] = typer.Option(None, help="Scene name; an existing incomplete scene is resumed. Default: resume the newest incomplete scene, else the next free scene_NN."),
     new_scene: bool = typer.Option(False, "--new-scene", help="Start a new scene even if an incomplete one exists."),
-    tolerance: float = typer.Option(0.5, callback=within(0.0), help="Largest accepted difference of read-back and commanded angle (deg)."),
+    tolerance: float = typer.Option(0.5, callback=within(0.01), help="Largest accepted difference of read-back and commanded angle (deg; at least 0.01, above the ELL14's encoder step of 0.0025)."),
     address: str = typer.Option("0", help="ELL14 device address 0-F.", callback=check_address),
     sim_offset: float = typer.Option(0.0, callback=within(-360.0, 360.0), help="[sim] polarizer mounting offset (deg)."),
     sim_jitter: float = typer.Option(0.0, callback=within(0.0), help="[sim] per-move angle error the encoder does not see, std (deg)."),
@@ -58,6 +58,11 @@ def capture(
     from acquire.plan import capture_scene
 
     choice(CameraKind, camera, "--camera")
+    if scene is not None and not SCENE_NAME.match(scene):
+        raise bad("--scene", f"expected a scene name like scene_01, got {scene!r}")
+    for option, path in (("--reflection", reflection), ("--transmission", transmission)):
+        if path is not None and not path.is_file():
+            raise bad(option, f"{path}: no such image file")
     angle_list = parse_angles(angles) if given(ctx, "angles") else None
     sim = sim_settings(sim_offset, sim_jitter, sim_faults, sim_size, sim_shake, reflection, transmission, seed)
     bar = TerminalProgress()

@@ -181,15 +181,15 @@ def parse_params(items: list[str], option: str = "--param") -> dict:
     return params
 
 
-def parse_size(text: str, option: str = "--size") -> tuple[int, int]:
+def parse_size(text: str, option: str = "--size", min_side: int = 32) -> tuple[int, int]:
     """'1536x1024' → (1536, 1024): the virtual camera's sensor, each side even (its Bayer
-    mosaic), 32 to 20000 px."""
+    mosaic), ``min_side`` to 20000 px."""
     try:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise bad(option, f"expected WIDTHxHEIGHT like 1536x1024, got {text!r}") from None
-    if not (32 <= w <= 20000 and 32 <= h <= 20000) or w % 2 or h % 2:
-        raise bad(option, f"expected each side an even number of px between 32 and 20000, got {text!r}")
+    if not (min_side <= w <= 20000 and min_side <= h <= 20000) or w % 2 or h % 2:
+        raise bad(option, f"expected each side an even number of px between {min_side} and 20000, got {text!r}")
     return w, h
 
 
@@ -224,6 +224,9 @@ def resolve_scene(scene: str, dataset: Optional[Path]):
     path = Path(scene)
     if (path / "scene.json").is_file():
         return Scene(path)
+    if (path / "dataset.json").is_file():
+        raise bad("SCENE", f"{scene} is a dataset; give one of its scenes ({', '.join(Dataset.open(path).scene_names()) or 'none yet'}) "
+                           f"with --dataset {scene}, or separate them all with --all --dataset {scene}")
     ds = Dataset.open(existing_dataset(dataset))
     if scene not in ds.scene_names():
         raise bad("SCENE", f"no scene {scene!r} in {ds.root.resolve()} (scenes: {', '.join(ds.scene_names()) or 'none'}); "
@@ -250,4 +253,4 @@ def show_previews(files: list) -> None:
         mask = cv2.imread(str(clipped), cv2.IMREAD_GRAYSCALE)
         share = 0.0 if mask is None else float((mask > 0).mean())
         typer.echo("clipped.png: no pixel is clipped in any shot (the mask is all black)" if share == 0 else
-                   f"clipped.png: {100 * share:.2f}% of the pixels are clipped in some shot (white): R and T there are guesses")
+                   f"clipped.png: {100 * share:.2g}% of the pixels are clipped in some shot (white): R and T there are guesses")

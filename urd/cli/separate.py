@@ -190,13 +190,14 @@ def separate_dataset(dataset: Optional[Path], method: str, weights: Optional[Pat
                      reference, maps: bool, jobs: int, network_device=None) -> None:
     """``urd separate --all``: every scene that needs it (`urd.batch.separate_all`), one line per
     scene; exit 1 when any failed. ``network_device``: the networks' torch device."""
-    from separate.methods import NETWORKS
+    from separate.methods import NETWORKS, get_method
     from urd.batch import separate_all
 
     root = existing_dataset(dataset)
     options = ({"weights": weights, "tile": tile, "precision": chosen.value, "device": network_device.type,
                 "colour_match": colour_match, **({"return_copies": return_copies, "incidence_deg": incidence} if method == "network" else {})}
                if method in NETWORKS else params)
+    run_guarded(get_method, method, **options)              # bad weights or parameters: one error, not one per scene
     outcomes = run_guarded(separate_all, root, method, options, force, reference, maps, jobs, progress=TerminalProgress())
     for outcome in outcomes:
         typer.echo(f"{outcome.scene}: {outcome.state}{': ' + outcome.detail if outcome.detail else ''}")

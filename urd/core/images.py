@@ -5,7 +5,8 @@ files are linear; 8-bit files are read with the chosen `Transfer`, by default ``
 (the sensor codes of machine-vision and polarization cameras); ``srgb`` linearizes 8-bit
 PNG/JPEG photos from ordinary cameras with the IEC 61966-2-1 curve. Integer codes are scaled so
 that 1.0 is the largest code of their type (255, 65535: 12-bit data stored in 16 bits reaches
-4095/65535); float files are taken as they are.
+4095/65535); float files are taken as they are, 1.0 the white level: a file with more than
+`FLOAT_ABOVE_WHITE` of its values above 1.0 is refused (every such pixel would read as clipped).
 """
 
 from __future__ import annotations
@@ -86,6 +87,8 @@ def to_display(image: np.ndarray, gain: float = 1.0) -> np.ndarray:
 def read_raw_codes(path: Path) -> np.ndarray:
     """The file's pixel codes as stored (H×W or H×W×3 in RGB order); RawFormatError if unreadable."""
     path = Path(path)
+    if path.is_dir():
+        raise DatasetError(f"{path} is a folder, not an image file")
     if not path.is_file():
         raise DatasetError(f"{path}: no such file")
     data, problem, bgr = None, "", True
@@ -105,11 +108,23 @@ def read_raw_codes(path: Path) -> np.ndarray:
     return data
 
 
+#: The share of a float file's values that may lie above 1.0 (the white level): clipped
+#: highlights, which urd marks; where more of the picture lies above it, the file has another scale.
+FLOAT_ABOVE_WHITE = 0.05
+
+
 def to_linear(data: np.ndarray, transfer: Transfer = Transfer.LINEAR) -> np.ndarray:
-    """Pixel codes → linear float32 by the module's rule (1.0 = the type's largest code; floats as they are)."""
+    """Pixel codes → linear float32 by the module's rule (1.0 = the type's largest code; floats as
+    they are, RawFormatError where more than `FLOAT_ABOVE_WHITE` of them exceed 1.0)."""
     if data.dtype in (np.uint8, np.uint16):
         return codes_to_linear(data, data.dtype, transfer)
     if data.dtype.kind == "f":
+        if not np.isfinite(data).all():
+            raise RawFormatError(f"{int((~np.isfinite(data)).sum())} NaN or infinite pixel values")
+        above = float(np.mean(data > 1.0))
+        if above > FLOAT_ABOVE_WHITE:
+            raise RawFormatError(f"float pixels are read with 1.0 as white, and {above:.1%} of these exceed it (up to "
+                                 f"{float(data.max()):g}): scale every shot by one factor so that white is 1.0")
         return data.astype(np.float32)
     raise RawFormatError(f"expected 8-bit, 16-bit or float pixels, got {data.dtype}")
 
@@ -126,7 +141,10 @@ def codes_to_linear(codes: np.ndarray, dtype: np.dtype, transfer: Transfer = Tra
 
 def read_image(path: Path, transfer: Transfer = Transfer.LINEAR) -> np.ndarray:
     """An image file as linear float32 H×W×3 (grey files repeated into three channels)."""
-    data = to_linear(read_raw_codes(path), transfer)
+    try:
+        data = to_linear(read_raw_codes(path), transfer)
+    except RawFormatError as exc:
+        raise RawFormatError(f"{path}: {exc}") from None
     if data.ndim == 2:
         data = np.repeat(data[..., None], 3, axis=2)
     return np.ascontiguousarray(data[..., :3])

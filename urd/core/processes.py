@@ -79,10 +79,12 @@ def process_pool(jobs: int) -> Iterator[concurrent.futures.ProcessPoolExecutor]:
         pool.shutdown(cancel_futures=True)
 
 
-def kept_note(names: list[str], what: str) -> str:
+def kept_note(names: list[str], what: str, forced: bool = False) -> str:
     """What an interrupted command with workers kept: the scenes it recorded (``what``:
-    separated, ingested) before it was stopped; the others are unchanged."""
+    separated, ingested) before it was stopped; the others are unchanged. ``forced``: the
+    command redoes every scene (--force, --redo), so running it again redoes the kept ones too."""
     if not names:
         return f"no scene {what} before it and none changed: run the same command again"
-    return (f"{plural(len(names), 'scene')} {what} before it ({', '.join(names)}) kept, the others unchanged: "
-            "run the same command again to do them")
+    again = ("run the same command again to do them (it does the kept ones again too; name the others "
+             "one by one to spare them)" if forced else "run the same command again to do them")
+    return f"{plural(len(names), 'scene')} {what} before it ({', '.join(names)}) kept, the others unchanged: {again}"

@@ -143,12 +143,18 @@ class SceneShots:
         self._save()
 
     def set_shot_calibration(self, record: dict, calibrated_deg: list[float] | None) -> None:
-        """Store per-shot angle errors; with ``calibrated_deg`` also each shot's calibrated angle."""
+        """Store per-shot angle errors; with ``calibrated_deg`` also each shot's calibrated angle,
+        and results separated at other angles are marked stale (kept, with the command that renews them)."""
         data = self._data()
         data["calibration"] = {"time": now_iso(), "applied": calibrated_deg is not None, **record}
         if calibrated_deg is not None:
             for shot, angle in zip(sorted(data["shots"], key=lambda s: s["index"]), calibrated_deg):
                 shot["angle_calibrated_deg"] = round(float(angle), 4)
+            angles = [shot["angle_calibrated_deg"] for shot in sorted(data["shots"], key=lambda s: s["index"])]
+            for method, entry in data.get("results", {}).items():
+                if "stale" not in entry and entry.get("angles_deg") != angles:
+                    entry["stale"] = (f"separated at other angles than the shots' calibrated ones ({now_iso()}); "
+                                      f"renew with: urd separate {self.name} --method {method} --force")
         data["provenance"].append(provenance("calibrate shots", {"apply": calibrated_deg is not None}))
         self._save()
 
