@@ -18,7 +18,7 @@ from conftest import ingested_dataset
 from urd.cli import app
 from urd.cli.common import run_guarded
 from urd.core.dataset import Dataset, Scene
-from urd.core.errors import CaptureInterrupted, DatasetError, ManifestError, RawFormatError
+from urd.core.errors import CaptureInterrupted, DatasetError, DeviceError, ManifestError, RawFormatError
 from urd.core.images import read_image
 from urd.core.processes import Terminated, kept_note
 from separate.methods import get_method
@@ -67,9 +67,13 @@ def test_a_refused_scene_record_leaves_no_scene_folder(tmp_path):
     assert ds.scene_names() == [] and not (tmp_path / "ds" / "scene_01").exists()
 
 
-def test_a_capture_that_fails_before_its_first_shot_leaves_no_dataset(tmp_path):
-    out = invoke("capture", tmp_path / "ds", *SIM, "--sim-faults", "vanish=0.15", "--seed", "2")
-    assert out.exit_code == 1 and "no shot was taken" in out.output
+def test_a_capture_that_fails_before_its_first_shot_leaves_no_dataset(tmp_path, monkeypatch):
+    def run_capture(*args, **kwargs):
+        raise DeviceError("ELL14 at address 0 did not answer within the time-out")       # e.g. while homing
+
+    monkeypatch.setattr(plan, "run_capture", run_capture)
+    out = invoke("capture", tmp_path / "ds", *SIM)
+    assert out.exit_code == 1 and "did not answer" in out.output and "no shot was taken" in out.output
     assert not (tmp_path / "ds").exists()
 
 
