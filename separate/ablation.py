@@ -17,7 +17,6 @@ from __future__ import annotations
 import concurrent.futures
 import dataclasses
 import json
-import multiprocessing
 import time
 from pathlib import Path
 from typing import Callable, Sequence
@@ -31,6 +30,7 @@ from separate.plots import plot_bars, plot_lines
 from separate.provenance import cpu_model, environment
 from separate.train import TrainConfig, export_weights, load_checkpoint, train
 from urd.core.errors import TrainingError
+from urd.core.processes import process_pool
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 PIPELINES = {"DR": "ablation-dr", "DR+NRD": "ablation-dr-nrd", "DR+NRD+LCG": "ablation-dr-nrd-lcg"}
@@ -94,17 +94,20 @@ def train_missing(runs: Sequence[AblationRun], jobs: int, progress: Callable[[in
     for run in todo:
         run.folder.parent.mkdir(parents=True, exist_ok=True)
     if todo:
-        context = multiprocessing.get_context("spawn")               # no forked torch thread pools
-        with concurrent.futures.ProcessPoolExecutor(jobs, mp_context=context) as pool:
-            futures = {pool.submit(_train_run, run): run for run in todo}
-            for done, future in enumerate(concurrent.futures.as_completed(futures), 1):
-                try:
-                    future.result()
-                except Exception as exc:                  # noqa: BLE001 - name the run, stop the others
-                    pool.shutdown(wait=False, cancel_futures=True)
-                    raise TrainingError(f"ablation run {futures[future].label} ({futures[future].folder}) failed: {exc}") from exc
-                if progress:
-                    progress(done, len(todo))
+        try:
+            with process_pool(jobs) as pool:             # spawned workers; an interrupt kills them at once
+                futures = {pool.submit(_train_run, run): run for run in todo}
+                for done, future in enumerate(concurrent.futures.as_completed(futures), 1):
+                    try:
+                        future.result()
+                    except Exception as exc:              # noqa: BLE001 - name the run, stop the others
+                        raise TrainingError(f"ablation run {futures[future].label} ({futures[future].folder}) failed: {exc}") from exc
+                    if progress:
+                        progress(done, len(todo))
+        except KeyboardInterrupt as exc:
+            exc.add_note(f"every ablation run resumes from its last checkpoint (in {todo[0].folder.parent}) when the "
+                         "same command runs again")
+            raise
     return todo
 
 

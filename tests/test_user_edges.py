@@ -258,3 +258,18 @@ def test_an_empty_folder_of_mosaic_frames_is_an_error_and_makes_no_dataset(tmp_p
 def test_an_interrupted_forced_run_says_that_running_it_again_redoes_the_kept_scenes():
     assert kept_note(["scene_01"], "separated").endswith("run the same command again to do them")
     assert "it does the kept ones again too" in kept_note(["scene_01"], "separated", forced=True)
+
+
+@pytest.mark.parametrize("args, message", [
+    (("--virtual",), "cannot write in"), (("--semireal",), "cannot write in"), (("--ablation",), "cannot write in"),
+])
+def test_bench_checks_its_output_folder_before_the_run(tmp_path, args, message):
+    (tmp_path / "afile").write_text("")
+    out = invoke("bench", *args, "--out", tmp_path / "afile")
+    assert out.exit_code == 2 and message in out.output and "--out" in out.output
+
+
+@pytest.mark.parametrize("args", [("--quick", "--methods", "schechner"), ("--quick", "--full"), ("--out", "x"),
+                                  ("--methods", ",,")])
+def test_bench_refuses_options_it_would_ignore(args):
+    assert invoke("bench", *args).exit_code == 2

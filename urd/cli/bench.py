@@ -4,6 +4,7 @@ the ablation, the semi-real and the virtual-camera sets)."""
 from __future__ import annotations
 
 import sys
+import tempfile
 from pathlib import Path
 from typing import Optional
 
@@ -46,14 +47,28 @@ def bench(
     """
     if large and not full:
         raise usage("--24mp goes with --full")
+    if quick and full:
+        raise usage("--quick or --full, not both")
+    mode = quick or full or ablation or semireal or virtual
+    unused = [f"--{name.replace('_', '-')}" for name in ("out",) if not mode and given(ctx, name)]
+    unused += [f"--{name.replace('_', '-')}" for name in ("images",) if not (quick or full) and given(ctx, name)]
+    unused += [f"--{name.replace('_', '-')}" for name in ("methods", "count", "size", "direct_weights")
+               if (quick or full) and not ablation and given(ctx, name)]
+    if unused:
+        raise usage(f"{', '.join(unused)}: not used by this run (see each option's help for the modes it goes with)")
     if given(ctx, "methods"):
         from separate.methods import METHODS
 
+        if not [m for m in methods.split(",") if m]:
+            raise bad("--methods", f"expected at least one method, got {methods!r}")
         known = sorted(METHODS) + ["direct"]
         unknown = [m for m in methods.split(",") if m and "=" not in m and m not in known]
         if unknown:
             raise bad("--methods", f"unknown {', '.join(map(repr, unknown))}; expected some of {', '.join(known)}, "
                                    "or LABEL=PATH for the network with other weights")
+    if (semireal or virtual) and given(ctx, "methods") and any(m == "direct" or ("=" in m and virtual) for m in methods.split(",")):
+        raise bad("--methods", "--virtual takes the methods by name, --semireal those and LABEL=PATH; 'direct' is for "
+                               "the plain benchmark")
     if semireal:
         if virtual or quick or full or ablation or given(ctx, "count") or given(ctx, "size"):
             raise usage("--semireal goes alone (with --methods, --weights and --out): it has its own scenes")
@@ -73,7 +88,7 @@ def bench(
         from separate.bench_run import DEFAULT_OUT
 
         seed_list = parse_seeds(seeds)
-        folder = (out or DEFAULT_OUT) / ("ablation" + (f"-{steps}" if steps else ""))
+        folder = writable((out or DEFAULT_OUT) / ("ablation" + (f"-{steps}" if steps else "")))
         bar = TerminalProgress()
         runs = runs or Path("runs/ablation" + (f"-{steps}" if steps else ""))
         result = run_guarded(run_ablation, folder, runs, seed_list, jobs, count, size,
@@ -87,6 +102,7 @@ def bench(
     if quick or full:
         from separate.bench_run import DEFAULT_OUT, run_evaluation
 
+        writable((out or DEFAULT_OUT) / ("quick" if quick else "full"))
         result = run_guarded(run_evaluation, out or DEFAULT_OUT, quick, images, progress=TerminalProgress(),
                              large=large, command=" ".join(["urd"] + sys.argv[1:]))
         typer.echo(f"tables, CSV and plots in {Path(result['folder']).resolve()}")
@@ -108,11 +124,10 @@ def bench_semireal(methods: Optional[str], weights: Optional[Path], out: Optiona
     from urd.core.files import write_bytes_atomic
 
     chosen = tuple(methods.split(",")) if methods else DEFAULT_METHODS
+    folder = writable((out or DEFAULT_OUT) / "semireal")
     bar = TerminalProgress()
     tables, records = run_guarded(run_semireal, chosen, weights, progress=bar)
     bar.close()
-    folder = (out or DEFAULT_OUT) / "semireal"
-    folder.mkdir(parents=True, exist_ok=True)
     write_bytes_atomic(folder / "tables.md", tables.encode(), overwrite=True)
     write_bytes_atomic(folder / "scenes.json", json.dumps(records, indent=1).encode(), overwrite=True)
     typer.echo(tables)
@@ -126,11 +141,22 @@ def bench_virtual(methods: Optional[str], out: Optional[Path]) -> None:
     from urd.virtual_bench import DEFAULT_METHODS, run_virtual_bench
 
     chosen = tuple(methods.split(",")) if methods else DEFAULT_METHODS
+    folder = writable((out or DEFAULT_OUT) / "virtual")
     bar = TerminalProgress()
     tables = run_guarded(run_virtual_bench, chosen, progress=bar)
     bar.close()
-    folder = (out or DEFAULT_OUT) / "virtual"
-    folder.mkdir(parents=True, exist_ok=True)
     write_bytes_atomic(folder / "tables.md", tables.encode(), overwrite=True)
     typer.echo(tables)
     typer.echo(f"wrote {(folder / 'tables.md').resolve()}")
+
+
+def writable(folder: Path) -> Path:
+    """``folder``, made where missing, once a file can be written in it: checked before a run of
+    minutes to hours, not after it; a usage error naming --out otherwise."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        raise bad("--out", f"cannot write in {folder} ({exc.strerror or exc}); choose another folder") from None
+    return folder
