@@ -19,7 +19,7 @@ from urd.cli import app
 from urd.cli.common import run_guarded
 from urd.core.dataset import Dataset, Scene
 from urd.core.errors import CaptureInterrupted, DatasetError, DeviceError, ManifestError, RawFormatError
-from urd.core.images import read_image
+from urd.core.images import read_image, u16_to_linear
 from urd.core.processes import Terminated, kept_note
 from separate.methods import get_method
 from urd.separation import separate_images
@@ -273,3 +273,15 @@ def test_bench_checks_its_output_folder_before_the_run(tmp_path, args, message):
                                   ("--methods", ",,")])
 def test_bench_refuses_options_it_would_ignore(args):
     assert invoke("bench", *args).exit_code == 2
+
+
+def test_the_truth_figures_describe_the_stored_files(dataset):
+    assert invoke("separate", "scene_01", "--dataset", dataset, "--method", "schechner", "--force").exit_code == 0
+    scene = Dataset.open(dataset).scene("scene_01")
+    result = scene.result("schechner")
+    t_hat = u16_to_linear(tifffile.imread(result.files["T.tiff"]), result.full_scale)
+    t_true = tifffile.imread(scene.truth_dir() / "T_obs.tiff")
+    h, w = t_true.shape[:2]
+    inside = (slice(h // 20, h - h // 20), slice(w // 20, w - w // 20))
+    stored = 10 * np.log10(1 / np.mean((t_hat[inside] - t_true[inside]) ** 2, dtype=np.float64))
+    assert scene.load()["results"]["schechner"]["truth_metrics"]["T"]["psnr_db"] == pytest.approx(stored, abs=0.01)

@@ -82,7 +82,8 @@ def _read_mapped(path: Path, shape: tuple[int, ...], scene: Scene) -> np.ndarray
 def truth_metrics(scene: Scene, r_hat: np.ndarray, t_hat: np.ndarray, images: np.ndarray, angles_deg: list[float],
                   rows: int = 256) -> dict | None:
     """PSNR/SSIM of R̂, T̂ and of no separation (S0 of the shots ``images`` at ``angles_deg``, the
-    same for every method) against the scene's ground truth, if any.
+    same for every method) against the scene's ground truth, if any: R̂ and T̂ as their files hold
+    them, within [0, `FULL_SCALE`] (a baseline's negative light is stored as 0).
 
     Figures are computed 5% inside the border (aligned shots are padded there), with peak 1;
     PSNR over ``rows`` rows at a time (no full-size temporaries), SSIM on the central
@@ -100,7 +101,8 @@ def truth_metrics(scene: Scene, r_hat: np.ndarray, t_hat: np.ndarray, images: np
     def s0(region: tuple[slice, slice]) -> np.ndarray:
         return np.tensordot(weights.astype(np.float32), images[(slice(None), *region)], axes=1).astype(np.float32)
 
-    pairs = {"R": lambda region: (r_hat[region], r_true[region]), "T": lambda region: (t_hat[region], t_true[region]),
+    pairs = {"R": lambda region: (np.clip(r_hat[region], 0.0, FULL_SCALE), r_true[region]),
+             "T": lambda region: (np.clip(t_hat[region], 0.0, FULL_SCALE), t_true[region]),
              "T_no_separation": lambda region: (s0(region), t_true[region])}
     squared = dict.fromkeys(pairs, 0.0)
     for y in range(top, bottom, rows):
