@@ -21,6 +21,7 @@ import os
 import time
 import tomllib
 from pathlib import Path
+from typing import Any, Callable
 
 import cv2
 import numpy as np
@@ -28,7 +29,7 @@ import torch
 import torch.distributed as dist
 
 from separate import metrics
-from separate.model import LOSSES, with_fresnel_base
+from separate.model import BASES, LOSSES, UPSAMPLING, VARIANTS, with_fresnel_base
 from separate.networks import build_model
 from separate.precision import Precision, resolve
 from separate.synthesis import READ_VAR_LOG10, SHOT_GAIN_LOG10, AngleMode, SynthesisConfig, Synthesizer, default_pool
@@ -109,27 +110,127 @@ class TrainConfig:
 
     @classmethod
     def from_toml(cls, path: Path) -> "TrainConfig":
-        """Read a config file; unknown keys are an error naming the key."""
-        data = tomllib.loads(Path(path).read_text())
+        """Read a config file, every setting checked for type and range (`LIMITS`); ValueError
+        naming the file and the setting otherwise."""
+        try:
+            data = tomllib.loads(Path(path).read_text())
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+            raise ValueError(f"{path}: not a valid TOML file: {exc}") from None
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(data) - names)
         if unknown:
             raise ValueError(f"{path}: unknown config keys {unknown}; expected some of {sorted(names)}")
-        modes = [m.value for m in AngleMode]
-        if data.get("angles", "classic") not in modes:
-            raise ValueError(f"{path}: expected angles in {modes}, got {data['angles']!r}")
-        if data.get("loss", "l2") not in LOSSES or (data.get("loss", "l2") != "l2" and data.get("variant") == "ceilnet"):
-            raise ValueError(f"{path}: expected loss in {LOSSES} ('l2' for ceilnet), got {data['loss']!r}")
-        if data.get("trainable", "all") not in TRAINABLE or (data.get("trainable", "all") != "all" and data.get("base") != "fresnel"):
-            raise ValueError(f"{path}: expected trainable in {TRAINABLE} ('gate' and 'backbone' with base 'fresnel'), "
-                             f"got {data.get('trainable')!r}")
-        return cls(**data)
+        for field in dataclasses.fields(cls):
+            if field.name in data:
+                data[field.name] = _checked(path, field.name, field.type, data[field.name])
+        cfg = cls(**data)
+        if cfg.lr_min > cfg.lr:
+            raise ValueError(f"{path}: expected lr_min at most lr ({cfg.lr:g}), got {cfg.lr_min:g}")
+        if cfg.batch % cfg.micro_batch:
+            raise ValueError(f"{path}: expected batch a multiple of micro_batch ({cfg.micro_batch}), got {cfg.batch}")
+        if cfg.loss != "l2" and cfg.variant == "ceilnet":
+            raise ValueError(f"{path}: expected loss in {list(LOSSES)} ('l2' for ceilnet), got {cfg.loss!r}")
+        if cfg.trainable != "all" and cfg.base != "fresnel":
+            raise ValueError(f"{path}: expected trainable in {list(TRAINABLE)} ('gate' and 'backbone' with base 'fresnel'), "
+                             f"got {cfg.trainable!r}")
+        if cfg.base == "fresnel" and cfg.variant != "canonical":
+            raise ValueError(f"{path}: expected base 'canonical' for variant {cfg.variant!r}, got {cfg.base!r}")
+        try:
+            SynthesisConfig.ablation(cfg.pipeline)
+        except ValueError as exc:
+            raise ValueError(f"{path}: pipeline: {exc}") from None
+        try:
+            synthesis_config(cfg)
+        except ValueError as exc:
+            raise ValueError(f"{path}: {exc}") from None
+        return cfg
 
     def to_toml(self) -> str:
         lines = []
         for key, value in dataclasses.asdict(self).items():
             lines.append(f"{key} = {json.dumps(value)}")
         return "\n".join(lines) + "\n"
+
+
+#: A limit on a setting's value: a test and its words in an error.
+Limit = tuple[Callable[[Any], bool], str]
+COUNT: Limit = (lambda v: v >= 1, "at least 1")
+NONNEGATIVE: Limit = (lambda v: v >= 0, "at least 0")
+PROBABILITY: Limit = (lambda v: 0 <= v <= 1, "between 0 and 1")
+
+
+def _one_of(choices: tuple[str, ...]) -> Limit:
+    return (lambda v: v in choices, f"in {list(choices)}")
+
+
+#: What each setting's value must be besides its type (the `TrainConfig` field's), checked on
+#: loading a config file. Sizes in px, times in minutes, probabilities in [0, 1].
+LIMITS: dict[str, Limit] = {
+    "variant": _one_of(VARIANTS + ("ceilnet",)),
+    "width": COUNT,
+    "blocks": COUNT,
+    "patch": (lambda v: v > 0 and v % 8 == 0, "a positive multiple of 8 (the network's 3 down-samplings)"),
+    "batch": COUNT,
+    "micro_batch": COUNT,
+    "lr": (lambda v: v > 0, "above 0"),
+    "lr_min": NONNEGATIVE,
+    "steps": COUNT,
+    "max_minutes": NONNEGATIVE,
+    "seed": NONNEGATIVE,
+    "val_samples": COUNT,
+    "val_every": COUNT,
+    "ckpt_every": COUNT,
+    "precision": _one_of(tuple(p.value for p in Precision)),
+    "threads": NONNEGATIVE,
+    "angles": _one_of(tuple(m.value for m in AngleMode)),
+    "upsample": _one_of(UPSAMPLING),
+    "base": _one_of(BASES),
+    "phi_field_prob": PROBABILITY,
+    "no_glass_prob": PROBABILITY,
+    "trainable": _one_of(TRAINABLE),
+    "shot_gain_log10": (lambda v: v[0] <= v[1], "a range [lo, hi] with lo <= hi"),
+    "read_var_log10": (lambda v: v[0] <= v[1], "a range [lo, hi] with lo <= hi"),
+    "incidence_error_deg": (lambda v: min(v) >= 0, "two numbers at least 0"),
+    "incidence_failure": (lambda v: all(0 <= p <= 1 for p in v), "two probabilities between 0 and 1"),
+    "workers": NONNEGATIVE,
+    "schedule_minutes": NONNEGATIVE,
+    "loss": _one_of(LOSSES),
+    "t_polarized_prob": PROBABILITY,
+    "real_prob": PROBABILITY,
+    "mono_prob": PROBABILITY,
+    "mosaic_prob": PROBABILITY,
+    "defocus_prob": PROBABILITY,
+    "strength": (lambda v: v == (0.0, 0.0) or 0 < v[0] <= v[1], "[0, 0] (as drawn) or [lo, hi] with 0 < lo <= hi"),
+}
+
+
+#: The words for each `TrainConfig` field type in an error.
+TYPE_WORDS = {"int": "a whole number", "float": "a number", "str": "a string", "bool": "true or false",
+              "tuple[float, float]": "a pair of numbers [a, b]"}
+
+
+def _finite_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _checked(path: Path, key: str, kind: str, value: Any) -> Any:
+    """A config file's ``value`` of setting ``key``, whose `TrainConfig` field type is ``kind``
+    (a `TYPE_WORDS` key), floats as float and pairs as tuples; ValueError naming ``path`` and
+    ``key`` when it has another type or is out of its `LIMITS`."""
+    if kind == "tuple[float, float]":
+        typed = isinstance(value, list) and len(value) == 2 and all(map(_finite_number, value))
+    elif kind == "float":
+        typed = _finite_number(value)
+    elif kind == "int":
+        typed = isinstance(value, int) and not isinstance(value, bool)
+    else:
+        typed = isinstance(value, {"str": str, "bool": bool}[kind])
+    if not typed:
+        raise ValueError(f"{path}: expected {key} {TYPE_WORDS[kind]}, got {value!r}")
+    read = tuple(map(float, value)) if kind == "tuple[float, float]" else float(value) if kind == "float" else value
+    if key in LIMITS and not LIMITS[key][0](read):
+        raise ValueError(f"{path}: expected {key} {LIMITS[key][1]}, got {value!r}")
+    return read
 
 
 def to_tensors(batch: dict[str, np.ndarray], device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -286,12 +387,14 @@ def check_resumable(stored: dict, cfg: TrainConfig, source: Path) -> None:
 
 
 def train(cfg: TrainConfig, run_dir: Path, init: Path | None = None, progress=None) -> dict:
-    """Train (or resume) a run in ``run_dir``; returns the final log record.
+    """Train (or resume) a run in ``run_dir``; returns the final log record (at least its ``step``).
 
     ``init`` optionally starts from a weights or checkpoint file (fine-tuning); a run folder
     with ``last.pt`` always resumes from it instead, provided its config differs from ``cfg``
-    only in `RESUMABLE_CHANGES` (else TrainingError). One process (DDP: rank 0) holds the
-    folder's lock while training (`run_lock`).
+    only in `RESUMABLE_CHANGES` (else TrainingError). One process (DDP: rank 0) holds the folder's
+    lock while training (`run_lock`). On Ctrl-C or SIGTERM rank 0 saves ``last.pt`` at the
+    step reached and notes it on the exception; a non-finite loss or gradient stops the run
+    with TrainingError, ``last.pt`` left at its last (finite) checkpoint.
     """
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -352,7 +455,8 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
     micro = max(1, min(cfg.micro_batch, per_rank))
     val = validation_set(cfg) if rank == 0 else None
     use_bf16 = resolve(cfg.precision, device) is Precision.BF16
-    record: dict = {}
+    record: dict = {"step": step}
+    saved = step if resumed else None                  # the step last.pt holds
     log = open(run_dir / "log.jsonl", "a") if rank == 0 else None
     if rank == 0 and init is not None and not resumed:          # the starting weights compete for best.pt
         record = {"step": 0, "lr": lr_at(cfg, 0), "wall_s": 0.0, "patches_seen": 0, **evaluate(model, val, device)}
@@ -362,48 +466,61 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
         log.flush()
         if progress is not None:
             progress(record)
-    with synthesis_batches(cfg, cfg.seed * 1000 + rank + 7919 * step, micro) as batches:
-        wall = elapsed_before                               # training time (s), the same on every rank
-        while step < cfg.steps:
-            for group in optim.param_groups:
-                group["lr"] = lr_at(cfg, step, wall)
-            optim.zero_grad(set_to_none=True)
-            loss_sum = 0.0
-            for _ in range(0, per_rank, micro):
-                batch = next(batches)
-                obs, r, t = to_tensors(batch, device)
-                with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16):
-                    outputs = ddp(obs, **network_inputs(batch, device))
-                loss = model.loss(outputs, r, t, cfg.loss) * micro / per_rank
-                loss.backward()
-                loss_sum += loss.item()
-            torch.nn.utils.clip_grad_norm_([p for p in model.parameters() if p.requires_grad], 1.0)
-            optim.step()
-            step += 1
-            session = time.time() - started
-            wall = elapsed_before + session
-            out_of_time = cfg.max_minutes > 0 and session > cfg.max_minutes * 60
-            if distributed:                                 # every rank stops, and schedules its learning rate, alike
-                shared = torch.tensor([float(out_of_time), wall], dtype=torch.float64, device=device)
-                dist.all_reduce(shared, op=dist.ReduceOp.MAX)
-                out_of_time, wall = bool(shared[0].item()), shared[1].item()
-            if rank == 0:
-                record = {"step": step, "loss": loss_sum, "lr": lr_at(cfg, step, wall), "wall_s": round(wall, 1),
-                          "patches_seen": step * cfg.batch}
-                if step % cfg.val_every == 0 or step == cfg.steps or out_of_time:
-                    record.update(evaluate(model, val, device))
-                    if record["psnr_t"] > best:
-                        best = record["psnr_t"]
-                        save_checkpoint(run_dir / "best.pt", model, None, step, cfg, {"best_psnr_t": best, "val": record, "wall_s": wall, "init": origin})
-                if step % cfg.ckpt_every == 0 or step == cfg.steps or out_of_time or "psnr_t" in record:
-                    save_checkpoint(last, model, optim, step, cfg, {"best_psnr_t": best, "wall_s": wall, "init": origin})
-                if step % 10 == 0 or "psnr_t" in record:
-                    log.write(json.dumps(record) + "\n")
-                    log.flush()
-                if progress is not None:
-                    progress(record)
-            if out_of_time:
-                break
+    wall = elapsed_before                                   # training time (s), the same on every rank
+    try:
+        with synthesis_batches(cfg, cfg.seed * 1000 + rank + 7919 * step, micro) as batches:
+            while step < cfg.steps:
+                for group in optim.param_groups:
+                    group["lr"] = lr_at(cfg, step, wall)
+                optim.zero_grad(set_to_none=True)
+                loss_sum = 0.0
+                for _ in range(0, per_rank, micro):
+                    batch = next(batches)
+                    obs, r, t = to_tensors(batch, device)
+                    with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16):
+                        outputs = ddp(obs, **network_inputs(batch, device))
+                    loss = model.loss(outputs, r, t, cfg.loss) * micro / per_rank
+                    loss.backward()
+                    loss_sum += loss.item()
+                norm = torch.nn.utils.clip_grad_norm_([p for p in model.parameters() if p.requires_grad], 1.0)
+                if not (math.isfinite(loss_sum) and math.isfinite(norm.item())):
+                    kept = f"{last} keeps step {saved}" if saved is not None else "no checkpoint was written"
+                    raise TrainingError(f"training diverged: the loss or its gradient is not finite at step {step + 1} "
+                                        f"({kept}); lower lr (now {cfg.lr:g}) and train in a new run folder")
+                optim.step()
+                step += 1
+                session = time.time() - started
+                wall = elapsed_before + session
+                out_of_time = cfg.max_minutes > 0 and session > cfg.max_minutes * 60
+                if distributed:                                 # every rank stops, and schedules its learning rate, alike
+                    shared = torch.tensor([float(out_of_time), wall], dtype=torch.float64, device=device)
+                    dist.all_reduce(shared, op=dist.ReduceOp.MAX)
+                    out_of_time, wall = bool(shared[0].item()), shared[1].item()
+                if rank == 0:
+                    record = {"step": step, "loss": loss_sum, "lr": lr_at(cfg, step, wall), "wall_s": round(wall, 1),
+                              "patches_seen": step * cfg.batch}
+                    if step % cfg.val_every == 0 or step == cfg.steps or out_of_time:
+                        record.update(evaluate(model, val, device))
+                        if record["psnr_t"] > best:
+                            best = record["psnr_t"]
+                            save_checkpoint(run_dir / "best.pt", model, None, step, cfg, {"best_psnr_t": best, "val": record, "wall_s": wall, "init": origin})
+                    if step % cfg.ckpt_every == 0 or step == cfg.steps or out_of_time or "psnr_t" in record:
+                        save_checkpoint(last, model, optim, step, cfg, {"best_psnr_t": best, "wall_s": wall, "init": origin})
+                        saved = step
+                    if step % 10 == 0 or "psnr_t" in record:
+                        log.write(json.dumps(record) + "\n")
+                        log.flush()
+                    if progress is not None:
+                        progress(record)
+                if out_of_time:
+                    break
+    except KeyboardInterrupt as exc:                 # Ctrl-C, or SIGTERM (urd.core.processes.Terminated)
+        if rank == 0 and step > (saved or 0):
+            save_checkpoint(last, model, optim, step, cfg, {"best_psnr_t": best, "wall_s": wall, "init": origin})
+            saved = step
+        if rank == 0 and saved is not None:
+            exc.add_note(f"{last} keeps step {saved}")
+        raise
     if distributed:
         dist.barrier()                                  # no rank leaves while another still talks to it
         dist.destroy_process_group()

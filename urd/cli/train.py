@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import shlex
 from pathlib import Path
 from typing import Optional
 
@@ -24,7 +25,7 @@ def train(
     \b
     Example:
       urd train configs/cpu.toml runs/cpu
-      urd train configs/paper.toml runs/paper --init separate/weights/urd-canonical.pt
+      urd train configs/paper.toml runs/paper --init separate/weights/urd-canonical-transposed.pt
     """
     from separate.precision import describe, resolve
     from separate.train import TrainConfig, train as train_run
@@ -46,17 +47,40 @@ def train(
             typer.echo(f"step {record['step']}: {loss}, val PSNR T {record['psnr_t']:.2f} dB, R {record['psnr_r']:.2f} dB "
                        f"({record['wall_s'] / 60:.1f} min of training)")
 
-    last = Path(run_dir) / "last.pt"
-    if last.is_file() and os.environ.get("RANK", "0") == "0":
-        from separate.train import load_checkpoint
+    again = shlex.join(["urd", "train", str(config), str(run_dir)] + (["--seed", str(seed)] if seed is not None else []))
+    if (Path(run_dir) / "last.pt").is_file():
+        state = run_guarded(resume_point, Path(run_dir))
+        if state["step"] >= cfg.steps:
+            if os.environ.get("RANK", "0") == "0":
+                typer.echo(f"run {run_dir} is already complete at step {state['step']} (steps = {cfg.steps} in {config}); "
+                           f"for more steps, raise steps in {config} and run '{again}' again")
+            return
+        if os.environ.get("RANK", "0") == "0":
+            typer.echo(f"resuming {run_dir} from step {state['step']} of {cfg.steps} ({Path(run_dir) / 'last.pt'}; "
+                       f"{state.get('wall_s', 0.0) / 60:.1f} min trained so far)")
 
-        state = run_guarded(load_checkpoint, last)
-        typer.echo(f"resuming {run_dir} from step {state['step']} of {cfg.steps} ({last}; "
-                   f"{state.get('wall_s', 0.0) / 60:.1f} min trained so far)")
-    record = run_guarded(train_run, cfg, run_dir, init, progress=show)
+    def run() -> dict:
+        try:
+            return train_run(cfg, run_dir, init, progress=show)
+        except KeyboardInterrupt as exc:
+            exc.add_note(f"resume with: {again}")
+            raise
+
+    record = run_guarded(run)
     bar.close()
     if os.environ.get("RANK", "0") == "0":                   # under torchrun, rank 0 reports
-        typer.echo(f"stopped at step {record.get('step')}; checkpoints in {Path(run_dir).resolve()}")
+        typer.echo(f"stopped at step {record['step']}; checkpoints in {Path(run_dir).resolve()}")
+
+
+def resume_point(run_dir: Path) -> dict:
+    """The checkpoint ``run_dir/last.pt`` a run resumes from, read by rank 0 under the run's lock
+    (`separate.train.run_lock`: TrainingError while another process trains it)."""
+    from separate.train import load_checkpoint, run_lock
+
+    if os.environ.get("RANK", "0") != "0":
+        return load_checkpoint(run_dir / "last.pt")
+    with run_lock(run_dir):
+        return load_checkpoint(run_dir / "last.pt")
 
 
 def projected_steps(steps: int, cap_s: float, first: dict, record: dict) -> int:

@@ -1,0 +1,137 @@
+"""`urd train`'s config checks and its stops: bad settings refused on load naming the file and the
+key, Ctrl-C keeping the step reached, a diverging loss stopped, finished and locked runs."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+import torch
+from typer.testing import CliRunner
+
+import urd.cli.train
+from separate.model import SeparationNet
+from separate.train import TrainConfig, load_checkpoint, run_lock
+from urd.cli import app
+
+
+TINY = ('width = 4\npatch = 32\nbatch = 2\nmicro_batch = 2\nsteps = 2\nval_samples = 2\nval_every = 100\n'
+        'ckpt_every = 100\nprecision = "fp32"\nthreads = 1\n')
+
+
+def invoke(*args):
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+def tiny_config(folder: Path, **changes: str) -> Path:
+    """A tiny config file in ``folder``, its settings replaced or added by ``changes`` (TOML values)."""
+    lines = dict(line.split(" = ", 1) for line in TINY.splitlines())
+    config = folder / "tiny.toml"
+    config.write_text("".join(f"{key} = {value}\n" for key, value in {**lines, **changes}.items()))
+    return config
+
+
+@pytest.mark.parametrize("key, value, expected", [
+    ("precision", '"fp16"', "expected precision in"),
+    ("val_every", "0", "expected val_every at least 1"),
+    ("ckpt_every", "0", "expected ckpt_every at least 1"),
+    ("patch", "0", "expected patch a positive multiple of 8"),
+    ("patch", "33", "expected patch a positive multiple of 8"),
+    ("patch", "[64]", "expected patch a whole number"),
+    ("width", "0", "expected width at least 1"),
+    ("val_samples", "0", "expected val_samples at least 1"),
+    ("threads", "-2", "expected threads at least 0"),
+    ("lr", '"abc"', "expected lr a number"),
+    ("lr", "-1e-3", "expected lr above 0"),
+    ("lr_min", "1.0", "expected lr_min at most lr"),
+    ("batch", "0", "expected batch at least 1"),
+    ("batch", "3", "expected batch a multiple of micro_batch"),
+    ("steps", "0", "expected steps at least 1"),
+    ("steps", "-5", "expected steps at least 1"),
+    ("steps", "1.5", "expected steps a whole number"),
+    ("no_glass_prob", "1.5", "expected no_glass_prob between 0 and 1"),
+    ("strength", "[2.0, 0.5]", "expected strength"),
+    ("pipeline", '"DR+FOO"', "pipeline: expected one of"),
+])
+def test_a_bad_setting_is_one_error_line_naming_the_file_and_key_and_makes_no_run_folder(tmp_path, key, value, expected):
+    config = tiny_config(tmp_path, **{key: value})
+    out = invoke("train", config, tmp_path / "run")
+    assert out.exit_code == 1, out.output
+    assert f"Error: {config}: {expected}" in out.output
+    assert "Traceback" not in out.output and len(out.output.strip().splitlines()) == 1
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_toml_syntax_error_names_the_file(tmp_path):
+    config = tmp_path / "broken.toml"
+    config.write_text(TINY + "seed = = 3\n")
+    out = invoke("train", config, tmp_path / "run")
+    assert out.exit_code == 1 and f"Error: {config}: not a valid TOML file" in out.output
+    assert not (tmp_path / "run").exists()
+
+
+def test_the_shipped_configs_pass_the_checks_and_floats_read_as_floats(tmp_path):
+    for config in sorted(Path("configs").glob("*.toml")):
+        TrainConfig.from_toml(config)
+    cfg = TrainConfig.from_toml(tiny_config(tmp_path, lr="1", strength="[1, 2]"))
+    assert cfg.lr == 1.0 and isinstance(cfg.lr, float) and cfg.strength == (1.0, 2.0)
+
+
+def test_ctrl_c_keeps_the_step_reached_and_says_how_to_resume(tmp_path, monkeypatch):
+    class Interrupting(urd.cli.train.TerminalProgress):
+        def __call__(self, step, total, label):
+            if step == 3:
+                raise KeyboardInterrupt
+
+    monkeypatch.setattr(urd.cli.train, "TerminalProgress", Interrupting)
+    config, run = tiny_config(tmp_path, steps="10"), tmp_path / "run"
+    out = invoke("train", config, run)
+    assert out.exit_code == 130, out.output
+    assert f"{run / 'last.pt'} keeps step 3" in out.output and f"resume with: urd train {config} {run}" in out.output
+    assert load_checkpoint(run / "last.pt")["step"] == 3
+    assert not list(run.glob("*.tmp*"))
+
+
+def test_a_diverging_loss_stops_at_its_step_and_keeps_the_last_finite_checkpoint(tmp_path, monkeypatch):
+    calls = []
+    loss = SeparationNet.loss
+
+    def diverging(outputs, r, t, kind="l2"):
+        calls.append(kind)
+        return loss(outputs, r, t, kind) * (math.nan if len(calls) >= 4 else 1.0)
+
+    monkeypatch.setattr(SeparationNet, "loss", staticmethod(diverging))
+    run = tmp_path / "run"
+    out = invoke("train", tiny_config(tmp_path, steps="10", ckpt_every="2"), run)
+    assert out.exit_code == 1, out.output
+    assert "not finite at step 4" in out.output and "keeps step 2" in out.output and "lower lr" in out.output
+    state = load_checkpoint(run / "last.pt")
+    assert state["step"] == 2 and all(torch.isfinite(v).all() for v in state["model"].values())
+
+
+def test_a_finished_run_says_it_is_complete_and_how_to_train_further(tmp_path):
+    config, run = tiny_config(tmp_path), tmp_path / "run"
+    assert invoke("train", config, run).exit_code == 0
+    again = invoke("train", config, run)
+    assert again.exit_code == 0, again.output
+    assert f"run {run} is already complete at step 2" in again.output and "raise steps" in again.output
+    assert "None" not in again.output and "resuming" not in again.output
+
+
+def test_a_locked_run_is_refused_before_it_says_it_resumes(tmp_path):
+    config, run = tiny_config(tmp_path, steps="1"), tmp_path / "run"
+    assert invoke("train", config, run).exit_code == 0
+    config.write_text(config.read_text().replace("steps = 1", "steps = 3"))
+    with run_lock(run):
+        out = invoke("train", config, run)
+    assert out.exit_code == 1 and "being trained by another process" in out.output
+    assert "resuming" not in out.output
+
+
+def test_the_help_example_names_the_weights_of_the_paper_config():
+    out = invoke("train", "--help")
+    paper = TrainConfig.from_toml(Path("configs/paper.toml"))
+    weights = Path("separate/weights/urd-canonical-transposed.pt")
+    assert f"--init {weights}" in out.output
+    assert load_checkpoint(weights)["model_config"].get("upsample", "transposed") == paper.upsample
