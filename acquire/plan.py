@@ -23,9 +23,9 @@ from typing import Callable, Iterator
 from acquire.camera import Camera
 from acquire.ell14 import Ell14
 from urd.core.dataset import DATASET_MANIFEST, SCENE_NAME, Dataset, Scene
-from urd.core.errors import CaptureInterrupted, DatasetError, DeviceError, ManifestError, UrdError
+from urd.core.errors import DatasetError, DeviceError, ManifestError, UrdError
 from urd.core.files import atomic_path, sha256_file
-from urd.core.processes import Terminated
+from urd.core.processes import capture_stopped
 from urd.core.progress import Progress
 
 
@@ -292,8 +292,7 @@ def capture_scene(root: Path, stage: str, camera: str, angles_deg: list[float] |
                     if not scene.truth_dir().exists():
                         rig.camera.write_truth(scene.truth_dir())
                 except KeyboardInterrupt as exc:
-                    stopped = "stopped by SIGTERM" if isinstance(exc, Terminated) else "interrupted"
-                    raise CaptureInterrupted(f"capture {stopped}; {_stopped(scene, ds.root)}", isinstance(exc, Terminated)) from None
+                    raise capture_stopped(exc, "capture", _stopped(scene, ds.root)) from None
                 except (UrdError, OSError) as exc:
                     raise UrdError(f"{exc}\ncapture of {scene.name} stopped; {_stopped(scene, ds.root)}") from exc
         except BaseException:

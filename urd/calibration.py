@@ -19,8 +19,8 @@ from acquire.rig import open_rig, stage_identity
 from calib.polarizer import fit_offset
 from calib.store import sweep_intensities
 from urd.core.dataset import Dataset, Scene
-from urd.core.errors import CaptureInterrupted, UrdError
-from urd.core.processes import Terminated
+from urd.core.errors import UrdError
+from urd.core.processes import capture_stopped
 from urd.core.progress import Progress
 
 
@@ -52,8 +52,7 @@ def sweep_and_calibrate(root: Path, stage: str, camera: str, step_deg: float, ta
                 run_capture(sweep, rig.stage, rig.camera, angles,
                             progress=lambda st: progress and st.kind == "record" and progress(next(counter), len(angles), "sweep"))
             except KeyboardInterrupt as exc:
-                stopped = "stopped by SIGTERM" if isinstance(exc, Terminated) else "interrupted"
-                raise CaptureInterrupted(f"calibration sweep {stopped}; {_left(sweep)}", isinstance(exc, Terminated)) from None
+                raise capture_stopped(exc, "calibration sweep", _left(sweep)) from None
             except (UrdError, OSError) as exc:
                 raise UrdError(f"{exc}\ncalibration sweep stopped; {_left(sweep)}") from exc
             except BaseException:

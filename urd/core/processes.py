@@ -24,6 +24,7 @@ import threading
 import time
 from typing import Iterator
 
+from urd.core.errors import CaptureInterrupted
 from urd.core.progress import plural
 
 PR_SET_PDEATHSIG = 1                    # linux/prctl.h
@@ -32,6 +33,13 @@ WATCH_S = 1.0                           # how often a worker checks that its par
 
 class Terminated(KeyboardInterrupt):
     """The process was sent SIGTERM (raised in the main thread by `terminate_on_sigterm`)."""
+
+
+def capture_stopped(exc: KeyboardInterrupt, what: str, kept: str) -> CaptureInterrupted:
+    """The error for ``what`` (a capture, a calibration sweep) stopped by ``exc``: Ctrl-C, or
+    SIGTERM (`Terminated`, exit 143), saying what it ``kept``."""
+    terminated = isinstance(exc, Terminated)
+    return CaptureInterrupted(f"{what} {'stopped by SIGTERM' if terminated else 'interrupted'}; {kept}", terminated)
 
 
 def _raise_terminated(signum: int, frame) -> None:
