@@ -339,6 +339,22 @@ def real_pool(split: str = "train") -> tuple[tuple[np.ndarray, np.ndarray, bool]
     return tuple((*_read_only(capture_stokes(c)), c.mono) for c in samples.no_glass_captures(split=split))
 
 
+def training_data(real_prob: float) -> tuple[str, list[str]]:
+    """What training samples are synthesized from, as a model card states it, and what of urd's
+    training data is missing here (``../shared/data``'s photos; with ``real_prob`` > 0 its real
+    no-glass captures), for a warning: the pool falls back to scikit-image's bundled photos."""
+    missing = []
+    if (SHARED_NATURAL / "bsds500" / "train").is_dir():
+        text = "synthesized from bsds500/train + sunhays80 (../shared/data/natural)"
+    else:
+        text, missing = "synthesized from scikit-image's bundled photos", ["../shared/data/natural (bsds500, sunhays80)"]
+    if real_prob > 0:
+        real = len(samples.no_glass_captures(split="train"))
+        text += f" and {real} real no-glass captures (../shared/data/polarization, training side)" if real else ""
+        missing += [] if real else ["../shared/data/polarization (real no-glass captures for real_prob)"]
+    return text, missing
+
+
 def _read_only(arrays: Sequence[np.ndarray]) -> tuple[np.ndarray, ...]:
     """The arrays, marked read-only: a cached pool is shared, so nothing may write into it."""
     for array in arrays:

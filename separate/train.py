@@ -32,7 +32,7 @@ from separate import metrics
 from separate.model import BASES, LOSSES, UPSAMPLING, VARIANTS, with_fresnel_base
 from separate.networks import build_model
 from separate.precision import Precision, resolve
-from separate.synthesis import READ_VAR_LOG10, SHOT_GAIN_LOG10, AngleMode, SynthesisConfig, Synthesizer, default_pool
+from separate.synthesis import READ_VAR_LOG10, SHOT_GAIN_LOG10, AngleMode, SynthesisConfig, Synthesizer, default_pool, training_data
 from urd.core.files import atomic_path, pid_lock
 from urd.core.errors import TrainingError, WeightsError
 
@@ -423,6 +423,7 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
     step, best, started = 0, -math.inf, time.time()
     elapsed_before = 0.0
     origin = None
+    data = training_data(cfg.real_prob)[0]                 # for the model card (`export_weights`)
     last = run_dir / "last.pt"
     resumed = last.exists()
     if resumed or init is not None:
@@ -461,7 +462,7 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
     if rank == 0 and init is not None and not resumed:          # the starting weights compete for best.pt
         record = {"step": 0, "lr": lr_at(cfg, 0), "wall_s": 0.0, "patches_seen": 0, **evaluate(model, val, device)}
         best = record["psnr_t"]
-        save_checkpoint(run_dir / "best.pt", model, None, 0, cfg, {"best_psnr_t": best, "val": record, "wall_s": 0.0, "init": origin})
+        save_checkpoint(run_dir / "best.pt", model, None, 0, cfg, {"best_psnr_t": best, "val": record, "wall_s": 0.0, "init": origin, "data": data})
         log.write(json.dumps(record) + "\n")
         log.flush()
         if progress is not None:
@@ -503,9 +504,9 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
                         record.update(evaluate(model, val, device))
                         if record["psnr_t"] > best:
                             best = record["psnr_t"]
-                            save_checkpoint(run_dir / "best.pt", model, None, step, cfg, {"best_psnr_t": best, "val": record, "wall_s": wall, "init": origin})
+                            save_checkpoint(run_dir / "best.pt", model, None, step, cfg, {"best_psnr_t": best, "val": record, "wall_s": wall, "init": origin, "data": data})
                     if step % cfg.ckpt_every == 0 or step == cfg.steps or out_of_time or "psnr_t" in record:
-                        save_checkpoint(last, model, optim, step, cfg, {"best_psnr_t": best, "wall_s": wall, "init": origin})
+                        save_checkpoint(last, model, optim, step, cfg, {"best_psnr_t": best, "wall_s": wall, "init": origin, "data": data})
                         saved = step
                     if step % 10 == 0 or "psnr_t" in record:
                         log.write(json.dumps(record) + "\n")
@@ -516,7 +517,7 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
                     break
     except KeyboardInterrupt as exc:                 # Ctrl-C, or SIGTERM (urd.core.processes.Terminated)
         if rank == 0 and step > (saved or 0):
-            save_checkpoint(last, model, optim, step, cfg, {"best_psnr_t": best, "wall_s": wall, "init": origin})
+            save_checkpoint(last, model, optim, step, cfg, {"best_psnr_t": best, "wall_s": wall, "init": origin, "data": data})
             saved = step
         if rank == 0 and saved is not None:
             exc.add_note(f"{last} keeps step {saved}")
@@ -561,8 +562,8 @@ def export_weights(checkpoint: Path, output: Path, device: str, note: str = "", 
         "parameters": sum(v.numel() for v in state["model"].values()),
         "training": {"config": cfg, "steps": state["step"], "patches_seen": state["step"] * cfg["batch"],
                      "wall_time_s": round(state.get("wall_s", 0.0)), "device": device,
-                     "data": "synthesized from bsds500/train + sunhays80 (../shared/data/natural), pipeline "
-                             + cfg["pipeline"]},
+                     "data": state.get("data", "synthesized from bsds500/train + sunhays80 (../shared/data/natural)")
+                             + ", pipeline " + cfg["pipeline"]},
         "validation": state.get("val"),
         "initialized_from": state.get("init") or (parent and {"path": parent["weights"], "sha256": parent["sha256"]}),
         "note": note,

@@ -10,7 +10,7 @@ from typing import Optional
 
 import typer
 
-from urd.cli.common import run_guarded, within
+from urd.cli.common import run_guarded, warn, within
 from urd.core.progress import TerminalProgress
 
 
@@ -28,12 +28,16 @@ def train(
       urd train configs/paper.toml runs/paper --init separate/weights/urd-canonical-transposed.pt
     """
     from separate.precision import describe, resolve
+    from separate.synthesis import training_data
     from separate.train import TrainConfig, train as train_run
 
     cfg = run_guarded(TrainConfig.from_toml, config)
     if seed is not None:
         cfg = dataclasses.replace(cfg, seed=seed)
     typer.echo(f"precision: {describe(resolve(cfg.precision))}", err=True)
+    data, missing = training_data(cfg.real_prob)
+    if missing:
+        warn(f"not found: {'; '.join(missing)}; the samples are {data} (the model card will say so)")
     bar = TerminalProgress()
     first: list[dict] = []                                   # this session's first record
 
