@@ -238,8 +238,8 @@ def capture_scene(root: Path, stage: str, camera: str, angles_deg: list[float] |
     """Capture one scene into the dataset at ``root`` (created when new): the workflow of
     ``urd capture``.
 
-    Without ``scene_name`` the newest incomplete scene is resumed (unless ``new``), else a new
-    scene is made; with it, that scene is resumed or created. A resumed scene keeps its own
+    Without ``scene_name`` the newest incomplete scene is resumed (unless ``new``), or the newest
+    whose ground truth a stopped capture set aside (`_lost_truth`), else a new scene is made; with it, that scene is resumed or created. A resumed scene keeps its own
     plan (angles, offset, tolerance; ``angles_deg`` and ``tolerance_deg`` None take them, other
     values must match) and must be captured with the camera and stage it recorded. A new scene
     takes ``angles_deg`` (default `DEFAULT_ANGLES_DEG`), ``tolerance_deg`` (default 0.5) and the
@@ -335,14 +335,13 @@ def _truth_missing(scene: Scene, rig_info: dict) -> bool:
 
 
 def _lost_truth(ds: Dataset, rig_info: dict) -> Scene | None:
-    """The newest complete virtual-camera scene without its ground truth (`_truth_missing`), when
-    ``rig_info``'s camera is the virtual one: resuming it writes the truth."""
+    """The newest complete scene whose ground truth a stopped capture set aside
+    (`Scene.lost_truth`), captured with the devices of ``rig_info``: resuming it writes the truth."""
     if rig_info["camera"].get("kind") != "virtual":
         return None
     for scene in reversed(ds.scenes()):
-        if scene.status().state in ("broken", "incomplete") or scene.truth_dir().exists():
-            continue
-        if scene.load(verify=False).get("capture", {}).get("camera", {}).get("kind") == "virtual":
+        if (scene.status().state not in ("broken", "incomplete") and scene.lost_truth()
+                and not recorded_mismatches(scene, rig_info)):
             return scene
     return None
 

@@ -106,6 +106,12 @@ def test_ground_truth_a_stopped_capture_lost_is_reported_and_written_by_the_next
     assert out.exit_code == 0 and "writing the ground truth of" in out.output
     assert Dataset.open(root).scene_names() == ["scene_01"]
     assert invoke("verify", root).exit_code == 0
+    other = tmp_path / "other"
+    assert invoke("capture", other, *SIM).exit_code == 0
+    shutil.move(other / "scene_01" / "truth", tmp_path / "truth-moved-away")    # the user's choice, not a stop
+    out = invoke("capture", other, *SIM)
+    assert out.exit_code == 0 and "writing the ground truth" not in out.output
+    assert Dataset.open(other).scene_names() == ["scene_01", "scene_02"]
 
 
 def test_ingest_refuses_a_dataset_argument_it_would_ignore(dataset, tmp_path):
@@ -229,6 +235,10 @@ def test_float_files_are_read_with_white_at_one_and_named_when_not(tmp_path):
         read_image(tmp_path / "nan.tiff")
     with pytest.raises(DatasetError, match="is a folder, not an image file"):
         read_image(tmp_path)
+    (tmp_path / "bad.tiff").write_bytes(b"not a tiff")
+    with pytest.raises(RawFormatError) as caught:
+        read_image(tmp_path / "bad.tiff")
+    assert str(caught.value).count("bad.tiff") == 1
 
 
 def test_images_of_different_sizes_are_named_with_their_sizes(tmp_path):
@@ -269,10 +279,16 @@ def test_bench_checks_its_output_folder_before_the_run(tmp_path, args, message):
     assert out.exit_code == 2 and message in out.output and "--out" in out.output
 
 
-@pytest.mark.parametrize("args", [("--quick", "--methods", "schechner"), ("--quick", "--full"), ("--out", "x"),
-                                  ("--methods", ",,")])
-def test_bench_refuses_options_it_would_ignore(args):
-    assert invoke("bench", *args).exit_code == 2
+@pytest.mark.parametrize("args, message", [
+    (("--quick", "--methods", "schechner"), "--methods: not used by this run"),
+    (("--ablation", "--methods", "schechner"), "--methods: not used by this run"),
+    (("--quick", "--full"), "--quick or --full, not both"),
+    (("--out", "x"), "--out: not used by this run"),
+    (("--methods", ",,"), "expected at least one method"),
+])
+def test_bench_refuses_options_it_would_ignore(args, message):
+    out = invoke("bench", *args)
+    assert out.exit_code == 2 and message in out.output
 
 
 def test_the_truth_figures_describe_the_stored_files(dataset):
@@ -285,3 +301,17 @@ def test_the_truth_figures_describe_the_stored_files(dataset):
     inside = (slice(h // 20, h - h // 20), slice(w // 20, w - w // 20))
     stored = 10 * np.log10(1 / np.mean((t_hat[inside] - t_true[inside]) ** 2, dtype=np.float64))
     assert scene.load()["results"]["schechner"]["truth_metrics"]["T"]["psnr_db"] == pytest.approx(stored, abs=0.01)
+
+
+def test_a_report_folder_is_judged_before_force_is_asked_for(dataset, tmp_path):
+    mine = tmp_path / "documents"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep")
+    out = invoke("report", dataset, "--html", mine)
+    assert out.exit_code == 1 and "is not an urd HTML report" in out.output and "--force" not in out.output
+    old = tmp_path / "old-report"
+    old.mkdir()
+    (old / "index.html").write_text('<meta name="generator" content="urd report_html 1">')
+    out = invoke("report", dataset, "--html", old, "--force")
+    assert out.exit_code == 1 and "of an earlier urd, which did not record its files" in out.output
+    assert (old / "index.html").exists() and (mine / "notes.txt").read_text() == "keep"

@@ -35,20 +35,21 @@ width, height = (int(v) for v in args.size.split("x"))
 
 worst = []
 for seed in range(args.seeds):
-    root = Path(tempfile.mkdtemp(prefix="urd-calib-")) / "ds"
-    sim = SimSettings(jitter_deg=args.jitter, width=width, height=height, shake_px=args.shake,
-                      shake_deg=0.5 if args.shake else 0.0, seed=seed)
-    scene = capture_scene(root, "sim", "virtual", ANGLES_DEG, sim=sim, announce=lambda line: None)
-    ingest_scene(scene, IngestOptions())
-    try:
-        result = calibrate_shots(scene)
-    except CalibrationError as exc:
-        print(f"seed {seed}: refused ({exc})")
-        continue
-    true = np.array([shot_truth(scene.path / shot["file"])["true_angle_deg"] for shot in scene.load()["shots"]])
+    with tempfile.TemporaryDirectory(prefix="urd-calib-") as folder:
+        sim = SimSettings(jitter_deg=args.jitter, width=width, height=height, shake_px=args.shake,
+                          shake_deg=0.5 if args.shake else 0.0, seed=seed)
+        scene = capture_scene(Path(folder) / "ds", "sim", "virtual", ANGLES_DEG, sim=sim, announce=lambda line: None)
+        ingest_scene(scene, IngestOptions())
+        try:
+            result = calibrate_shots(scene)
+        except CalibrationError as exc:
+            print(f"seed {seed}: refused ({exc})")
+            continue
+        true = np.array([shot_truth(scene.path / shot["file"])["true_angle_deg"] for shot in scene.load()["shots"]])
     error = np.array(result.errors_deg) - (true - ANGLES_DEG - np.mean(true - ANGLES_DEG))
     worst.append(float(np.abs(error).max()))
     print(f"seed {seed}: largest error {worst[-1]:.2f} deg, {np.abs(error / np.array(result.uncertainty_deg)).max():.1f} "
           f"of its reported 1 sigma (reported {min(result.uncertainty_deg):.2f}-{max(result.uncertainty_deg):.2f} deg)")
-print(f"{args.size}, shake {args.shake:g} px, jitter {args.jitter:g} deg: largest error {min(worst):.2f}-{max(worst):.2f} deg "
-      f"over {len(worst)} seeds, median {np.median(worst):.2f} deg")
+if worst:
+    print(f"{args.size}, shake {args.shake:g} px, jitter {args.jitter:g} deg: largest error {min(worst):.2f}-{max(worst):.2f} "
+          f"deg over {len(worst)} seeds, median {np.median(worst):.2f} deg")

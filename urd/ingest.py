@@ -296,7 +296,8 @@ def process_scene(scene: Scene, opts: IngestOptions, progress: Progress | None =
 
 
 def _not_to_ingest(scene: Scene, opts: IngestOptions) -> SceneOutcome | None:
-    """Why a captured scene is not processed (broken, incomplete, already ingested), or None."""
+    """Why a captured scene is not processed (broken, incomplete, its alignment failed, already
+    ingested), or None."""
     status = scene.reload().status()
     if status.state == "broken":
         return SceneOutcome(scene.name, [], status.problem, "failed")

@@ -192,11 +192,14 @@ def _slug(text: str) -> str:
 def is_report_folder(path: Path) -> bool:
     """Whether ``path`` is an empty folder or an HTML report urd wrote (which --force may replace
     when it holds nothing else: `check_report_folder`)."""
-    if path.is_dir() and not any(path.iterdir()):
-        return True
+    return (path.is_dir() and not any(path.iterdir())) or _written_by(path, GENERATOR)
+
+
+def _written_by(path: Path, generator: str) -> bool:
+    """Whether ``path/index.html`` names ``generator`` (`GENERATOR`, or an earlier one) as its maker."""
     index = path / "index.html"
     try:
-        return index.is_file() and f'content="{GENERATOR}"' in index.read_text(encoding="utf-8", errors="replace")[:2000]
+        return index.is_file() and f'content="{generator}"' in index.read_text(encoding="utf-8", errors="replace")[:2000]
     except OSError:
         return False
 
@@ -232,11 +235,13 @@ def check_report_folder(out_dir: Path, overwrite: bool = False) -> None:
         raise DatasetError(f"{out_dir} is inside the dataset {dataset}, whose folders urd reads as scenes and "
                            "their files; write the report into a folder outside the dataset")
     if out_dir.exists() or out_dir.is_symlink():
+        if out_dir.is_symlink() or not is_report_folder(out_dir):
+            earlier = "an urd HTML report of an earlier urd, which did not record its files: remove it yourself, or " \
+                if _written_by(out_dir, "urd report_html 1") else "not an urd HTML report; "
+            raise ReportExistsError(f"{out_dir}: exists and is {earlier}choose another folder for the report")
         if not overwrite:
             raise ReportExistsError(f"{out_dir}: report folder already exists; pass --force to replace it, or "
                                     "another folder")
-        if out_dir.is_symlink() or not is_report_folder(out_dir):
-            raise ReportExistsError(f"{out_dir}: exists and is not an urd HTML report; choose another folder for the report")
         foreign = _foreign_entry(out_dir)
         if foreign is not None:
             raise ReportExistsError(f"{out_dir}: holds {out_dir / foreign}, which urd's report did not write; "

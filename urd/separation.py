@@ -76,7 +76,7 @@ def _read_mapped(path: Path, shape: tuple[int, ...], scene: Scene) -> np.ndarray
     from acquire.plan import resume_command
 
     raise DatasetError(f"{scene.name}: ground truth {path} {problem}; move {scene.truth_dir()} away to separate "
-                       f"without ground-truth figures, or resume the capture to write it again: {resume_command(scene.path.parent, scene)}")
+                       f"without ground-truth figures; then this writes it again: {resume_command(scene.path.parent, scene)}")
 
 
 def truth_metrics(scene: Scene, r_hat: np.ndarray, t_hat: np.ndarray, images: np.ndarray, angles_deg: list[float],

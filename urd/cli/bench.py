@@ -54,6 +54,7 @@ def bench(
     unused += [f"--{name.replace('_', '-')}" for name in ("images",) if not (quick or full) and given(ctx, name)]
     unused += [f"--{name.replace('_', '-')}" for name in ("methods", "count", "size", "direct_weights")
                if (quick or full) and not ablation and given(ctx, name)]
+    unused += [f"--{name.replace('_', '-')}" for name in ("methods", "direct_weights") if ablation and given(ctx, name)]
     if unused:
         raise usage(f"{', '.join(unused)}: not used by this run (see each option's help for the modes it goes with)")
     if given(ctx, "methods"):

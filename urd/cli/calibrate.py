@@ -27,8 +27,8 @@ def calibrate_offset_cmd(
     step: float = typer.Option(10.0, callback=within(1.0, 45.0), help="Sweep step (deg) over 180 deg."),
     target_angle: float = typer.Option(0.0, callback=within(-360.0, 360.0), help="Polarization angle of the target's light (deg, image plane, CCW from x)."),
     address: str = typer.Option("0", help="ELL14 device address 0-F.", callback=check_address),
-    sim_offset: float = typer.Option(0.0, help="[sim] true mounting offset of the simulated polarizer (deg)."),
-    seed: int = typer.Option(0, help="[sim/virtual] random seed."),
+    sim_offset: float = typer.Option(0.0, callback=within(-360.0, 360.0), help="[sim] true mounting offset of the simulated polarizer (deg)."),
+    seed: int = typer.Option(0, callback=within(0), help="[sim/virtual] random seed."),
 ) -> None:
     """Sweep the polarizer in front of a polarized target and fit Malus's law for the mounting offset.
 

@@ -32,7 +32,7 @@ def capture(
     stage: str = typer.Option(..., help="Serial port of the ELL14 stage (e.g. /dev/ttyUSB0), or 'sim' for the simulated stage."),
     camera: str = typer.Option("gphoto2", help="Camera driver: 'gphoto2' (real camera over USB) or 'virtual' (needs --stage sim)."),
     angles: str = typer.Option("0,45,90", help="Polarizer angles in degrees, comma-separated (at least 3 distinct)."),
-    scene: Optional[str] = typer.Option(None, help="Scene name; an existing incomplete scene is resumed. Default: resume the newest incomplete scene, else the next free scene_NN."),
+    scene: Optional[str] = typer.Option(None, help="Scene name; an existing incomplete scene is resumed. Default: resume the newest incomplete scene (or write the ground truth a stopped capture did not finish), else the next free scene_NN."),
     new_scene: bool = typer.Option(False, "--new-scene", help="Start a new scene even if an incomplete one exists."),
     tolerance: float = typer.Option(0.5, callback=within(0.01), help="Largest accepted difference of read-back and commanded angle (deg; at least 0.01, above the ELL14's encoder step of 0.0025)."),
     address: str = typer.Option("0", help="ELL14 device address 0-F.", callback=check_address),

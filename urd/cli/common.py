@@ -253,4 +253,4 @@ def show_previews(files: list) -> None:
         mask = cv2.imread(str(clipped), cv2.IMREAD_GRAYSCALE)
         share = 0.0 if mask is None else float((mask > 0).mean())
         typer.echo("clipped.png: no pixel is clipped in any shot (the mask is all black)" if share == 0 else
-                   f"clipped.png: {100 * share:.2g}% of the pixels are clipped in some shot (white): R and T there are guesses")
+                   f"clipped.png: {100 * share:.3g}% of the pixels are clipped in some shot (white): R and T there are guesses")

@@ -57,7 +57,7 @@ def ingest(
         raise usage("a scene's angles are in its manifest; --angles is for a folder of RAW files. To "
                                  "record other angles, move the scene folder away and ingest its raw/ files again")
     if recorded and dataset is not None:
-        own = source if (source / "dataset.json").is_file() else source.parent
+        own = source if (source / "dataset.json").is_file() else source.resolve().parent
         if dataset.resolve() != own.resolve():
             raise usage(f"{source} is a {'dataset' if own == source else 'scene'} and is ingested where it is; "
                         "DATASET is for a folder of RAW files or mosaic frames: leave it out")

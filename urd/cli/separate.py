@@ -130,7 +130,7 @@ def separate(
                         "without separating again (at the reference they were separated at); pass --force to "
                         "separate again with these options")
         if target.status().stale and method in target.status().stale:
-            raise usage(f"{target.name}'s {method} results are stale (the scene was ingested again since): maps of "
+            raise usage(f"{target.name}'s {method} results are stale (the scene changed since they were made): maps of "
                         "the new shots would not match them; pass --force to separate again with maps")
     if target is not None and not force and not adding_maps:
         run_guarded(target.check_no_results, method)

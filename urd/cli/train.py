@@ -51,7 +51,8 @@ def train(
             typer.echo(f"step {record['step']}: {loss}, val PSNR T {record['psnr_t']:.2f} dB, R {record['psnr_r']:.2f} dB "
                        f"({record['wall_s'] / 60:.1f} min of training)")
 
-    again = shlex.join(["urd", "train", str(config), str(run_dir)] + (["--seed", str(seed)] if seed is not None else []))
+    again = shlex.join(["urd", "train", str(config), str(run_dir)] + (["--seed", str(seed)] if seed is not None else [])
+                       + (["--init", str(init)] if init is not None else []))
     if (Path(run_dir) / "last.pt").is_file():
         state = run_guarded(resume_point, Path(run_dir))
         if state["step"] >= cfg.steps:

@@ -116,7 +116,7 @@ class SceneStatus:
             parts.append({"captured": "not ingested", "ingested": "aligned",
                           "alignment failed": "ALIGNMENT FAILED"}[self.state])
         parts.append("angles calibrated" if self.calibrated else "nominal angles")
-        methods = [f"{m} (STALE: from an earlier alignment; separate again with --force)" if m in self.stale else m
+        methods = [f"{m} (STALE: separate again with --force)" if m in self.stale else m
                    for m in self.methods]
         parts.append(", ".join(methods) if methods else "no results")
         return ", ".join(parts)

@@ -115,7 +115,8 @@ FLOAT_ABOVE_WHITE = 0.05
 
 def to_linear(data: np.ndarray, transfer: Transfer = Transfer.LINEAR) -> np.ndarray:
     """Pixel codes → linear float32 by the module's rule (1.0 = the type's largest code; floats as
-    they are, RawFormatError where more than `FLOAT_ABOVE_WHITE` of them exceed 1.0)."""
+    they are, RawFormatError where one is NaN or infinite or more than `FLOAT_ABOVE_WHITE` of them
+    exceed 1.0)."""
     if data.dtype in (np.uint8, np.uint16):
         return codes_to_linear(data, data.dtype, transfer)
     if data.dtype.kind == "f":
@@ -141,8 +142,9 @@ def codes_to_linear(codes: np.ndarray, dtype: np.dtype, transfer: Transfer = Tra
 
 def read_image(path: Path, transfer: Transfer = Transfer.LINEAR) -> np.ndarray:
     """An image file as linear float32 H×W×3 (grey files repeated into three channels)."""
+    codes = read_raw_codes(path)
     try:
-        data = to_linear(read_raw_codes(path), transfer)
+        data = to_linear(codes, transfer)
     except RawFormatError as exc:
         raise RawFormatError(f"{path}: {exc}") from None
     if data.ndim == 2:

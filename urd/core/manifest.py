@@ -28,6 +28,13 @@ def now_iso() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds")
 
 
+def stale_note(scene: Path, method: str, why: str) -> str:
+    """The ``stale`` field of a result of ``method`` in the scene folder ``scene``: ``why`` it no
+    longer matches the scene, when, and the command that renews it."""
+    return (f"{why} ({now_iso()}); renew with: urd separate {scene.name} --dataset {scene.parent} "
+            f"--method {method} --force")
+
+
 # ---------------------------------------------------------------- validation
 
 NUMBER = (int, float)

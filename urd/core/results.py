@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from urd.core.errors import DatasetError
-from urd.core.manifest import confined_path, now_iso, provenance
+from urd.core.manifest import confined_path, now_iso, provenance, stale_note
 from urd.core.swap import _final_name
 
 
@@ -139,8 +139,7 @@ class SceneResults:
         earlier = {}
         for method, entry in data.get("results", {}).items():
             if "stale" not in entry:
-                entry["stale"] = (f"computed from an earlier alignment (the scene was ingested again at {now_iso()}); "
-                                  f"renew with: urd separate {self.name} --method {method} --force")
+                entry["stale"] = stale_note(self.path, method, "computed from an earlier alignment (the scene was ingested again)")
                 earlier.setdefault("stale_results", []).append(method)
         if "calibration" in data:
             earlier["calibration"] = data.pop("calibration")

@@ -11,7 +11,7 @@ from pathlib import Path
 
 from urd.core.errors import DatasetError, ManifestError
 from urd.core.files import read_json, sha256_file, write_json_atomic
-from urd.core.manifest import confined_path, now_iso, provenance
+from urd.core.manifest import confined_path, now_iso, provenance, stale_note
 
 HASH_CACHE = ".urd-hashes.json"
 VERIFY_TRIES = 5                        # checks of a scene whose manifest a concurrent command keeps changing
@@ -153,8 +153,7 @@ class SceneShots:
             angles = [shot["angle_calibrated_deg"] for shot in sorted(data["shots"], key=lambda s: s["index"])]
             for method, entry in data.get("results", {}).items():
                 if "stale" not in entry and entry.get("angles_deg") != angles:
-                    entry["stale"] = (f"separated at other angles than the shots' calibrated ones ({now_iso()}); "
-                                      f"renew with: urd separate {self.name} --method {method} --force")
+                    entry["stale"] = stale_note(self.path, method, "separated at other angles than the shots' calibrated ones")
         data["provenance"].append(provenance("calibrate shots", {"apply": calibrated_deg is not None}))
         self._save()
 
