@@ -23,6 +23,7 @@ same for every presentation, so they skip it (and its full-resolution copy).
 
 from __future__ import annotations
 
+import inspect
 import math
 import numbers
 from functools import partial
@@ -160,13 +161,15 @@ def citation(module) -> str:
     return " ".join(module.__doc__.strip().split("\n\n")[0].split())
 
 
-def ceilnet(weights: Path | None = None, reference: Reference = "auto", **options) -> tuple[Run, dict]:
+def ceilnet(weights: Path | None = None, reference: Reference = "auto", tile: int | None = None, precision: str = "auto",
+            colour_match: bool = False, progress=None, device: str = "auto") -> tuple[Run, dict]:
     """The CEILNet baseline (`separate.baselines.ceilnet`), run like the network: tiled, with
-    the same options, its weights hash in the manifest; it sees only S0."""
+    the network's options that apply to it, its weights hash in the manifest; it sees only S0."""
     from separate.baselines import ceilnet as module
 
     check_reference(reference)
-    run, info = network(weights or module.WEIGHTS, uses_reference=False, return_copies=False, **options)
+    run, info = network(weights or module.WEIGHTS, tile, precision, colour_match, progress, uses_reference=False,
+                        return_copies=False, device=device)
     if info["weights"]["config"].get("variant") != "ceilnet":
         raise ValueError(f"weights {weights} hold a {info['weights']['config'].get('variant')} network, not CEILNet: "
                          "use --method network for them")
@@ -258,7 +261,13 @@ METHODS: dict[str, Callable[..., tuple[Run, dict]]] = {
 
 def get_method(name: str, reference: Reference = "auto", **options) -> tuple[Run, dict]:
     """The method called ``name`` with its options and reference policy ("auto", "global" or degrees);
-    ValueError naming the known methods, or the bad reference."""
+    ValueError naming the known methods, the bad reference, or an option the method does not take."""
     if name not in METHODS:
         raise ValueError(f"unknown method {name!r}; expected one of {sorted(METHODS)}")
-    return METHODS[name](reference=check_reference(reference), **options)
+    factory = METHODS[name]
+    taken = inspect.signature(factory).parameters
+    if not any(p.kind is p.VAR_KEYWORD for p in taken.values()):
+        unknown = sorted(set(options) - set(taken))
+        if unknown:
+            raise ValueError(f"unknown options {unknown} for {name}; expected some of {sorted(set(taken) - {'reference'})}")
+    return factory(reference=check_reference(reference), **options)

@@ -484,7 +484,7 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
                     loss.backward()
                     loss_sum += loss.item()
                 norm = torch.nn.utils.clip_grad_norm_([p for p in model.parameters() if p.requires_grad], 1.0)
-                if not (math.isfinite(loss_sum) and math.isfinite(norm.item())):
+                if not math.isfinite(norm.item()):           # a non-finite loss makes it so; one value on every DDP rank
                     kept = f"{last} keeps step {saved}" if saved is not None else "no checkpoint was written"
                     raise TrainingError(f"training diverged: the loss or its gradient is not finite at step {step + 1} "
                                         f"({kept}); lower lr (now {cfg.lr:g}) and train in a new run folder")

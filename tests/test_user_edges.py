@@ -315,3 +315,9 @@ def test_a_report_folder_is_judged_before_force_is_asked_for(dataset, tmp_path):
     out = invoke("report", dataset, "--html", old, "--force")
     assert out.exit_code == 1 and "of an earlier urd, which did not record its files" in out.output
     assert (old / "index.html").exists() and (mine / "notes.txt").read_text() == "keep"
+
+
+@pytest.mark.parametrize("method", ["network", "ceilnet", "none", "schechner"])
+def test_an_option_a_method_does_not_take_is_a_value_error_naming_it(method):
+    with pytest.raises(ValueError, match=r"unknown (options|parameters) \['foo'\]"):
+        urd.separate(np.full((3, 16, 16, 3), 0.2, np.float32), [0, 45, 90], method=method, foo=1)
