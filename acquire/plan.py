@@ -22,7 +22,7 @@ from typing import Callable, Iterator
 
 from acquire.camera import Camera
 from acquire.ell14 import Ell14
-from urd.core.dataset import DATASET_MANIFEST, SCENE_NAME, Dataset, Scene
+from urd.core.dataset import SCENE_NAME, Dataset, Scene
 from urd.core.errors import DatasetError, DeviceError, ManifestError, UrdError
 from urd.core.files import atomic_path, sha256_file
 from urd.core.processes import capture_stopped
@@ -239,7 +239,8 @@ def capture_scene(root: Path, stage: str, camera: str, angles_deg: list[float] |
     ``urd capture``.
 
     Without ``scene_name`` the newest incomplete scene is resumed (unless ``new``), or the newest
-    whose ground truth a stopped capture set aside (`_lost_truth`), else a new scene is made; with it, that scene is resumed or created. A resumed scene keeps its own
+    whose ground truth a stopped capture set aside (`_lost_truth`), else a new scene is made;
+    with it, that scene is resumed or created. A resumed scene keeps its own
     plan (angles, offset, tolerance; ``angles_deg`` and ``tolerance_deg`` None take them, other
     values must match) and must be captured with the camera and stage it recorded. A new scene
     takes ``angles_deg`` (default `DEFAULT_ANGLES_DEG`), ``tolerance_deg`` (default 0.5) and the
@@ -253,52 +254,45 @@ def capture_scene(root: Path, stage: str, camera: str, angles_deg: list[float] |
     if scene_name is not None and not SCENE_NAME.match(scene_name):
         raise DatasetError(f"expected a scene name like scene_01, got {scene_name!r}")
     with open_rig(stage, camera, address, sim) as rig:
-        made, folder_is_new = not (Path(root) / DATASET_MANIFEST).exists(), not Path(root).exists()
-        ds = Dataset.open_or_create(root)
-        try:
-            with ds.lock():
-                ds.remove_stale()
-                scene = None
-                if scene_name and (ds.root / scene_name).is_dir():
-                    scene = ds.scene(scene_name)
-                elif scene_name is None and not new:
-                    scene = ds.latest_incomplete()
-                    if scene is not None:
-                        announce(f"resuming the incomplete capture {scene.path.resolve()} ({len(scene.shots())} of "
-                                 f"{len(scene.capture_angles_deg() or [])} shots; --new-scene starts another)")
-                    else:
-                        scene = _lost_truth(ds, rig.info)
-                        if scene is not None:
-                            announce(f"writing the ground truth of {scene.path.resolve()}, which its capture did not "
-                                     "finish (--new-scene starts another scene)")
-                if scene is None:
-                    offset_deg, line = offset_for_stage(ds, rig.info["stage"])
-                    announce(line)
-                    scene = new_capture_scene(ds, list(angles_deg or DEFAULT_ANGLES_DEG), offset_deg,
-                                              0.5 if tolerance_deg is None else tolerance_deg, rig.info, scene_name)
-                elif scene.is_complete() and not _truth_missing(scene, rig.info):
-                    raise DatasetError(f"{scene.name} is complete ({len(scene.shots())} shots); capture another scene: "
-                                       "--new-scene, or --scene with a new name")
+        with Dataset.made_for(root) as ds, ds.lock():    # one that fails before its first shot leaves no dataset
+            ds.remove_stale()
+            scene = None
+            if scene_name and (ds.root / scene_name).is_dir():
+                scene = ds.scene(scene_name)
+            elif scene_name is None and not new:
+                scene = ds.latest_incomplete()
+                if scene is not None:
+                    announce(f"resuming the incomplete capture {scene.path.resolve()} ({len(scene.shots())} of "
+                             f"{len(scene.capture_angles_deg() or [])} shots; --new-scene starts another)")
                 else:
-                    check_resumable(scene, rig.info, angles_deg, tolerance_deg, resume_command(ds.root, scene))
-                    announce(f"mounting offset: {scene.capture_settings()[0]:.3f} deg, as {scene.name} recorded when it was started")
-                planned = scene.capture_angles_deg()
-                done = {shot.index for shot in scene.shots()}
-                steps = len(plan_capture(planned, done))
-                announce(f"capturing {scene.path.resolve()} at {planned} deg ({len(planned) - len(done)} shots to take)")
-                try:
-                    with _shown(rig.stage, progress, steps, f"capture {scene.name}", announce) as show:
-                        run_capture(scene, rig.stage, rig.camera, planned, progress=show)
-                    if not scene.truth_dir().exists():
-                        rig.camera.write_truth(scene.truth_dir())
-                except KeyboardInterrupt as exc:
-                    raise capture_stopped(exc, "capture", _stopped(scene, ds.root)) from None
-                except (UrdError, OSError) as exc:
-                    raise UrdError(f"{exc}\ncapture of {scene.name} stopped; {_stopped(scene, ds.root)}") from exc
-        except BaseException:
-            if made:                                 # a capture that failed before its first shot leaves no dataset
-                ds.remove_if_unused(folder_is_new)
-            raise
+                    scene = _lost_truth(ds, rig.info)
+                    if scene is not None:
+                        announce(f"writing the ground truth of {scene.path.resolve()}, which its capture did not "
+                                 "finish (--new-scene starts another scene)")
+            if scene is None:
+                offset_deg, line = offset_for_stage(ds, rig.info["stage"])
+                announce(line)
+                scene = new_capture_scene(ds, list(angles_deg or DEFAULT_ANGLES_DEG), offset_deg,
+                                          0.5 if tolerance_deg is None else tolerance_deg, rig.info, scene_name)
+            elif scene.is_complete() and not _truth_missing(scene, rig.info):
+                raise DatasetError(f"{scene.name} is complete ({len(scene.shots())} shots); capture another scene: "
+                                   "--new-scene, or --scene with a new name")
+            else:
+                check_resumable(scene, rig.info, angles_deg, tolerance_deg, resume_command(ds.root, scene))
+                announce(f"mounting offset: {scene.capture_settings()[0]:.3f} deg, as {scene.name} recorded when it was started")
+            planned = scene.capture_angles_deg()
+            done = {shot.index for shot in scene.shots()}
+            steps = len(plan_capture(planned, done))
+            announce(f"capturing {scene.path.resolve()} at {planned} deg ({len(planned) - len(done)} shots to take)")
+            try:
+                with _shown(rig.stage, progress, steps, f"capture {scene.name}", announce) as show:
+                    run_capture(scene, rig.stage, rig.camera, planned, progress=show)
+                if not scene.truth_dir().exists():
+                    rig.camera.write_truth(scene.truth_dir())
+            except KeyboardInterrupt as exc:
+                raise capture_stopped(exc, "capture", _stopped(scene, ds.root)) from None
+            except (UrdError, OSError) as exc:
+                raise UrdError(f"{exc}\ncapture of {scene.name} stopped; {_stopped(scene, ds.root)}") from exc
     return scene
 
 

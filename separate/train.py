@@ -458,16 +458,22 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
     use_bf16 = resolve(cfg.precision, device) is Precision.BF16
     record: dict = {"step": step}
     saved = step if resumed else None                  # the step last.pt holds
+    wall = elapsed_before                                   # training time (s), the same on every rank
+
+    def keep(path: Path, with_optim: bool, **extra) -> None:
+        """A checkpoint of the run as it is now: ``last.pt`` with the optimizer, ``best.pt`` without."""
+        save_checkpoint(path, model, optim if with_optim else None, step, cfg,
+                        {"best_psnr_t": best, "wall_s": wall, "init": origin, "data": data, **extra})
+
     log = open(run_dir / "log.jsonl", "a") if rank == 0 else None
     if rank == 0 and init is not None and not resumed:          # the starting weights compete for best.pt
         record = {"step": 0, "lr": lr_at(cfg, 0), "wall_s": 0.0, "patches_seen": 0, **evaluate(model, val, device)}
         best = record["psnr_t"]
-        save_checkpoint(run_dir / "best.pt", model, None, 0, cfg, {"best_psnr_t": best, "val": record, "wall_s": 0.0, "init": origin, "data": data})
+        keep(run_dir / "best.pt", False, val=record)
         log.write(json.dumps(record) + "\n")
         log.flush()
         if progress is not None:
             progress(record)
-    wall = elapsed_before                                   # training time (s), the same on every rank
     try:
         with synthesis_batches(cfg, cfg.seed * 1000 + rank + 7919 * step, micro) as batches:
             while step < cfg.steps:
@@ -504,9 +510,9 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
                         record.update(evaluate(model, val, device))
                         if record["psnr_t"] > best:
                             best = record["psnr_t"]
-                            save_checkpoint(run_dir / "best.pt", model, None, step, cfg, {"best_psnr_t": best, "val": record, "wall_s": wall, "init": origin, "data": data})
+                            keep(run_dir / "best.pt", False, val=record)
                     if step % cfg.ckpt_every == 0 or step == cfg.steps or out_of_time or "psnr_t" in record:
-                        save_checkpoint(last, model, optim, step, cfg, {"best_psnr_t": best, "wall_s": wall, "init": origin, "data": data})
+                        keep(last, True)
                         saved = step
                     if step % 10 == 0 or "psnr_t" in record:
                         log.write(json.dumps(record) + "\n")
@@ -517,7 +523,7 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
                     break
     except KeyboardInterrupt as exc:                 # Ctrl-C, or SIGTERM (urd.core.processes.Terminated)
         if rank == 0 and step > (saved or 0):
-            save_checkpoint(last, model, optim, step, cfg, {"best_psnr_t": best, "wall_s": wall, "init": origin, "data": data})
+            keep(last, True)
             saved = step
         if rank == 0 and saved is not None:
             exc.add_note(f"{last} keeps step {saved}")

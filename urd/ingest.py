@@ -21,6 +21,7 @@ marked stale and its per-shot angle calibration is removed (kept in the provenan
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import datetime as _dt
 import re
@@ -35,7 +36,7 @@ import tifffile
 from acquire.plan import resume_command
 from urd.core import raw as rawio
 from urd.core.align import Alignment, Motion, align, apply_warp, prepare_target
-from urd.core.dataset import DATASET_MANIFEST, STAGING_PREFIX, Dataset, Scene
+from urd.core.dataset import STAGING_PREFIX, Dataset, Scene
 from urd.core.errors import AlignmentError, DatasetError, RawFormatError, UrdError
 from urd.core.files import atomic_path, sha256_file
 from urd.core.processes import kept_note, process_pool
@@ -510,14 +511,8 @@ def ingest(source: Path, root: Path, opts: IngestOptions, mosaic=None, demosaic=
     if jobs > 1 and (scenes == [] or mosaic is not None):
         raise ValueError(f"expected a dataset or scene folder with --jobs {jobs}, got {source}: a RAW folder or "
                          "mosaic frames are ingested by one process (ingest them, then a dataset with --jobs)")
-    made = scenes == [] and not (Path(root) / DATASET_MANIFEST).exists()
-    folder_is_new = not Path(root).exists()
-    ds = Dataset.open_or_create(root) if scenes == [] else Dataset.open(root)
-    try:
+    with Dataset.made_for(root) if scenes == [] else contextlib.nullcontext(Dataset.open(root)) as ds:
         return _ingest_into(ds, source, scenes, opts, mosaic, demosaic, transfer, progress, jobs)
-    finally:
-        if made:                                       # a new dataset that got no scene is not left behind
-            ds.remove_if_unused(folder_is_new)
 
 
 def _ingest_into(ds: Dataset, source: Path, scenes: list[str] | None, opts: IngestOptions, mosaic, demosaic,

@@ -292,6 +292,20 @@ class Dataset:
         return self.root / DATASET_MANIFEST
 
     @classmethod
+    @contextlib.contextmanager
+    def made_for(cls, root: Path) -> Iterator["Dataset"]:
+        """`open_or_create` for a workflow that adds scenes: a dataset this call made is removed
+        again at the end of the block when it got nothing (`remove_if_unused`), so a workflow that
+        failed on every input leaves nothing behind."""
+        made, folder_is_new = not (Path(root) / DATASET_MANIFEST).exists(), not Path(root).exists()
+        ds = cls.open_or_create(root)
+        try:
+            yield ds
+        finally:
+            if made:
+                ds.remove_if_unused(folder_is_new)
+
+    @classmethod
     def open_or_create(cls, root: Path, description: str = "") -> "Dataset":
         """Open a dataset root, creating the folder and its manifest when new; a new one inside
         another dataset (a scene folder, or any folder below a ``dataset.json``) is refused."""
