@@ -69,6 +69,10 @@ def ablation_runs(seeds: Sequence[int], runs_dir: Path, configs: Path = CONFIGS,
         raise ValueError(f"expected at least two different non-negative seeds (the spread between them is the point), got {list(seeds)}")
     if steps is not None and steps < 1:
         raise ValueError(f"expected at least 1 training step per run, got {steps}")
+    missing = [f"{stem}.toml" for stem in PIPELINES.values() if not (Path(configs) / f"{stem}.toml").is_file()]
+    if missing:
+        raise ValueError(f"the ablation's training configs {', '.join(missing)} are not in {configs}: "
+                         "run it from a source checkout of urd, which has them in configs/")
     return [AblationRun(pipeline, seed, Path(configs) / f"{stem}.toml", Path(runs_dir) / f"{stem.removeprefix('ablation-')}-s{seed}", steps)
             for pipeline, stem in PIPELINES.items() for seed in dict.fromkeys(seeds)]
 

@@ -2,7 +2,7 @@
 
 `flatten_figures` gives a run's checkable figures by key; `check_figures` compares them with
 the expected ones within `TOLERANCES`; `verify_expected` checks a whole expected document
-(docs/bench/expected-quick.json, made by `expected_document`) and raises `BenchmarkMismatch`
+(separate/expected-quick.json, shipped in the package; made by `expected_document`) and raises `BenchmarkMismatch`
 naming every figure out of tolerance.
 """
 

@@ -16,7 +16,7 @@
    and training throughput (steps/s of `separate.train` on a tiny config); 24 MP with ``large``.
 
 Quick mode (`separate.bench_plan.settings_for`) runs a reduced version in minutes and checks its
-figures against ``docs/bench/expected-quick.json`` (`separate.bench_check`, tolerances
+figures against ``separate/expected-quick.json`` (`separate.bench_check`, tolerances
 `separate.bench_check.TOLERANCES`), raising `BenchmarkMismatch` naming every figure out of
 tolerance; ``update_expected`` rewrites it. Figures are linear values, peak 1, PSNR floored at
 60 dB per patch (`separate.metrics`).
@@ -39,8 +39,11 @@ from separate.scoring import gap, make_method
 from separate.speed import run_isolated, synthesis_throughput, time_method, time_training
 from urd.core.progress import Progress
 
-DEFAULT_OUT = REPO / "docs" / "bench"
-EXPECTED_QUICK = DEFAULT_OUT / "expected-quick.json"
+#: Where `urd bench` writes by default: docs/bench in a source checkout (its figures are the
+#: project's record), ./urd-bench in the working folder where urd is installed as a package.
+DEFAULT_OUT = REPO / "docs" / "bench" if (REPO / "pyproject.toml").is_file() and (REPO / "docs").is_dir() else Path("urd-bench")
+#: The quick run's expected figures, shipped inside the package (`separate.bench_check`).
+EXPECTED_QUICK = Path(__file__).resolve().parent / "expected-quick.json"
 
 
 def run_evaluation(out_dir: Path, quick: bool, images_dir: Path | None = None, progress: Progress | None = None, *,
@@ -50,7 +53,7 @@ def run_evaluation(out_dir: Path, quick: bool, images_dir: Path | None = None, p
     ``out_dir/quick`` or ``out_dir/full``.
 
     Args:
-        out_dir: the output folder (`DEFAULT_OUT`: docs/bench); created when missing.
+        out_dir: the output folder (`DEFAULT_OUT`); created when missing.
         quick: the quick run (`settings_for`), checked against ``expected_path``.
         images_dir: a folder of photos (JPEG, PNG, TIFF, 8 or 16 bit) to cross-validate on as
             well; its figures are reported, never checked.

@@ -34,6 +34,7 @@ from separate.networks import build_model
 from separate.precision import Precision, resolve
 from separate.synthesis import READ_VAR_LOG10, SHOT_GAIN_LOG10, AngleMode, SynthesisConfig, Synthesizer, default_pool, training_data
 from urd.core.files import atomic_path, pid_lock
+from urd.core.processes import interrupts_deferred
 from urd.core.errors import TrainingError, WeightsError
 
 
@@ -404,6 +405,19 @@ def train(cfg: TrainConfig, run_dir: Path, init: Path | None = None, progress=No
         return _train(cfg, run_dir, init, progress)
 
 
+def rank_batches(batch: int, micro_batch: int, world: int) -> tuple[int, int]:
+    """(samples per rank, micro-batch) of a step of ``batch`` samples over ``world`` ranks, each
+    rank's share in whole micro-batches of at most ``micro_batch``; ValueError naming a batch that
+    does not split so (every sample counted once, each weighed alike)."""
+    per_rank = batch // world
+    micro = min(micro_batch, per_rank)
+    if per_rank < 1 or batch % world or per_rank % micro:
+        raise ValueError(f"batch {batch} does not split into {world} rank(s) of whole micro-batches of at most "
+                         f"{micro_batch}: choose a batch that is a multiple of {world * micro_batch}"
+                         + (f" (or of {world}, at most {world * micro_batch})" if world > 1 else ""))
+    return per_rank, micro
+
+
 def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict:
     """`train`'s loop, in a folder already locked."""
     distributed = int(os.environ.get("WORLD_SIZE", "1")) > 1
@@ -452,8 +466,7 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
     if rank == 0:
         (run_dir / "config.toml").write_text(cfg.to_toml())
     ddp = torch.nn.parallel.DistributedDataParallel(model) if distributed else model
-    per_rank = cfg.batch // world
-    micro = max(1, min(cfg.micro_batch, per_rank))
+    per_rank, micro = rank_batches(cfg.batch, cfg.micro_batch, world)
     val = validation_set(cfg) if rank == 0 else None
     use_bf16 = resolve(cfg.precision, device) is Precision.BF16
     record: dict = {"step": step}
@@ -494,8 +507,9 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
                     kept = f"{last} keeps step {saved}" if saved is not None else "no checkpoint was written"
                     raise TrainingError(f"training diverged: the loss or its gradient is not finite at step {step + 1} "
                                         f"({kept}); lower lr (now {cfg.lr:g}) and train in a new run folder")
-                optim.step()
-                step += 1
+                with interrupts_deferred():                     # a checkpoint never holds half an update
+                    optim.step()
+                    step += 1
                 session = time.time() - started
                 wall = elapsed_before + session
                 out_of_time = cfg.max_minutes > 0 and session > cfg.max_minutes * 60

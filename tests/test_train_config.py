@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 
 import urd.cli.train
 from separate.model import SeparationNet
-from separate.train import TrainConfig, load_checkpoint, run_lock
+from separate.train import TrainConfig, load_checkpoint, rank_batches, run_lock
 from urd.cli import app
 
 
@@ -148,3 +148,40 @@ def test_training_without_the_shared_photos_warns_and_its_model_card_says_what_i
     assert "not found: " in out.output and "../shared/data/natural" in out.output and "../shared/data/polarization" in out.output
     card = export_weights(tmp_path / "run" / "best.pt", tmp_path / "w.pt", "cpu")
     assert card["training"]["data"].startswith("synthesized from scikit-image's bundled photos, pipeline")
+
+
+def test_ctrl_c_during_the_optimizer_update_takes_effect_after_it(tmp_path, monkeypatch):
+    """A checkpoint holds whole updates: Ctrl-C arriving inside ``optim.step`` stops the run after
+    it, and last.pt's weights are the update of the step it records."""
+    import os
+    import signal
+
+    calls = []
+    real_step = torch.optim.Adam.step
+
+    def interrupted_step(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            os.kill(os.getpid(), signal.SIGINT)         # arrives between the parameters' updates
+        return real_step(self, *args, **kwargs)
+
+    monkeypatch.setattr(torch.optim.Adam, "step", interrupted_step)
+    config, run = tiny_config(tmp_path, steps="10"), tmp_path / "run"
+    out = invoke("train", config, run)
+    assert out.exit_code == 130, out.output
+    state = load_checkpoint(run / "last.pt")
+    assert state["step"] == 2 and len(calls) == 2
+    adam_steps = {float(s["step"]) for s in state["optim"]["state"].values()}
+    assert adam_steps == {2.0}                            # every parameter updated as often as the step says
+
+
+@pytest.mark.parametrize("batch, micro, world, expected", [
+    (32, 8, 1, (32, 8)), (32, 8, 2, (16, 8)), (16, 8, 4, (4, 4)), (12, 8, 2, (6, 6))])
+def test_a_step_splits_into_whole_micro_batches_per_rank(batch, micro, world, expected):
+    assert rank_batches(batch, micro, world) == expected
+
+
+@pytest.mark.parametrize("batch, micro, world", [(32, 8, 3), (24, 8, 2), (2, 8, 4)])
+def test_a_batch_that_does_not_split_over_the_ranks_is_refused(batch, micro, world):
+    with pytest.raises(ValueError, match=f"batch {batch} does not split into {world} rank"):
+        rank_batches(batch, micro, world)

@@ -321,3 +321,45 @@ def test_a_report_folder_is_judged_before_force_is_asked_for(dataset, tmp_path):
 def test_an_option_a_method_does_not_take_is_a_value_error_naming_it(method):
     with pytest.raises(ValueError, match=r"unknown (options|parameters) \['foo'\]"):
         urd.separate(np.full((3, 16, 16, 3), 0.2, np.float32), [0, 45, 90], method=method, foo=1)
+
+
+def test_signals_within_a_deferred_block_take_effect_as_it_ends():
+    import os
+    import signal
+
+    from urd.core.processes import interrupts_deferred
+
+    reached = []
+    with pytest.raises(KeyboardInterrupt):
+        with interrupts_deferred():
+            os.kill(os.getpid(), signal.SIGINT)
+            reached.append("after the signal")
+    assert reached == ["after the signal"]
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_an_installed_urd_benchmarks_into_the_working_folder_and_checks_against_its_shipped_figures(tmp_path):
+    """Outside a source checkout `urd bench` writes into ./urd-bench, never into the installed
+    package, and the quick run's expected figures travel inside the package."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from separate.bench_run import EXPECTED_QUICK
+
+    assert EXPECTED_QUICK.is_file() and EXPECTED_QUICK.parent.name == "separate"
+    assert "expected-quick.json" in (Path(__file__).parents[1] / "pyproject.toml").read_text()
+    installed = tmp_path / "site"
+    (installed / "separate").mkdir(parents=True)
+    probe = ("import runpy, sys; from pathlib import Path; import separate.provenance as p; p.REPO = Path(sys.argv[1]); "
+             "ns = runpy.run_path(sys.argv[2]); print(ns['DEFAULT_OUT'])")
+    done = subprocess.run([sys.executable, "-c", probe, str(installed), str(Path(__file__).parents[1] / "separate" / "bench_run.py")],
+                          cwd=tmp_path, capture_output=True, text=True, check=True)
+    assert done.stdout.strip() == "urd-bench"
+
+
+def test_the_ablation_outside_a_source_checkout_says_it_needs_one(tmp_path):
+    from separate.ablation import ablation_runs
+
+    with pytest.raises(ValueError, match="run it from a source checkout"):
+        ablation_runs([0, 1], tmp_path / "runs", configs=tmp_path / "configs")

@@ -4,7 +4,7 @@ angles and calibration, and speed and memory; Markdown, CSV and PNG into OUT/qui
 
     python tools/bench_paper.py [--quick] [--images DIR] [--out docs/bench] [--update-expected] [--24mp]
 
---quick: the reduced run (a few minutes on 2 cores), checked against docs/bench/expected-quick.json
+--quick: the reduced run (a few minutes on 2 cores), checked against separate/expected-quick.json
 (exit status 1 naming every figure out of tolerance); with --update-expected it rewrites that
 file instead (after new weights: python tools/bench_paper.py --quick --update-expected).
 --images DIR: also cross-validate on the photos in DIR (JPEG, PNG, TIFF; 8 or 16 bit).
@@ -27,7 +27,7 @@ def main() -> int:
     parser.add_argument("--quick", action="store_true", help="the reduced run, checked against the expected values")
     parser.add_argument("--images", type=Path, default=None, help="a folder of photos to cross-validate on as well")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="output folder (results go to OUT/quick or OUT/full)")
-    parser.add_argument("--update-expected", action="store_true", help="(--quick) rewrite docs/bench/expected-quick.json")
+    parser.add_argument("--update-expected", action="store_true", help="(--quick) rewrite separate/expected-quick.json")
     parser.add_argument("--24mp", dest="large", action="store_true", help="(full run) also time 24 MP separations")
     args = parser.parse_args()
     if args.update_expected and not args.quick:

@@ -16,23 +16,23 @@ from urd.core.progress import TerminalProgress
 
 def bench(
     ctx: typer.Context,
-    quick: bool = typer.Option(False, "--quick", help="The paper's evaluation, reduced (< 10 min on 2 cores): tables, CSV and plots in docs/bench/quick, checked against docs/bench/expected-quick.json."),
-    full: bool = typer.Option(False, "--full", help="The paper's full evaluation (20-50 min on 2 cores): cross-validation, robustness, speed into docs/bench/full."),
+    quick: bool = typer.Option(False, "--quick", help="The paper's evaluation, reduced (< 10 min on 2 cores): tables, CSV and plots in OUT/quick, checked against the expected figures shipped with urd (separate/expected-quick.json)."),
+    full: bool = typer.Option(False, "--full", help="The paper's full evaluation (20-50 min on 2 cores): cross-validation, robustness, speed into OUT/full."),
     large: bool = typer.Option(False, "--24mp", help="With --full: also time the network and Schechner on a 24 MP scene."),
     images: Optional[Path] = typer.Option(None, help="With --quick/--full: also cross-validate on the photos of this folder (JPEG, PNG, 8/16-bit TIFF)."),
-    out: Optional[Path] = typer.Option(None, help="With --quick/--full/--ablation: output folder (default docs/bench)."),
+    out: Optional[Path] = typer.Option(None, help="With --quick/--full/--ablation/--semireal/--virtual: output folder (default: docs/bench in a source checkout, else ./urd-bench)."),
     count: int = typer.Option(64, callback=within(1), help="Benchmark patches (seeded, from bsds500/test or bundled photos)."),
     size: int = typer.Option(256, callback=within(32), help="Patch size (px)."),
     methods: str = typer.Option("none,network", help="Comma-separated methods, plus 'direct' for the direct variant (shipped urd-direct.pt or --direct-weights), and LABEL=PATH for the network with other weights."),
     direct_weights: Optional[Path] = typer.Option(None, help="Weights of the direct variant."),
-    ablation: bool = typer.Option(False, "--ablation", help="The paper's pipeline ablation (DR, DR+NRD, DR+NRD+LCG) with several seeds: trains the runs missing from --runs (configs/ablation-*.toml, about 1 h of CPU each), scores them on --count patches, writes OUT/ablation (default docs/bench/ablation)."),
+    ablation: bool = typer.Option(False, "--ablation", help="The paper's pipeline ablation (DR, DR+NRD, DR+NRD+LCG) with several seeds: trains the runs missing from --runs (configs/ablation-*.toml, about 1 h of CPU each), scores them on --count patches, writes OUT/ablation; needs a source checkout (its configs/)."),
     seeds: str = typer.Option("0,1", help="With --ablation: comma-separated training seeds (at least two)."),
     jobs: int = typer.Option(2, callback=within(1), help="With --ablation: training runs side by side (one thread each)."),
     runs: Optional[Path] = typer.Option(None, help="With --ablation: folder of the training runs (unfinished ones resume; default runs/ablation, or runs/ablation-STEPS with --steps)."),
     steps: Optional[int] = typer.Option(None, callback=within(1), help="With --ablation: training steps of every run (default: the configs' 4000; e.g. 16000 on a GPU); its runs in runs/ablation-STEPS and its report in OUT/ablation-STEPS."),
-    semireal: bool = typer.Option(False, "--semireal", help="The semi-real set: held-out real captures without glass (../shared/data/polarization) as the transmitted layer behind a rendered pane reflecting a bsds500/test photo, exact ground truth; 3, 4 and 6 shots, mono, and the no-glass R share; every method of --methods (default none, Schechner, Kong, Farid, network; LABEL=PATH adds the network with other weights); tables in OUT/semireal (default docs/bench/semireal). About 20 min on 2 cores."),
+    semireal: bool = typer.Option(False, "--semireal", help="The semi-real set: held-out real captures without glass (../shared/data/polarization) as the transmitted layer behind a rendered pane reflecting a bsds500/test photo, exact ground truth; 3, 4 and 6 shots, mono, and the no-glass R share; every method of --methods (default none, Schechner, Kong, Farid, network; LABEL=PATH adds the network with other weights); tables in OUT/semireal. About 20 min on 2 cores."),
     weights: Optional[Path] = typer.Option(None, help="With --semireal: the network's weights (default: shipped)."),
-    virtual: bool = typer.Option(False, "--virtual", help="The virtual-camera set: flat panes rendered by urd's virtual camera at angles of incidence 20-75 deg and a wide view (phi_perp turning 50 deg), the network against Schechner, Kong, Farid and no separation (4 photo pairs of 768x512; --methods to choose); tables in OUT/virtual (default docs/bench/virtual)."),
+    virtual: bool = typer.Option(False, "--virtual", help="The virtual-camera set: flat panes rendered by urd's virtual camera at angles of incidence 20-75 deg and a wide view (phi_perp turning 50 deg), the network against Schechner, Kong, Farid and no separation (4 photo pairs of 768x512; --methods to choose); tables in OUT/virtual."),
 ) -> None:
     """Benchmark the methods on synthetic data with ground truth: by default one table of RMSE /
     PSNR / SSIM of R and T per method (with network and direct: their paired T PSNR difference);
@@ -85,13 +85,14 @@ def bench(
     if not ablation and (seeds != "0,1" or jobs != 2 or runs is not None or steps is not None):
         raise usage("--seeds, --jobs, --runs and --steps go with --ablation")
     if ablation:
-        from separate.ablation import run_ablation
+        from separate.ablation import ablation_runs, run_ablation
         from separate.bench_run import DEFAULT_OUT
 
         seed_list = parse_seeds(seeds)
+        runs = runs or Path("runs/ablation" + (f"-{steps}" if steps else ""))
+        run_guarded(ablation_runs, seed_list, runs, steps=steps)          # its configs are there: before making folders
         folder = writable((out or DEFAULT_OUT) / ("ablation" + (f"-{steps}" if steps else "")))
         bar = TerminalProgress()
-        runs = runs or Path("runs/ablation" + (f"-{steps}" if steps else ""))
         result = run_guarded(run_ablation, folder, runs, seed_list, jobs, count, size,
                              progress=lambda done, total: bar(done, total, "ablation training runs"),
                              command=" ".join(["urd"] + sys.argv[1:]), steps=steps)

@@ -51,6 +51,27 @@ def terminate_on_sigterm() -> None:
     signal.signal(signal.SIGTERM, _raise_terminated)
 
 
+@contextlib.contextmanager
+def interrupts_deferred() -> Iterator[None]:
+    """Ctrl-C and SIGTERM that arrive within the block take effect as it ends, through the handlers
+    that were in place (a step whose state must change all at once: an optimizer's update). Only
+    the main thread handles signals; elsewhere the block runs as it is."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    pending: list[int] = []
+    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    for sig in previous:
+        signal.signal(sig, lambda signum, frame: pending.append(signum))
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        if pending:
+            signal.raise_signal(pending[0])
+
+
 def die_with_parent(parent: int) -> None:
     """Worker initializer: end this process when its parent ``parent`` (pid) ends (module
     docstring); at once if it has already."""
