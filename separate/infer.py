@@ -281,11 +281,12 @@ class FusedNet:
         held = [x]
         del x
         out = self.backbone(held.pop())[..., :h, :w]         # the only reference: x goes after the first level
+        out = out.float()                                    # one pass; the channels are sliced from it
         if self.model.variant != "canonical":
-            return out[:, :c].float() / gain, out[:, c : 2 * c].float() / gain
-        xi = torch.sigmoid(out[:, 2 * c :].float())          # ξ∥, ξ⊥
-        r_hat = torch.lerp(base_r, out[:, c : 2 * c].float() / gain, xi[:, 1:])   # ξ⊥·R̃ + (1 − ξ⊥)·B_R
-        t_hat = torch.lerp(base_t, out[:, :c].float() / gain, xi[:, :1])          # ξ∥·T̃ + (1 − ξ∥)·B_T
+            return out[:, :c] / gain, out[:, c : 2 * c] / gain
+        xi = torch.sigmoid(out[:, 2 * c :].contiguous(memory_format=torch.channels_last))   # ξ∥, ξ⊥ (dense: sigmoid's vector path)
+        r_hat = torch.lerp(base_r, out[:, c : 2 * c] / gain, xi[:, 1:])   # ξ⊥·R̃ + (1 − ξ⊥)·B_R
+        t_hat = torch.lerp(base_t, out[:, :c] / gain, xi[:, :1])          # ξ∥·T̃ + (1 − ξ∥)·B_T
         if self.model.base == "fresnel":
             r_hat, t_hat = self._anchor(r_hat, t_hat, base_r, base_t, gain, theta.float())
         return r_hat, t_hat
