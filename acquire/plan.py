@@ -24,7 +24,7 @@ from acquire.camera import Camera
 from acquire.ell14 import Ell14
 from urd.core.dataset import SCENE_NAME, Dataset, Scene
 from urd.core.errors import DatasetError, DeviceError, ManifestError, UrdError
-from urd.core.files import atomic_path, sha256_file
+from urd.core.files import atomic_path, disk_full, sha256_file, write_error
 from urd.core.processes import capture_stopped
 from urd.core.progress import Progress
 
@@ -120,6 +120,8 @@ def run_capture(
             try:
                 pending, meta = camera.capture(raw_dir, step.index)
             except OSError as exc:
+                if disk_full(exc, raw_dir):
+                    raise write_error(raw_dir / shot_name(step.index, step.angle_deg, ""), exc, full=True) from exc
                 raise DatasetError(f"cannot write shot {step.index} in {raw_dir} (disk full or read-only?): {exc.strerror or exc}") from exc
         elif step.kind == "store":
             target = raw_dir / shot_name(step.index, step.angle_deg, pending.suffix)

@@ -55,6 +55,14 @@ def stage_identity(stage_info: dict) -> dict:
     return {"kind": "ELL14", "serial": stage_info.get("serial"), "address": stage_info.get("address")}
 
 
+def _sim_options(identity: dict) -> str:
+    """The options that make the calibration command run on the simulated stage ``identity``
+    (`stage_identity`): its camera and its mounting offset; nothing for a real stage."""
+    if identity.get("kind") != "ELL14 simulator":
+        return ""
+    return f" --camera virtual --sim-offset {identity['sim_offset_deg']:g}"
+
+
 def describe_stage(identity: dict) -> str:
     """A `stage_identity` in words, e.g. 'the ELL14 with serial 11400123 at address 0'."""
     if identity.get("kind") == "ELL14 simulator":
@@ -165,7 +173,7 @@ def offset_for_stage(ds: Dataset, stage_info: dict) -> tuple[float, str]:
             f"{ds.calibration_path.resolve()}: the mounting offset {calibration.offset_deg:.3f} deg was calibrated on "
             f"{describe_stage(owner)}, not on this stage ({describe_stage(this)}); calibrate this stage "
             f"with 'urd calibrate offset {ds.root.resolve()} --stage {stage_info.get('port') or 'PORT'}"
-            f"{' --camera virtual' if this['kind'] == 'ELL14 simulator' else ''}', or capture into another dataset")
+            f"{_sim_options(this)}', or capture into another dataset")
     whose = describe_stage(owner) if owner is not None else "a stage it does not record"
     return calibration.offset_deg, (f"mounting offset: {calibration.offset_deg:.3f} ± {calibration.uncertainty_deg:.3f} deg "
                                     f"from {ds.calibration_path.resolve()} ({calibration.time}, on {whose})")

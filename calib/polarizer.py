@@ -186,7 +186,7 @@ def estimate_shot_errors(stack: np.ndarray, nominal_deg: list[float], short_side
               "Calibrate on a scene with glare from glass or a polarizer target, from a tripod")
     if np.abs(errors).max() > MAX_SHOT_ERROR_DEG:
         raise CalibrationError(f"the images do not determine the shots' angles: the fit moves them by up to "
-                               f"{np.abs(errors).max():.0f} deg (at most {MAX_SHOT_ERROR_DEG:.0f} is plausible); {remedy}")
+                               f"{np.abs(errors).max():.1f} deg (at most {MAX_SHOT_ERROR_DEG:.1f} is plausible); {remedy}")
     if n >= 5 and unobservable is not None:
         raise CalibrationError("the images do not determine every shot's angle: one combination of the errors does "
                                f"not show in them; {remedy}")

@@ -28,7 +28,7 @@ AVX-512 37.0 → 32.5 s). Other
 networks (the CEILNet baseline) run as modules, under bf16 autocast where chosen.
 
 Input handling: NaN or infinite pixels are an error; negative pixels (linear decoding noise
-below black) are clipped to 0; the angles must span at least `MIN_SPAN_DEG`. The outputs hold no
+below black) are clipped to 0; the angles must span at least `separate.optics.MIN_SPAN_DEG`. The outputs hold no
 negative light: each tile's R̂ and T̂ from urd's network (not the CEILNet baseline, whose R̂ is
 S0 − T̂ by design) are clipped below at 0, as the physics-anchored network's anchor clips them
 (`separate.model.SeparationNet.anchor`). Without its gate (a θ estimate that is not clear) that
@@ -65,10 +65,6 @@ if TYPE_CHECKING:
     from separate.incidence import Incidence
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
-#: Smallest span (deg, mod 180) of the shots' angles: re-rendering them at 0/45/90° from their
-#: Stokes fit raises the noise by 1.36× RMS (1.9× worst shot) at 0/35/70°, 1.9× (3×) at 0/30/60°;
-#: 0/45/90° with ±8° errors (calibrated angles) spans 74° at least.
-MIN_SPAN_DEG = 70.0
 #: Rows (full resolution) of the strips `FusedNet` runs its runs of same-resolution convolutions
 #: in: a 2048 px tile's backbone 1.33 → 1.14 s (bf16, 2 threads; 256 → 512 rows within ±5%).
 STRIP_ROWS = 384
@@ -131,7 +127,7 @@ def check_inputs(images: np.ndarray, angles_deg: list[float]) -> None:
         raise ValueError(f"expected at least 3 shots stacked as (N>=3, H, W, C in 1,3), got {images.shape}")
     if len(angles_deg) != images.shape[0]:
         raise ValueError(f"expected {images.shape[0]} angles (one per image), got {len(angles_deg)}")
-    optics.check_angles(np.radians(angles_deg), min_span=np.radians(MIN_SPAN_DEG))
+    optics.check_angles(np.radians(angles_deg), min_span=np.radians(optics.MIN_SPAN_DEG))
     optics.code_scale(images)                                           # float or unsigned codes
     if images.dtype.kind == "f" and not np.isfinite(images.sum(dtype=np.float64)):   # NaN and inf propagate
         bad = sum(int((~np.isfinite(shot)).sum()) for shot in images)
@@ -373,7 +369,7 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
             stacks give monochrome results (module docstring). Float, or uint16 codes
             (65535 = 1.0, `separate.optics.code_scale`): converted a tile at a time, so a
             stack of codes takes half the memory of float32 shots.
-        angles_deg: polarizer angles of the shots (deg), spanning at least `MIN_SPAN_DEG`.
+        angles_deg: polarizer angles of the shots (deg), spanning at least `separate.optics.MIN_SPAN_DEG`.
         tile, overlap: tile size and overlap (px), `check_tiling`: tile ≥ 128 and ≥ 2·overlap,
             rounded down to a multiple of 8; overlap ≥ 0.
         precision: "auto", "fp32" or "bf16" (`separate.precision.resolve`: auto takes bf16

@@ -390,9 +390,9 @@ def polarization_warnings(images: np.ndarray, angles_deg: Sequence[float], white
 
 
 def _warnings(images: np.ndarray, angles_deg: Sequence[float], lum: np.ndarray, stokes: np.ndarray,
-              usable: np.ndarray, estimate: ReferenceEstimate, clipped: np.ndarray) -> list[str]:
+              usable: np.ndarray, estimate: ReferenceEstimate, clipped: np.ndarray, given: bool = False) -> list[str]:
     """`polarization_warnings` from the stack, its reduced statistics (`_statistics`) and its
-    clipped pixels (`clipped_mask`)."""
+    clipped pixels (`clipped_mask`); with a reference ``given``, none about the estimated one."""
     n = images.shape[0]
     warnings = []
     share = float(clipped.mean())
@@ -417,7 +417,7 @@ def _warnings(images: np.ndarray, angles_deg: Sequence[float], lum: np.ndarray, 
         warnings.append(f"the shots show too little polarization to separate anything (98% of pixels below DoLP "
                         f"{level:.3f}): no glass in view, glass seen nearly head-on, or no polarizer")
         return warnings
-    if estimate.basis is Basis.TRANSMISSION:
+    if estimate.basis is Basis.TRANSMISSION and not given:
         other = np.mod(estimate.reference_deg + 90.0, 180.0)
         warnings.append(f"the polarization is weak and has one orientation: urd assumes the transmission dominates "
                         f"(reference {estimate.reference_deg:.1f} deg); if the reflection dominates the photo, as it "
@@ -482,7 +482,8 @@ def inspect_stack(images: np.ndarray, angles_deg: Sequence[float], reference_deg
         field = _field(stokes, usable, reference)
     else:
         field = np.full(stokes.shape[1:], reference, np.float32)
-    return Inspection(estimate, reference, _warnings(images, list(angles_deg), lum, stokes, usable, estimate, clipped),
+    return Inspection(estimate, reference, _warnings(images, list(angles_deg), lum, stokes, usable, estimate, clipped,
+                                                     given=reference_deg is not None),
                       _presence(stokes, usable, reference), clipped, field)
 
 

@@ -159,7 +159,7 @@ def test_a_mounting_offset_is_applied_only_with_the_stage_it_was_calibrated_on(t
     assert "was calibrated on the simulated ELL14 with --sim-offset 3, not on this stage" in out.stderr
     assert Dataset.open(root).scene_names() == []
     printed = re.search(r"calibrate this stage with '([^']+)'", " ".join(out.stderr.split())).group(1)
-    assert printed == f"urd calibrate offset {root.resolve()} --stage sim --camera virtual"
+    assert printed == f"urd calibrate offset {root.resolve()} --stage sim --camera virtual --sim-offset 0"
     out = invoke("capture", root, *SIM, "--sim-size", "96x64", "--sim-offset", "3")
     assert out.exit_code == 0, out.output
     assert re.search(r"^mounting offset: 3\.\d{3} ± \d\.\d{3} deg from .*calibration\.json .*--sim-offset 3\)$", out.stdout, re.M)

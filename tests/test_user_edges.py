@@ -363,3 +363,11 @@ def test_the_ablation_outside_a_source_checkout_says_it_needs_one(tmp_path):
 
     with pytest.raises(ValueError, match="run it from a source checkout"):
         ablation_runs([0, 1], tmp_path / "runs", configs=tmp_path / "configs")
+
+
+def test_a_capture_without_shake_is_a_tripod_neither_shifted_nor_turned(tmp_path):
+    out = CliRunner().invoke(app, ["capture", str(tmp_path / "ds"), "--stage", "sim", "--camera", "virtual",
+                                   "--sim-size", "96x64", "--sim-shake", "0"])
+    assert out.exit_code == 0, out.output
+    camera = Dataset.open(tmp_path / "ds").scene("scene_01").load()["capture"]["camera"]
+    assert camera["shake_px"] == 0 and camera["shake_deg"] == 0

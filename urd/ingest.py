@@ -25,6 +25,7 @@ import contextlib
 import dataclasses
 import datetime as _dt
 import re
+import shlex
 import shutil
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
@@ -63,12 +64,14 @@ class IngestOptions:
 @dataclasses.dataclass
 class SceneOutcome:
     """What happened to one scene or file group: ``state`` is ingested, failed (``error``
-    says why), skipped (already ingested: ``error`` says where) or incomplete."""
+    says why), skipped (already ingested: ``error`` says where) or incomplete; ``notes`` are
+    warnings for the user (shots taken at different exposures)."""
 
     name: str | None
     files: list[Path]
     error: str | None = None
     state: str = "ingested"
+    notes: list[str] = dataclasses.field(default_factory=list)
 
 
 @dataclasses.dataclass
@@ -148,6 +151,41 @@ def group_shots(files: list[Path], count: int, gap_s: float) -> tuple[list[list[
                          f"{len(run) // count} scenes of {count} angles; if they are one capture at {len(run)} "
                          "angles, move those scenes away and ingest the files again with --angles")
     return groups, failures, notes
+
+
+#: Exposure settings the shots of a scene should share (the separation assumes one exposure):
+#: camera metadata key, what it is, and the text before and after its values.
+EXPOSURE_SETTINGS = (("exposure_s", "exposure times", "", " s"), ("iso", "ISO speeds", "", ""), ("aperture", "apertures", "f/", ""))
+
+
+def exposure_warning(cameras: list[dict | None]) -> str | None:
+    """What differs between the exposure settings of a scene's shots, from their camera metadata
+    (`urd.core.raw.metadata`: exposure time (s), ISO speed, aperture (f-number)), or None when
+    they agree; a setting a shot does not record is compared among the others.
+
+    Raises AlignmentError when the shots come from different camera models.
+    """
+    records = [camera or {} for camera in cameras]
+    models = [str(r.get("model") or "?") for r in records]
+    if len(set(models) - {"?"}) > 1:
+        raise AlignmentError(f"the shots come from different cameras ({', '.join(models)}): a scene is one camera's "
+                             "shots of one view; put each camera's shots in a folder of their own")
+    differ = []
+    for key, what, prefix, unit in EXPOSURE_SETTINGS:
+        values = [r.get(key) for r in records]
+        if len({v for v in values if v is not None}) > 1:
+            differ.append(f"{what} differ ({', '.join('?' if v is None else f'{prefix}{v:g}' for v in values)}{unit})")
+    if not differ:
+        return None
+    return (f"the shots' {' and '.join(differ)}: auto-exposure? the separation assumes one exposure; "
+            "set the camera to manual")
+
+
+def _exposure_notes(scene: Scene) -> list[str]:
+    """`exposure_warning` of a recorded scene's shots as a note naming the scene (none when
+    they agree); AlignmentError when they come from different cameras."""
+    warning = exposure_warning([shot.camera for shot in scene.shots()])
+    return [] if warning is None else [f"{scene.name}: {warning}"]
 
 
 def write_aligned(path: Path, image: np.ndarray) -> None:
@@ -255,7 +293,12 @@ def _prepare_mosaic(scene: Scene, progress: Progress | None = None) -> PreparedI
 
 
 def _demosaiced(path: Path, layout, demosaic, transfer: Transfer) -> tuple[np.ndarray, list[float]]:
-    """A frame's linear RGB stack (mono sensors give grey RGB) and its polarizer angles (deg)."""
+    """A frame's linear RGB stack (mono sensors give grey RGB) and its polarizer angles (deg).
+
+    Raises RawFormatError for a frame that is not a mosaic, or too small (or too narrow) to
+    separate once demosaiced at half size (`separate.presentation.check_stack`).
+    """
+    from separate.presentation import check_stack
     from urd.core.mosaic import demosaic as run_demosaic
 
     data = read_raw_codes(path)
@@ -263,6 +306,11 @@ def _demosaiced(path: Path, layout, demosaic, transfer: Transfer) -> tuple[np.nd
         raise RawFormatError(f"{path}: expected a single-channel 8- or 16-bit mosaic image, got {data.dtype} {data.shape}")
     codes, angles = run_demosaic(data, layout, demosaic)
     stack = codes_to_linear(codes, data.dtype, transfer)
+    try:
+        check_stack(stack, angles)
+    except ValueError as exc:
+        raise RawFormatError(f"{path}: the {data.shape[1]}×{data.shape[0]} px frame gives {stack.shape[2]}×{stack.shape[1]} "
+                             f"px images (one pixel per 2×2 polarizer cell), too small to separate ({exc})") from exc
     return (np.repeat(stack, 3, axis=-1) if stack.shape[-1] == 1 else stack), [float(a) for a in angles]
 
 
@@ -309,14 +357,20 @@ def _not_to_ingest(scene: Scene, opts: IngestOptions) -> SceneOutcome | None:
         return SceneOutcome(scene.name, [], f"its alignment failed ({scene.load(verify=False)['ingest'].get('error', '')}); "
                             "--redo tries again, e.g. with another --motion", "skipped")
     if scene.is_ingested() and not opts.redo:
+        aligned = {rec["file"] for rec in scene.load(verify=False)["ingest"].get("aligned", [])}
+        missing = [name for name in scene.missing_files() if name in aligned]
+        if missing:
+            redo = " ".join(shlex.quote(word) for word in ("urd", "ingest", str(scene.path.resolve()), "--redo"))
+            return SceneOutcome(scene.name, [], f"ingested, but its aligned shots are missing or changed "
+                                f"({', '.join(missing)}); decode and align it again with: {redo}", "failed")
         return SceneOutcome(scene.name, [], "already ingested (--redo decodes and aligns it again)", "skipped")
     return None
 
 
-def _outcome(scene: Scene) -> SceneOutcome:
-    """The outcome of a scene whose ingest was recorded."""
+def _outcome(scene: Scene, notes: list[str]) -> SceneOutcome:
+    """The outcome of a scene whose ingest was recorded, with ``notes`` for the user."""
     ok, error = scene.reload().ingest_outcome()
-    return SceneOutcome(scene.name, scene.raw_paths(), error, "ingested" if ok else "failed")
+    return SceneOutcome(scene.name, scene.raw_paths(), error, "ingested" if ok else "failed", notes)
 
 
 def ingest_scene(scene: Scene, opts: IngestOptions, progress: Progress | None = None) -> SceneOutcome:
@@ -325,11 +379,12 @@ def ingest_scene(scene: Scene, opts: IngestOptions, progress: Progress | None = 
     if skipped is not None:
         return skipped
     try:
+        notes = _exposure_notes(scene)
         scene.check_files([{"file": s.file, "size": s.size, "sha256": s.sha256} for s in scene.shots()])
         process_scene(scene, opts, progress)
     except UrdError as exc:
         return SceneOutcome(scene.name, [], str(exc), "failed")
-    return _outcome(scene)
+    return _outcome(scene, notes)
 
 
 def _prepare_worker(path: str, opts: IngestOptions) -> PreparedIngest:
@@ -346,13 +401,18 @@ def ingest_scenes(scenes: list[Scene], opts: IngestOptions, jobs: int, progress:
     and the others go on. Progress counts scenes."""
     import concurrent.futures
 
-    outcomes, todo = [], []
+    outcomes, todo, notes = [], [], {}
     for scene in scenes:
         skipped = _not_to_ingest(scene, opts)
-        if skipped is None:
-            todo.append(scene)
-        else:
+        if skipped is not None:
             outcomes.append(skipped)
+            continue
+        try:
+            notes[scene.name] = _exposure_notes(scene)
+        except UrdError as exc:
+            outcomes.append(SceneOutcome(scene.name, [], str(exc), "failed"))
+            continue
+        todo.append(scene)
     label = f"ingest ({jobs} jobs)"
     if progress:
         progress(0, len(todo), label)
@@ -363,7 +423,7 @@ def ingest_scenes(scenes: list[Scene], opts: IngestOptions, jobs: int, progress:
                 scene = futures[future]
                 try:
                     commit_ingest(scene, future.result(), opts)
-                    outcomes.append(_outcome(scene))
+                    outcomes.append(_outcome(scene, notes[scene.name]))
                 except Exception as exc:  # noqa: BLE001 - one scene's failure, whatever it is, must not stop the others
                     outcomes.append(SceneOutcome(scene.name, [], str(exc) if isinstance(exc, UrdError)
                                                  else f"{type(exc).__name__}: {exc}", "failed"))
@@ -380,11 +440,12 @@ def ingest_scenes(scenes: list[Scene], opts: IngestOptions, jobs: int, progress:
 def ingest_group(ds: Dataset, files: list[Path], opts: IngestOptions, progress: Progress | None = None) -> SceneOutcome:
     """Make a new scene from RAW files taken at ``opts.angles_deg``; nothing is left on failure."""
     try:
+        metas = [rawio.metadata(src) for src in files]
+        warning = exposure_warning(metas)
         with ds.staged_scene("ingest", {"source_files": [str(f) for f in files], "angles_deg": list(opts.angles_deg),
                                         "complete": True}) as staged:
             (staged.path / "raw").mkdir()
-            for i, (src, angle) in enumerate(zip(files, opts.angles_deg)):
-                meta = rawio.metadata(src)
+            for i, (src, angle, meta) in enumerate(zip(files, opts.angles_deg, metas)):
                 dst = staged.path / "raw" / f"shot_{i:02d}_{angle:05.1f}deg{src.suffix.lower()}"
                 with atomic_path(dst) as part:
                     shutil.copyfile(src, part)
@@ -403,7 +464,8 @@ def ingest_group(ds: Dataset, files: list[Path], opts: IngestOptions, progress: 
         for i, src in enumerate(files):
             message = message.replace(f"shot_{i:02d}_{opts.angles_deg[i]:05.1f}deg{src.suffix.lower()}", src.name)
         return SceneOutcome(None, files, message, "failed")
-    return SceneOutcome(scene.name, files, error, "ingested" if ok else "failed")
+    notes = [] if warning is None else [f"{scene.name}: {warning}"]
+    return SceneOutcome(scene.name, files, error, "ingested" if ok else "failed", notes)
 
 
 def ingest_folder(raw_dir: Path, ds: Dataset, opts: IngestOptions, progress: Progress | None = None) -> IngestReport:
@@ -492,6 +554,25 @@ def ingest_mosaic(ds: Dataset, path: Path, layout, demosaic, transfer: Transfer 
         return SceneOutcome(None, [path], str(exc), "failed")
 
 
+#: Image files whose compression is lossy, by suffix: the kind named in the warning.
+LOSSY_KINDS = {".jpg": "JPEG", ".jpeg": "JPEG"}
+
+
+def lossy_notes(frames: list[Path]) -> list[str]:
+    """A warning per lossy kind of file (JPEG) among mosaic ``frames``: lossy compression mixes
+    neighbouring pixels, which sit behind different polarizers."""
+    kinds: dict[str, list[Path]] = {}
+    for frame in frames:
+        if frame.suffix.lower() in LOSSY_KINDS:
+            kinds.setdefault(LOSSY_KINDS[frame.suffix.lower()], []).append(frame)
+    notes = []
+    for kind, paths in kinds.items():
+        which = paths[0].name if len(paths) == 1 else f"{len(paths)} frames ({paths[0].name} … {paths[-1].name})"
+        notes.append(f"{which}: {kind} compression is lossy and mixes neighbouring pixels, which sit behind different "
+                     "polarizers, so the polarization is biased; save the camera's frames as PNG or TIFF")
+    return notes
+
+
 def ingest(source: Path, root: Path, opts: IngestOptions, mosaic=None, demosaic="newton",
            transfer: Transfer = Transfer.LINEAR, progress: Progress | None = None, jobs: int = 1) -> IngestReport:
     """The workflow of ``urd ingest``: a RAW folder (or mosaic frames) into the dataset at
@@ -531,7 +612,8 @@ def _ingest_into(ds: Dataset, source: Path, scenes: list[str] | None, opts: Inge
                 outcomes.append(ingest_mosaic(ds, f, mosaic, demosaic, transfer))
             if progress:
                 progress(len(files), len(files), "ingest mosaics")
-            return IngestReport(outcomes, [])
+            ingested = [f for f, outcome in zip(files, outcomes) if outcome.state == "ingested"]
+            return IngestReport(outcomes, [], lossy_notes(ingested))
         if scenes == []:
             return ingest_folder(source, ds, opts, progress)
         targets = [ds.root / name for name in (scenes or ds.scene_names())]

@@ -11,7 +11,9 @@ from urd.core.progress import plural
 
 
 def report_text(root: Path) -> str:
-    """One line per scene (state, angles, calibration, results); broken scenes say why."""
+    """One line per scene (state, angles, calibration, results); broken scenes say why, and so do
+    scenes with missing files, a lost ground truth or an unfinished swap; folders holding a scene
+    manifest under another name than a scene's are named."""
     ds = Dataset.open(root)
     try:
         calibration = ds.calibration()
@@ -28,7 +30,10 @@ def report_text(root: Path) -> str:
         if missing:
             lines.append(f"    {plural(len(missing), 'listed file')} missing or of another size ({', '.join(missing[:3])}"
                          f"{', …' if len(missing) > 3 else ''}): run urd verify {ds.root}")
+        if status.state != "broken":
+            lines += [f"    {note}" for note in (scene.lost_truth(), scene.unfinished_swap()) if note]
         lines += [f"    {line}" for line in _truth_lines(scene)]
+    lines += [f"  {name}: {message}" for name, message in ds.misnamed_scenes().items()]
     return "\n".join(lines)
 
 
@@ -43,9 +48,10 @@ def _truth_lines(scene) -> list[str]:
 
 
 def verify(root: Path) -> dict[str, list[str]]:
-    """Problems per scene (missing or changed files, unreadable manifests), and of the
-    calibration under the key "calibration" where the dataset has one; empty when intact.
-    ``root`` may also be one scene's folder: then that scene alone."""
+    """Problems per scene (missing or changed files, unreadable manifests, unfinished swaps), of
+    the calibration under the key "calibration" where the dataset has one, and of each folder
+    holding a scene manifest under another name than a scene's (`Dataset.misnamed_scenes`);
+    empty when intact. ``root`` may also be one scene's folder: then that scene alone."""
     if (Path(root) / SCENE_MANIFEST).is_file():
         scene = Scene(Path(root))
         return {scene.name: scene.verify()}
@@ -53,6 +59,8 @@ def verify(root: Path) -> dict[str, list[str]]:
     problems = {scene.name: scene.verify() for scene in ds.scenes()}
     if ds.calibration_path.exists() or ds.sweeps():
         problems["calibration"] = ds.verify_calibration()
+    for name, message in ds.misnamed_scenes().items():
+        problems.setdefault(name, []).append(message)
     return problems
 
 

@@ -22,15 +22,19 @@ load lazily. What the page shows of each scene:
 
 The images, and the display gain they are shown with, come from `urd.report_images`.
 
-The report folder is built in a fresh staging folder beside ``out_dir`` and renamed into place
-when complete; an existing folder is replaced only with ``overwrite=True`` and only when it is
-empty or an urd HTML report holding nothing but what the report wrote; a folder inside an urd
-dataset is refused (`check_report_folder`).
+The report folder is built in a fresh staging folder beside ``out_dir``, locked while in use,
+and renamed into place when complete; the next run removes staging folders that killed runs
+left (`_remove_stale_staging`), and a full disk is reported naming the report folder. An
+existing folder is replaced only with ``overwrite=True`` and only when it is empty or an urd
+HTML report holding nothing but what the report wrote; a folder inside an urd dataset is
+refused (`check_report_folder`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import fcntl
+import glob
 import html
 import json
 import math
@@ -38,6 +42,7 @@ import os
 import re
 import shutil
 import tempfile
+import time
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -46,6 +51,7 @@ import tifffile
 
 from urd.core.dataset import enclosing_dataset
 from urd.core.errors import DatasetError
+from urd.core.files import disk_full, write_error
 from urd.core.images import srgb_encode, to_display
 from urd.report_assets import CSS, JS, calibration_svg, compare_html, wheel_svg
 from urd.report_images import (
@@ -253,6 +259,42 @@ def check_report_folder(out_dir: Path, overwrite: bool = False) -> None:
     except OSError as exc:
         raise DatasetError(f"cannot write the report folder {out_dir} ({exc.strerror or exc}); choose another "
                            "folder for the report, or make its parent writable") from exc
+
+
+def _staging_prefix(out_dir: Path) -> str:
+    """How the staging folders of the report ``out_dir`` begin (a random suffix follows)."""
+    return f".{out_dir.name}.staging-"
+
+
+def _lock_folder(folder: Path) -> int | None:
+    """An open descriptor of ``folder`` holding its exclusive lock (released when closed, or when
+    its process dies), or None when another process holds it or it cannot be opened (a link is
+    not followed)."""
+    try:
+        fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC)
+    except OSError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        return None
+    return fd
+
+
+def _remove_stale_staging(out_dir: Path, started: float) -> None:
+    """Remove the staging folders of ``out_dir`` that runs killed before finishing left beside
+    it: those made before ``started`` (a time.time()) whose lock no live run holds."""
+    pattern = glob.escape(_staging_prefix(out_dir)) + "[a-z0-9_]" * 8          # tempfile.mkdtemp's names
+    for folder in out_dir.parent.glob(pattern):
+        fd = _lock_folder(folder)
+        if fd is None:
+            continue
+        try:
+            if os.fstat(fd).st_mtime < started:
+                shutil.rmtree(folder, ignore_errors=True)
+        finally:
+            os.close(fd)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -565,7 +607,8 @@ def write_html_report(scenes: list[SceneView], out_dir: Path, title: str, calibr
     Raises:
         ReportExistsError (a FileExistsError): ``out_dir`` exists and ``overwrite`` is false, or it
             is not an urd HTML report, or it holds files the report did not write.
-        DatasetError: ``out_dir`` lies inside an urd dataset, or cannot be written.
+        DatasetError: ``out_dir`` lies inside an urd dataset, or cannot be written (DiskFullError
+            naming it when its disk is full).
         TypeError, ValueError: malformed views (wrong types, shapes, dtypes, non-finite angles).
     """
     if not isinstance(thumb_px, int) or isinstance(thumb_px, bool):
@@ -584,8 +627,15 @@ def write_html_report(scenes: list[SceneView], out_dir: Path, title: str, calibr
         _check_scene(scene, i)
     out_dir = Path(out_dir)
     check_report_folder(out_dir, overwrite)
-    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.staging-", dir=out_dir.parent))
+    started = time.time()
     try:
+        staging = Path(tempfile.mkdtemp(prefix=_staging_prefix(out_dir), dir=out_dir.parent))
+    except OSError as exc:
+        raise write_error(out_dir, exc) from exc
+    held = os.open(staging, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+    try:
+        fcntl.flock(held, fcntl.LOCK_EX)            # marks it live (`_remove_stale_staging`); waits only for a check
+        _remove_stale_staging(out_dir, started)
         sections = []
         for i, scene in enumerate(scenes):
             if progress:
@@ -619,9 +669,14 @@ def write_html_report(scenes: list[SceneView], out_dir: Path, title: str, calibr
             shutil.rmtree(old, ignore_errors=True)
         else:
             os.rename(staging, out_dir)
-    except BaseException:
+    except BaseException as exc:
+        full = isinstance(exc, OSError) and not isinstance(exc, DatasetError) and disk_full(exc, out_dir.parent)
         shutil.rmtree(staging, ignore_errors=True)
+        if full:
+            raise write_error(out_dir, exc, full=True) from exc
         raise
+    finally:
+        os.close(held)
     if progress:
         progress(len(scenes), len(scenes))
     return out_dir / "index.html"

@@ -36,7 +36,7 @@ from separate.reference import Inspection, resolve_reference
 from urd.core.dataset import SCENE_NAME, Scene, enclosing_dataset
 from urd.core.errors import DatasetError
 from urd.core.files import atomic_path
-from urd.core.images import Transfer, linear_to_u16, read_image, to_display
+from urd.core.images import ORIENTATIONS, Transfer, exif_orientation, linear_to_u16, read_image, to_display
 
 FULL_SCALE = 2.0
 PREVIEW_SIDE = 2048
@@ -254,6 +254,7 @@ def prepare_scene(scene: Scene, method: str, run, info: dict, reference: str | f
     so that several processes can prepare scenes of one dataset while one commits them."""
     scene.reload()
     scene.truth_files()                                    # damaged ground truth stops it before the work
+    _check_results_folder(scene, method)                   # so do a link or a file where the results go
     images, angles = scene.load_stack(codes=True)          # uint16: half the memory of float32
     sees_polarization = sees_polarization_of(info)
     r_hat, t_hat, inspection, used = separate_inspected(images, angles, run, reference, sees_polarization)
@@ -278,6 +279,16 @@ def prepare_scene(scene: Scene, method: str, run, info: dict, reference: str | f
     entry = {"angles_deg": angles, **info, "full_scale": FULL_SCALE, "reference_deg": round(reference_deg, 3),
              "reference": kind, "warnings": warnings, "truth_metrics": metrics_truth}
     return Prepared(scene.path, method, staging, staged, entry, Separation([], reference_deg, warnings, metrics_truth, kind))
+
+
+def _check_results_folder(scene: Scene, method: str) -> None:
+    """DatasetError, before any work, when the scene holds a symbolic link (`Scene.refuse_links`)
+    or a file stands where its results folders must be."""
+    scene.refuse_links()
+    for folder in (scene.path / "results", scene.results_dir(method)):
+        if folder.exists() and not folder.is_dir():
+            raise DatasetError(f"{folder} is a file, not a folder; {scene.name}'s {method} results go there: move it "
+                               "away and run the command again")
 
 
 def commit_scene(prepared: Prepared, force: bool = False) -> Separation:
@@ -426,9 +437,16 @@ def _separate_into(paths: list[Path], angles_deg: list[float], out: Path, run, t
     """The work of `separate_images` once ``out`` is checked: the results written into a
     staging folder inside ``out``, then moved into place."""
     loaded = [read_image(p, transfer) for p in paths]
+    turned = {Path(p).name: ORIENTATIONS[o] for p in paths if (o := exif_orientation(p)) in ORIENTATIONS}
     if len({im.shape for im in loaded}) > 1:
         sizes = ", ".join(f"{Path(p).name} {im.shape[1]}×{im.shape[0]}" for p, im in zip(paths, loaded))
-        raise ValueError(f"expected images of one size, got {sizes}")
+        stored = f" (as stored; viewers show {', '.join(f'{n} {how}' for n, how in turned.items())} by its EXIF orientation)" if turned else ""
+        raise ValueError(f"expected images of one size, got {sizes}{stored}")
+    for i in range(len(loaded)):
+        for j in range(i + 1, len(loaded)):
+            if np.array_equal(loaded[i], loaded[j]):
+                raise ValueError(f"{Path(paths[i]).name} and {Path(paths[j]).name} hold the same image: each polarizer "
+                                 "angle needs its own shot")
     height, width = loaded[0].shape[:2]
     if min(height, width) < MIN_SIDE_PX:
         raise ValueError(f"expected images of at least {MIN_SIDE_PX}×{MIN_SIDE_PX} pixels, got {width}×{height}")
@@ -453,7 +471,12 @@ def _separate_into(paths: list[Path], angles_deg: list[float], out: Path, run, t
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     _remove_replaced(out, paths)
-    return Separation(paths, inspection.reference_deg, inspection.warnings,
+    notes = []
+    for how in dict.fromkeys(turned.values()):
+        names = [name for name, turn in turned.items() if turn == how]
+        notes.append(f"{', '.join(names)}: EXIF asks viewers to show {'it' if len(names) == 1 else 'them'} {how}; urd reads "
+                     "the pixels as stored (the frame the polarizer angles are measured in) and writes the results so")
+    return Separation(paths, inspection.reference_deg, notes + inspection.warnings,
                       reference_kind=_reference_kind(reference, used, sees_polarization))
 
 

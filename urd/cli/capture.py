@@ -23,7 +23,7 @@ def sim_settings(offset: float, jitter: float, faults: str, size: str, shake: fl
         fault_map = parse_faults(faults)
     except ValueError as exc:
         raise bad("--sim-faults", str(exc)) from None
-    return SimSettings(offset, jitter, fault_map, width, height, shake, 0.5, reflection, transmission, seed)
+    return SimSettings(offset, jitter, fault_map, width, height, shake, 0.5 if shake > 0 else 0.0, reflection, transmission, seed)
 
 
 def capture(
@@ -40,7 +40,7 @@ def capture(
     sim_jitter: float = typer.Option(0.0, callback=within(0.0), help="[sim] per-move angle error the encoder does not see, std (deg)."),
     sim_faults: str = typer.Option("", help="[sim] fault probabilities per command, e.g. drop=0.05,garble=0.05,mech_timeout=0.02,miss=0.02,vanish=0.01."),
     sim_size: str = typer.Option("1536x1024", help="[virtual] sensor size WIDTHxHEIGHT."),
-    sim_shake: float = typer.Option(4.0, callback=within(0.0), help="[virtual] camera shake between shots, max translation (px)."),
+    sim_shake: float = typer.Option(4.0, callback=within(0.0), help="[virtual] camera shake between shots: max translation (px), with a rotation of up to 0.5 deg; 0 is a tripod (neither)."),
     reflection: Optional[Path] = typer.Option(None, help="[virtual] image file reflected in the glass (default: bundled photo)."),
     transmission: Optional[Path] = typer.Option(None, help="[virtual] image file seen through the glass (default: bundled photo)."),
     seed: int = typer.Option(0, callback=within(0), help="[sim/virtual] random seed."),

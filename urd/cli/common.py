@@ -12,6 +12,7 @@ import enum
 import json
 import math
 import re
+import sys
 from pathlib import Path
 from typing import Optional
 
@@ -47,7 +48,9 @@ class WorkflowOrder(typer.core.TyperGroup):
 
 
 def fail(message: str, code: int = 1) -> None:
-    """Print an error line in the voice of usage errors ("Error: ...") and exit with ``code``."""
+    """Print an error line in the voice of usage errors ("Error: ...") and exit with ``code``;
+    the line starts a line of its own (`TerminalProgress.end_open_lines`)."""
+    TerminalProgress.end_open_lines(sys.stderr)
     typer.secho(f"Error: {message}", fg=typer.colors.RED, err=True)
     raise typer.Exit(code)
 
@@ -125,16 +128,12 @@ def run_guarded(func, *args, **kwargs):
     try:
         return func(*args, **kwargs)
     except CaptureInterrupted as exc:
-        end_line(bar)
         fail(str(exc), 143 if exc.terminated else 130)
     except (UrdError, ValueError, OSError) as exc:
-        end_line(bar)
         fail(str(exc))
     except MemoryError:
-        end_line(bar)
         fail("out of memory: the work stopped (completed files are kept); try smaller images, or a machine with more memory")
     except KeyboardInterrupt as exc:
-        end_line(bar)
         stopped = "stopped by SIGTERM" if isinstance(exc, Terminated) else "interrupted"
         kept = "; ".join(getattr(exc, "__notes__", [])) or "completed files are kept, unfinished outputs were discarded"
         fail(f"{stopped}; {kept}", 143 if isinstance(exc, Terminated) else 130)

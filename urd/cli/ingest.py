@@ -21,7 +21,7 @@ def ingest(
     half_size: bool = typer.Option(False, help="Decode at half resolution (one pixel per 2x2 CFA tile; ~4x faster)."),
     gap: float = typer.Option(60.0, callback=within(0.0), help="Seconds between shots that start a new scene when grouping by capture time."),
     redo: bool = typer.Option(False, help="Decode and align again scenes that are already ingested (the old aligned stack is replaced only on success)."),
-    mosaic: Optional[str] = typer.Option(None, help="SOURCE holds polarization-camera frames (PNG/TIFF) with this layout: imx250mzr, imx250myr or wen2019; one scene per frame."),
+    mosaic: Optional[str] = typer.Option(None, help="SOURCE holds polarization-camera frames (PNG/TIFF) with this layout: imx250mzr, imx250myr or wen2019; one scene per frame, demosaiced at half size (one pixel per 2x2 polarizer cell)."),
     demosaic: str = typer.Option("newton", help="Demosaicing of --mosaic frames: none (sites as they are, unregistered), bilinear, newton (registers the four polarizer sites)."),
     transfer: str = typer.Option("linear", help="8-bit frames: linear (sensor codes, polarization cameras) or srgb (photos from ordinary cameras). 16-bit frames are always linear."),
     jobs: int = typer.Option(1, callback=within(1), help="Worker processes for the scenes of a dataset (SOURCE a dataset folder): each decodes and aligns one scene at a time."),
@@ -70,6 +70,13 @@ def ingest(
     unused = [f"--{name}" for name in ("demosaic", "transfer") if given(ctx, name)]
     if unused and not mosaic:
         raise usage(f"{', '.join(unused)}: for --mosaic frames")
+    unused = [f"--{name}" for name in ("angles", "gap", "motion") if given(ctx, name)]
+    if unused and mosaic:
+        raise usage(f"{', '.join(unused)}: for RAW shots; a --mosaic frame holds its polarizer angles in its layout "
+                    "and is one scene, registered as it is taken")
+    if mosaic and given(ctx, "half_size"):
+        raise usage(f"--{'' if half_size else 'no-'}half-size: for RAW shots; --mosaic frames are always demosaiced at "
+                    "half size (one pixel per 2x2 polarizer cell)")
     report = run_guarded(ingest_workflow, source, dataset or default_root(), opts, layout, method, transfer_rule,
                          progress=TerminalProgress(), jobs=jobs)
     for path in report.ignored:
@@ -77,6 +84,8 @@ def ingest(
     for note in report.notes:
         warn(note)
     for outcome in report.outcomes:
+        for note in outcome.notes:
+            warn(note)
         where = outcome.name or ", ".join(p.name for p in outcome.files)
         if outcome.state == "failed":
             typer.secho(f"FAILED {where}: {outcome.error}", fg=typer.colors.RED, err=True)

@@ -46,6 +46,7 @@ def verify(dataset: Optional[Path] = typer.Argument(None, help=DATASET_HELP + " 
       urd verify dataset
       urd verify dataset/scene_01
     """
+    from urd.core.dataset import SCENE_NAME
     from urd.report import verify as verify_dataset
 
     problems = run_guarded(verify_dataset, existing_dataset(dataset))
@@ -56,8 +57,10 @@ def verify(dataset: Optional[Path] = typer.Argument(None, help=DATASET_HELP + " 
         bad += bool(issues)
         if not issues:
             typer.echo(f"{name}: ok")
-    scenes = len(problems) - ("calibration" in problems)
-    what = plural(scenes, "scene") + (" and the calibration" if "calibration" in problems else "")
+    scenes = sum(bool(SCENE_NAME.match(name)) for name in problems)
+    misnamed = len(problems) - scenes - ("calibration" in problems)        # folders named like no scene
+    what = " and ".join([plural(scenes, "scene")] + (["the calibration"] if "calibration" in problems else [])
+                        + ([plural(misnamed, "misnamed scene folder")] if misnamed else []))
     if bad:
         fail(f"{bad} of {what} {'has' if bad == 1 else 'have'} problems")
     typer.echo(f"{'all ' if scenes > 1 else ''}{what} intact")

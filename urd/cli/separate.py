@@ -3,6 +3,7 @@ into reflection R and transmission T, or polarization maps added to existing res
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Optional
 
@@ -95,8 +96,14 @@ def separate(
     forced = parse_reference(reference)
     angle_list = parse_angles(angles) if images else None
     if method in NETWORKS:                               # the names only: torch comes after every check
+        from separate import optics
         from separate.precision import parse_device, parse_precision
         from separate.tiling import OVERLAP, check_tiling
+        if images:
+            try:
+                optics.check_angles([math.radians(a) for a in angle_list], min_span=math.radians(optics.MIN_SPAN_DEG))
+            except ValueError as exc:
+                raise bad("--angles", f"{exc} for the {method}") from None
         try:
             parse_device(device)
         except ValueError as exc:
@@ -117,6 +124,11 @@ def separate(
             check_out_folder(out, method)
         except DatasetError as exc:
             raise bad("--out", str(exc)) from None
+        if out.exists() and not out.is_dir():
+            raise bad("--out", f"{out} is a file, not a folder; name a folder for the results")
+        if not given(ctx, "transfer") and any(Path(p).suffix.lower() in (".jpg", ".jpeg") for p in images):
+            warn("JPEG images are read as linear sensor codes (--transfer linear, the default); a photo from an "
+                 "ordinary camera is sRGB-encoded: pass --transfer srgb for it")
         run_guarded(check_no_results_in, out, force)
     target = None if images or all_scenes else run_guarded(resolve_scene, scene, dataset)
     adding_maps = target is not None and maps and not force and method in target.methods()

@@ -54,6 +54,7 @@ import copy
 import dataclasses
 import os
 import re
+import shlex
 import shutil
 import tempfile
 from pathlib import Path
@@ -73,6 +74,7 @@ from urd.core.manifest import (
     validate_dataset,
     validate_scene,
 )
+from urd.core.progress import plural
 from urd.core.results import Result as Result
 from urd.core.results import SceneResults
 from urd.core.shots import SceneShots
@@ -109,9 +111,9 @@ class SceneStatus:
         if self.state == "broken":
             return f"{self.name}: BROKEN ({self.problem})"
         angles = ",".join(f"{a:g}" for a in self.angles_deg)
-        parts = [f"{self.name}: {self.shots} shots at {angles} deg"]
+        parts = [f"{self.name}: {plural(self.shots, 'shot')}" + (f" at {angles} deg" if angles else "")]
         if self.state == "incomplete":
-            parts.append(f"INCOMPLETE ({self.shots} of {self.expected} shots; resume the capture)")
+            parts.append(f"INCOMPLETE ({self.shots} of {plural(self.expected, 'shot')}; resume the capture)")
         else:
             parts.append({"captured": "not ingested", "ingested": "aligned",
                           "alignment failed": "ALIGNMENT FAILED"}[self.state])
@@ -393,6 +395,18 @@ class Dataset:
         """Names of the scene folders present (readable or not), sorted by number."""
         names = [p.name for p in self.root.iterdir() if p.is_dir() and SCENE_NAME.match(p.name)]
         return sorted(names, key=lambda n: int(SCENE_NAME.match(n).group(1)))
+
+    def misnamed_scenes(self) -> dict[str, str]:
+        """Folders holding a scene manifest under a name that is not a scene's (``kitchen``,
+        ``scene_1``, ``scene_01.bak``), which no command takes for a scene: folder name → what
+        `urd verify` and `urd report` say of it (rename it, with a free name). A folder that
+        cannot be read (a root-owned lost+found) is none."""
+        folders = sorted(p for p in self.root.iterdir() if p.is_dir() and not SCENE_NAME.match(p.name)
+                         and not p.name.startswith(STAGING_PREFIX) and os.path.isfile(p / SCENE_MANIFEST))
+        first = int(SCENE_NAME.match(self.next_scene_name()).group(1))
+        return {path.name: f"holds a {SCENE_MANIFEST} but is not named scene_NN, so no command sees it as a scene; rename "
+                           f"it: mv {shlex.quote(str(path))} {shlex.quote(str(self.root / f'scene_{n:02d}'))}"
+                for n, path in enumerate(folders, first)}
 
     def scenes(self) -> list[Scene]:
         """Every scene folder; a broken one reports itself through `Scene.status`."""

@@ -108,12 +108,15 @@ def write_json_atomic(path: Path, record: dict, overwrite: bool = True) -> None:
 
 
 def read_json(path: Path) -> Any:
-    """Read a JSON file; ManifestError when missing, unparsable, or nested deeper than
+    """Read a JSON file; ManifestError when missing, a folder, unparsable, or nested deeper than
     `MAX_DEPTH` levels (no urd manifest is; such a file would overflow Python's stack)."""
     try:
         record = json.loads(Path(path).read_text())
     except FileNotFoundError as exc:
         raise ManifestError(f"{path}: manifest not found") from exc
+    except IsADirectoryError as exc:
+        raise ManifestError(f"{path}: is a folder, not a file (damaged or not written by urd); replace the folder "
+                            "by the manifest from a backup") from exc
     except RecursionError:
         record = None
     except (ValueError, UnicodeDecodeError) as exc:
@@ -170,6 +173,13 @@ def refuse_links(path: Path, base: Path | None = None) -> None:
 # ---------------------------------------------------------------- locks
 
 
+def _foreign_lock(path: Path, what: str) -> OSError:
+    """Why the lock file ``path`` cannot be used: it ``what`` (e.g. "is a folder, not a regular
+    file"), which no lock file urd writes does."""
+    return OSError(errno.EINVAL, f"its lock file {path} {what}; urd writes no such file. Remove it and run the "
+                                 "command again")
+
+
 @contextlib.contextmanager
 def pid_lock(path: Path, busy: Callable[[str], Exception], unopenable: Callable[[OSError], Exception]) -> Iterator[None]:
     """Hold an exclusive lock on the file ``path`` (created if missing), with this process's
@@ -185,14 +195,15 @@ def pid_lock(path: Path, busy: Callable[[str], Exception], unopenable: Callable[
             raise unopenable(OSError(exc.errno, f"its lock file {path} is a symbolic link, which urd does not "
                                                 "follow (it can point anywhere); remove it and run the command "
                                                 "again")) from exc
+        if exc.errno == errno.EISDIR:
+            raise unopenable(_foreign_lock(path, "is a folder, not a regular file")) from exc
         raise unopenable(exc) from exc
     try:
         info = os.fstat(fd)
         if not stat.S_ISREG(info.st_mode) or info.st_nlink > 1:
-            what = "has other hard links (its content is another file's too)" if stat.S_ISREG(info.st_mode) \
-                else "is not a regular file (a FIFO, device or folder)"
-            raise unopenable(OSError(errno.EINVAL, f"its lock file {path} {what}; urd writes no such file. Remove it "
-                                                   "and run the command again"))
+            raise unopenable(_foreign_lock(path, "has other hard links (its content is another file's too)"
+                                           if stat.S_ISREG(info.st_mode) else
+                                           "is not a regular file (a FIFO, device or folder)"))
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -205,3 +216,4 @@ def pid_lock(path: Path, busy: Callable[[str], Exception], unopenable: Callable[
             os.ftruncate(fd, 0)
     finally:
         os.close(fd)
+

@@ -6,12 +6,16 @@ files are linear; 8-bit files are read with the chosen `Transfer`, by default ``
 PNG/JPEG photos from ordinary cameras with the IEC 61966-2-1 curve. Integer codes are scaled so
 that 1.0 is the largest code of their type (255, 65535: 12-bit data stored in 16 bits reaches
 4095/65535); float files are taken as they are, 1.0 the white level: a file with more than
-`FLOAT_ABOVE_WHITE` of its values above 1.0 is refused (every such pixel would read as clipped).
+`FLOAT_ABOVE_WHITE` of its values above 1.0 is refused (every such pixel would read as clipped),
+as is one with as many below `FLOAT_BELOW_BLACK` (another black level). Pixels are read as stored:
+a TIFF of several images is refused, and an EXIF orientation is not applied (`exif_orientation`
+reads it, so that urd can say so), because the polarizer angles are measured in the stored frame.
 """
 
 from __future__ import annotations
 
 import enum
+import struct
 from pathlib import Path
 
 import cv2
@@ -94,7 +98,9 @@ def read_raw_codes(path: Path) -> np.ndarray:
     data, problem, bgr = None, "", True
     if path.suffix.lower() in (".tif", ".tiff"):
         try:
-            data, bgr = tifffile.imread(path), False
+            data, bgr = _read_tiff(path), False
+        except RawFormatError:
+            raise
         except (OSError, ValueError) as exc:        # e.g. a compression only imagecodecs decodes: OpenCV reads LZW
             problem = f" ({exc})"
     if data is None:
@@ -108,15 +114,76 @@ def read_raw_codes(path: Path) -> np.ndarray:
     return data
 
 
+def _read_tiff(path: Path) -> np.ndarray:
+    """A one-image TIFF's pixels, H×W or H×W×S (planar files, which store each sample apart,
+    put back in pixel order); RawFormatError for a file of several images (pages)."""
+    with tifffile.TiffFile(path) as tif:
+        pages = sum(not page.is_reduced for page in tif.pages)        # reduced-resolution copies are not images
+        if pages > 1:
+            raise RawFormatError(f"{path}: a TIFF of {pages} images (pages); give one image per file")
+        page = tif.pages[0]
+        data = page.asarray()
+        if page.planarconfig == tifffile.PLANARCONFIG.SEPARATE and page.samplesperpixel > 1:
+            data = np.moveaxis(data, 0, -1)
+        return data
+
+
+#: EXIF's orientation tag, and its values: 1 is the pixels as stored; 2-8 ask viewers to mirror or turn them.
+ORIENTATION_TAG = 0x0112
+ORIENTATIONS = {2: "mirrored", 3: "turned 180°", 4: "mirrored upside down", 5: "mirrored and turned",
+                6: "turned 90° clockwise", 7: "mirrored and turned", 8: "turned 90° counter-clockwise"}
+
+
+def exif_orientation(path: Path) -> int:
+    """The EXIF orientation (1-8) of a JPEG or TIFF file; 1 (as stored) where it has none or is another kind."""
+    path = Path(path)
+    try:
+        if path.suffix.lower() in (".tif", ".tiff"):
+            with tifffile.TiffFile(path) as tif:
+                tag = tif.pages[0].tags.get(ORIENTATION_TAG)
+                return int(tag.value) if tag is not None else 1
+        with open(path, "rb") as file:
+            head = file.read(1 << 17)
+    except (OSError, ValueError):
+        return 1
+    if head[:2] != b"\xff\xd8":
+        return 1
+    pos = 2
+    while pos + 4 <= len(head) and head[pos] == 0xFF and head[pos + 1] not in (0xD9, 0xDA):   # to the image data
+        length = int.from_bytes(head[pos + 2 : pos + 4], "big")
+        if head[pos + 1] == 0xE1 and head[pos + 4 : pos + 10] == b"Exif\0\0":
+            return _tiff_orientation(head[pos + 10 : pos + 2 + length])
+        pos += 2 + length
+    return 1
+
+
+def _tiff_orientation(tiff: bytes) -> int:
+    """The orientation tag of an EXIF block's first image directory (a TIFF header and IFD0); 1 if absent."""
+    order = "<" if tiff[:2] == b"II" else ">"
+    try:
+        (ifd,) = struct.unpack_from(order + "I", tiff, 4)
+        (count,) = struct.unpack_from(order + "H", tiff, ifd)
+        for k in range(count):
+            tag, _, _, value = struct.unpack_from(order + "HHIH", tiff, ifd + 2 + 12 * k)
+            if tag == ORIENTATION_TAG:
+                return value if value in range(1, 9) else 1
+    except struct.error:
+        pass
+    return 1
+
+
 #: The share of a float file's values that may lie above 1.0 (the white level): clipped
 #: highlights, which urd marks; where more of the picture lies above it, the file has another scale.
 FLOAT_ABOVE_WHITE = 0.05
+#: Below this a float value is not noise around black (0.0) but light measured from another black
+#: level: a file with more than `FLOAT_ABOVE_WHITE` of its values below it is refused.
+FLOAT_BELOW_BLACK = -0.05
 
 
 def to_linear(data: np.ndarray, transfer: Transfer = Transfer.LINEAR) -> np.ndarray:
     """Pixel codes → linear float32 by the module's rule (1.0 = the type's largest code; floats as
     they are, RawFormatError where one is NaN or infinite or more than `FLOAT_ABOVE_WHITE` of them
-    exceed 1.0)."""
+    exceed 1.0 or lie below `FLOAT_BELOW_BLACK`)."""
     if data.dtype in (np.uint8, np.uint16):
         return codes_to_linear(data, data.dtype, transfer)
     if data.dtype.kind == "f":
@@ -126,6 +193,11 @@ def to_linear(data: np.ndarray, transfer: Transfer = Transfer.LINEAR) -> np.ndar
         if above > FLOAT_ABOVE_WHITE:
             raise RawFormatError(f"float pixels are read with 1.0 as white, and {above:.1%} of these exceed it (up to "
                                  f"{float(data.max()):g}): scale every shot by one factor so that white is 1.0")
+        below = float(np.mean(data < FLOAT_BELOW_BLACK))
+        if below > FLOAT_ABOVE_WHITE:
+            raise RawFormatError(f"float pixels are read with 0.0 as black, and {below:.1%} of these lie below "
+                                 f"{FLOAT_BELOW_BLACK:g} (down to {float(data.min()):g}): subtract the sensor's black "
+                                 "level so that black is 0.0")
         return data.astype(np.float32)
     raise RawFormatError(f"expected 8-bit, 16-bit or float pixels, got {data.dtype}")
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import sys
 import time
+import weakref
 from typing import Callable, TextIO
 
 Progress = Callable[[int, int, str], None]
@@ -37,6 +38,9 @@ class TerminalProgress:
     anything else (a log file of a long run), besides each label's first and last call.
     """
 
+    #: Bars with a line drawn and not yet ended (`end_open_lines`).
+    _open: "weakref.WeakSet[TerminalProgress]" = weakref.WeakSet()
+
     def __init__(self, stream: TextIO = sys.stderr, width: int = 24):
         self.stream, self.width = stream, width
         self.label: str | None = None
@@ -51,6 +55,7 @@ class TerminalProgress:
             if self.label is not None:
                 self.stream.write("\n")
             self.label, self.started, self.first_done = label, now, done
+            TerminalProgress._open.add(self)
         elif done < total and now - self.last_draw < self.interval:
             return
         self.last_draw = now
@@ -77,3 +82,12 @@ class TerminalProgress:
             self.stream.write("\n")
             self.stream.flush()
             self.label = None
+        TerminalProgress._open.discard(self)
+
+    @classmethod
+    def end_open_lines(cls, stream: TextIO) -> None:
+        """End the lines every bar left open on ``stream``, so that a message starts a line of its
+        own (a command may hand its bar to the work inside a callback, out of the error handler's sight)."""
+        for bar in list(cls._open):
+            if bar.stream is stream:
+                bar.close()

@@ -53,15 +53,14 @@ def _place(source: Path, target: Path) -> None:
         shutil.copy2(source, link)
     try:
         os.replace(link, target)
-    except BaseException:
-        link.unlink(missing_ok=True)
-        raise
+    finally:
+        link.unlink(missing_ok=True)        # still there when target was already a hard link of source: rename does nothing
 
 
 class SceneSwap:
     """Staging, the swap of new outputs and the recovery of a `urd.core.dataset.Scene` (uses the
     scene's ``path``, ``name``, ``manifest_path``, ``_data``, ``_save``, ``reload``, ``exists``,
-    ``file_record``, ``refuse_links`` and ``truth_dir``)."""
+    ``file_record``, ``refuse_links``, ``truth_dir`` and ``_dataset_root``)."""
 
     def new_staging(self) -> Path:
         """A new hidden folder inside the scene for outputs being computed (the dataset's
@@ -82,7 +81,8 @@ class SceneSwap:
 
     def _output_path(self, relative: str) -> Path:
         """The final path of an output named ``relative`` (to the scene); DatasetError, before
-        anything changes, when it would leave the scene or a file stands where a folder must be."""
+        anything changes, when it would leave the scene, a file stands where a folder must be or a
+        folder where the file must be."""
         try:
             path = confined_path(self.path, relative, str(self.manifest_path))
         except ManifestError as exc:
@@ -94,6 +94,9 @@ class SceneSwap:
             if parent.exists() and not parent.is_dir():
                 raise DatasetError(f"{self.name}: cannot store {relative}: {parent} is a file, not a folder. Nothing "
                                    "was changed (the earlier outputs are kept); move it away and run the command again")
+        if path.is_dir():
+            raise DatasetError(f"{self.name}: cannot store {relative}: {path} is a folder, not a file. Nothing was "
+                               "changed (the earlier outputs are kept); remove it and run the command again")
         return path
 
     def _commit(self, staged: dict[str, Path], change: Callable[[list[dict]], None]) -> None:
@@ -181,6 +184,23 @@ class SceneSwap:
             raise
         for name in folders:
             shutil.rmtree(self.path / name, ignore_errors=True)
+
+    def unfinished_swap(self) -> str | None:
+        """What `urd report` says of a scene whose manifest records a swap of new outputs that was
+        committed but not finished (a killed run, see `_commit`; its files are whole, so `urd verify`
+        finds nothing wrong), else None (also for a manifest that cannot be read: that is reported
+        on its own)."""
+        try:
+            data = self._data()
+        except (ManifestError, OSError):
+            return None
+        staged = sorted(rec["file"] for rec in _file_records(data) if _final_name(rec["file"]) != rec["file"])
+        if "swap" not in data and not staged:
+            return None
+        names = ", ".join(_final_name(name) for name in staged[:3]) + (", …" if len(staged) > 3 else "")
+        return (f"new outputs{f' ({names})' if staged else ''} were recorded but not put in place (a command was stopped or "
+                f"failed); any command that writes to the dataset finishes it, e.g. "
+                f"'urd ingest {self._dataset_root() or self.path.parent}'")
 
     def recover(self) -> list[Path]:
         """Finish what a killed run left (call with the dataset's lock held): a committed swap is

@@ -1,0 +1,110 @@
+"""A dataset edited by hand or left by a failed run (QA): a scene folder under another name is
+named by ``urd verify`` and ``urd report``; a folder where an output file must go refuses the
+separation before anything changes; a swap a failure left unfinished is reported by verify and
+its recovery leaves no temporary link; the report's wording of shots and a lost ground truth."""
+
+import shutil
+
+import pytest
+from typer.testing import CliRunner
+
+import urd.core.swap as swap_module
+from rig import capture_virtual
+from separate.methods import get_method
+from urd.cli import app
+from urd.core.dataset import Dataset, Scene, SceneStatus
+from urd.core.errors import DatasetError
+from urd.ingest import IngestOptions, ingest_scene
+from urd.report import report_text, verify
+from urd.separation import separate_scene
+
+SCENE = "scene_01"
+
+
+def invoke(*args):
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+@pytest.fixture(scope="module")
+def base(tmp_path_factory):
+    """scene_01: captured with the virtual camera (ground truth), ingested, results of 'none'."""
+    ds = Dataset.open_or_create(tmp_path_factory.mktemp("base") / "ds")
+    scene, _ = capture_virtual(ds, size=(96, 64), shake_px=1.0, shake_deg=0.1, seed=1)
+    assert ingest_scene(scene, IngestOptions()).error is None
+    run, info = get_method("none")
+    separate_scene(scene, "none", run, info)
+    return ds.root
+
+
+def separate_again(root):
+    """``urd separate scene_01 --method none --force``."""
+    run, info = get_method("none")
+    separate_scene(Dataset.open(root).scene(SCENE), "none", run, info, force=True)
+
+
+@pytest.mark.usefixtures("wide_terminal")
+def test_a_scene_folder_renamed_by_hand_is_named_by_verify_and_report(base, tmp_path):
+    root = shutil.copytree(base, tmp_path / "ds")
+    (root / SCENE).rename(root / "kitchen")
+    for name in ("scene_1", "scene_01 (copy)", "scene_01.bak"):
+        shutil.copytree(root / "kitchen", root / name)
+    misnamed = ["kitchen", "scene_01 (copy)", "scene_01.bak", "scene_1"]
+    assert Dataset.open(root).scene_names() == []                   # still no scene
+    problems = verify(root)
+    assert sorted(problems) == misnamed
+    assert all(len(p) == 1 and "not named scene_NN" in p[0] and "rename it" in p[0] for p in problems.values())
+    out = invoke("verify", root)
+    assert out.exit_code == 1 and all(f"{name}: " in out.output for name in misnamed)
+    text = report_text(root)
+    assert "0 scenes" in text and all(f"  {name}: " in text for name in misnamed) and "scene_02" in text
+
+
+def test_a_folder_where_an_output_file_goes_refuses_the_separation_naming_it(base, tmp_path):
+    root = shutil.copytree(base, tmp_path / "ds")
+    target = root / SCENE / "results" / "none" / "T.tiff"
+    target.unlink()
+    target.mkdir()
+    before = Scene(root / SCENE).load(verify=False)
+    with pytest.raises(DatasetError, match=r"T\.tiff is a folder, not a file.*Nothing was changed.*remove it"):
+        separate_again(root)
+    assert Scene(root / SCENE).load(verify=False) == before
+    assert not list((root / SCENE).glob(".staging-*"))
+
+
+def test_a_swap_a_failure_left_is_named_by_the_report_and_recovered_without_link_files(base, tmp_path, monkeypatch):
+    """The recorded outputs are whole (verify finds nothing wrong); the report says they wait to be
+    put in place, and the next command that writes does it, leaving no temporary link."""
+    root = shutil.copytree(base, tmp_path / "ds")
+    real_place, calls = swap_module._place, []
+
+    def place_failing_the_second_file(source, target):
+        calls.append(target)
+        if len(calls) == 2:
+            raise IsADirectoryError(21, "Is a directory")
+        real_place(source, target)
+
+    monkeypatch.setattr(swap_module, "_place", place_failing_the_second_file)
+    with pytest.raises(DatasetError, match="cannot be put in place"):
+        separate_again(root)
+    monkeypatch.undo()
+    assert verify(root) == {SCENE: []}
+    text = report_text(root)
+    assert "not put in place" in text and f"urd ingest {root}" in text
+    with Dataset.open(root).lock():                                  # the recovery finishes the swap
+        pass
+    assert verify(root) == {SCENE: []}
+    assert not [p.name for p in (root / SCENE).rglob(".*") if p.name.endswith(".link")]
+
+
+def test_the_shot_count_is_worded_for_none_and_one():
+    assert SceneStatus(SCENE, "incomplete", 0, 3, [], []).describe() == (
+        "scene_01: 0 shots, INCOMPLETE (0 of 3 shots; resume the capture), nominal angles, no results")
+    assert SceneStatus(SCENE, "incomplete", 1, 3, [0.0], []).describe().startswith(
+        "scene_01: 1 shot at 0 deg, INCOMPLETE (1 of 3 shots;")
+
+
+def test_the_report_says_a_stopped_capture_lost_the_ground_truth(base, tmp_path):
+    root = shutil.copytree(base, tmp_path / "ds")
+    (root / SCENE / "truth").rename(root / SCENE / "truth-incomplete-1")    # what the recovery does
+    text = report_text(root)
+    assert "no ground truth" in text and "truth-incomplete-1" in text
