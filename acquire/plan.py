@@ -291,6 +291,8 @@ def capture_scene(root: Path, stage: str, camera: str, angles_deg: list[float] |
                     run_capture(scene, rig.stage, rig.camera, planned, progress=show)
                 if not scene.truth_dir().exists():
                     rig.camera.write_truth(scene.truth_dir())
+                    for aside in scene.path.glob("truth-incomplete-*"):     # what a stopped writing of it left
+                        shutil.rmtree(aside, ignore_errors=True)
             except KeyboardInterrupt as exc:
                 raise capture_stopped(exc, "capture", _stopped(scene, ds.root)) from None
             except (UrdError, OSError) as exc:

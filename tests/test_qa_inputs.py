@@ -147,3 +147,15 @@ def test_raw_only_options_with_mosaic_frames_are_usage_errors(tmp_path, option):
     out = invoke("ingest", tmp_path / "frames", tmp_path / "ds", "--mosaic", "imx250mzr", *option)
     assert out.exit_code == 2 and f"{option[0]}: for RAW shots" in out.output
     assert not (tmp_path / "ds").exists()
+
+
+def test_a_scene_whose_aligned_shots_are_gone_says_how_to_make_them_again(tmp_path_factory):
+    import shutil
+
+    from conftest import ingested_dataset
+
+    root = ingested_dataset(tmp_path_factory, "aligned-gone")
+    shutil.rmtree(root / "scene_01" / "aligned")
+    out = invoke("separate", "scene_01", "--dataset", root, "--method", "schechner")
+    assert out.exit_code == 1
+    assert "listed in the manifest but missing" in out.output and f"urd ingest {root / 'scene_01'} --redo" in " ".join(out.output.split())

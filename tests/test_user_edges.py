@@ -106,6 +106,7 @@ def test_ground_truth_a_stopped_capture_lost_is_reported_and_written_by_the_next
     assert out.exit_code == 0 and "writing the ground truth of" in out.output
     assert Dataset.open(root).scene_names() == ["scene_01"]
     assert invoke("verify", root).exit_code == 0
+    assert not list((root / "scene_01").glob("truth-incomplete-*"))         # the torn copy goes once the truth is whole
     other = tmp_path / "other"
     assert invoke("capture", other, *SIM).exit_code == 0
     shutil.move(other / "scene_01" / "truth", tmp_path / "truth-moved-away")    # the user's choice, not a stop

@@ -35,6 +35,8 @@ def demo(
         resolve(precision)
     except ValueError as exc:
         raise bad("--precision", str(exc)) from None
-    result = run_guarded(run_demo, folder, width, height, seed, precision, typer.echo, progress=TerminalProgress())
+    bar = TerminalProgress()
+    result = run_guarded(run_demo, folder, width, height, seed, precision,
+                         lambda line: (bar.break_line(), typer.echo(line)), progress=bar)
     report_truth(result.truth_metrics)
     show_previews(result.files)

@@ -10,7 +10,7 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
-from urd.core.errors import DatasetError
+from urd.core.errors import DatasetError, ManifestError
 from urd.core.manifest import confined_path, now_iso, provenance, stale_note
 from urd.core.swap import _final_name
 
@@ -88,7 +88,11 @@ class SceneResults:
             raise DatasetError(f"{self.name} is not ingested yet; run: urd ingest {self.path}")
         if not ingest["ok"]:
             raise DatasetError(f"{self.name}: {ingest['error']}")
-        self.check_files(ingest["aligned"])
+        try:
+            self.check_files(ingest["aligned"])
+        except ManifestError as exc:
+            raise ManifestError(f"{exc}; the aligned shots are made again from the RAW shots by: "
+                                f"urd ingest {self.path} --redo") from exc
         paths = [confined_path(self.path, f["file"], str(self.manifest_path)) for f in ingest["aligned"]]
         layouts = []
         for path in paths:
