@@ -19,3 +19,17 @@ def capture_virtual(ds, angles=(0.0, 45.0, 90.0), size=(768, 512), shake_px=8.0,
         run_capture(target, Ell14(port), cam, list(angles))
         cam.write_truth(target.path / "truth")
     return target, cam
+
+
+def separated_virtual_scene(ds, seed=1):
+    """A small scene (96×64) captured with the virtual camera (ground truth), ingested and
+    separated by 'none': the start of tests that damage or interrupt a dataset."""
+    from separate.methods import get_method
+    from urd.ingest import IngestOptions, ingest_scene
+    from urd.separation import separate_scene
+
+    scene, _ = capture_virtual(ds, size=(96, 64), shake_px=1.0, shake_deg=0.1, seed=seed)
+    assert ingest_scene(scene, IngestOptions()).error is None
+    run, info = get_method("none")
+    separate_scene(scene, "none", run, info)
+    return scene

@@ -12,14 +12,11 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from rig import capture_virtual
-from separate.methods import get_method
+from rig import capture_virtual, separated_virtual_scene
 from urd.cli import app
 from urd.core.dataset import Dataset
 from urd.core.errors import DatasetError
 from urd.core.files import atomic_path
-from urd.ingest import IngestOptions, ingest_scene
-from urd.separation import separate_scene
 
 SIM = ("--stage", "sim", "--camera", "virtual", "--sim-size", "96x64")
 LINKED = "is a symbolic link"
@@ -37,10 +34,7 @@ def urd(*args):
 def base(tmp_path_factory):
     """scene_01 ingested with results of 'none' and ground truth; scene_02 captured, not ingested."""
     ds = Dataset.open_or_create(tmp_path_factory.mktemp("base") / "ds")
-    scene, _ = capture_virtual(ds, size=(96, 64), shake_px=1.0, shake_deg=0.1, seed=1)
-    assert ingest_scene(scene, IngestOptions()).error is None
-    run, info = get_method("none")
-    separate_scene(scene, "none", run, info)
+    separated_virtual_scene(ds)
     capture_virtual(ds, size=(96, 64), shake_px=1.0, shake_deg=0.1, seed=2)
     other, _ = capture_virtual(Dataset.open_or_create(ds.root.parent / "other"), size=(96, 64), shake_px=1.0,
                                shake_deg=0.1, seed=3)
@@ -352,11 +346,8 @@ def wait_for(condition, what, limit_s=300):
 def two_scenes(tmp_path):
     """A dataset of two ingested scenes (96×64) with results of 'none'."""
     ds = Dataset.open_or_create(tmp_path / "ds")
-    run, info = get_method("none")
     for seed in (1, 2):
-        scene, _ = capture_virtual(ds, size=(96, 64), shake_px=1.0, shake_deg=0.1, seed=seed)
-        assert ingest_scene(scene, IngestOptions()).error is None
-        separate_scene(scene, "none", run, info)
+        separated_virtual_scene(ds, seed)
     return ds.root
 
 

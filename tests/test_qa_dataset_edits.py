@@ -9,12 +9,11 @@ import pytest
 from typer.testing import CliRunner
 
 import urd.core.swap as swap_module
-from rig import capture_virtual
+from rig import separated_virtual_scene
 from separate.methods import get_method
 from urd.cli import app
 from urd.core.dataset import Dataset, Scene, SceneStatus
 from urd.core.errors import DatasetError
-from urd.ingest import IngestOptions, ingest_scene
 from urd.report import report_text, verify
 from urd.separation import separate_scene
 
@@ -29,10 +28,7 @@ def invoke(*args):
 def base(tmp_path_factory):
     """scene_01: captured with the virtual camera (ground truth), ingested, results of 'none'."""
     ds = Dataset.open_or_create(tmp_path_factory.mktemp("base") / "ds")
-    scene, _ = capture_virtual(ds, size=(96, 64), shake_px=1.0, shake_deg=0.1, seed=1)
-    assert ingest_scene(scene, IngestOptions()).error is None
-    run, info = get_method("none")
-    separate_scene(scene, "none", run, info)
+    separated_virtual_scene(ds)
     return ds.root
 
 
