@@ -104,3 +104,11 @@ def test_the_report_says_a_stopped_capture_lost_the_ground_truth(base, tmp_path)
     (root / SCENE / "truth").rename(root / SCENE / "truth-incomplete-1")    # what the recovery does
     text = report_text(root)
     assert "no ground truth" in text and "truth-incomplete-1" in text
+
+
+def test_separate_all_names_a_scene_folder_renamed_by_hand(base, tmp_path):
+    root = shutil.copytree(base, tmp_path / "ds")
+    shutil.copytree(root / SCENE, root / "kitchen")
+    out = invoke("separate", "--all", "--dataset", root, "--method", "none", "--force")
+    assert out.exit_code == 0, out.output
+    assert "kitchen: holds a scene.json but is not named scene_NN" in out.output

@@ -204,6 +204,7 @@ def separate_dataset(dataset: Optional[Path], method: str, weights: Optional[Pat
     scene; exit 1 when any failed. ``network_device``: the networks' torch device."""
     from separate.methods import NETWORKS, get_method
     from urd.batch import separate_all
+    from urd.core.dataset import Dataset
 
     root = existing_dataset(dataset)
     options = ({"weights": weights, "tile": tile, "precision": chosen.value, "device": network_device.type,
@@ -213,6 +214,8 @@ def separate_dataset(dataset: Optional[Path], method: str, weights: Optional[Pat
     outcomes = run_guarded(separate_all, root, method, options, force, reference, maps, jobs, progress=TerminalProgress())
     for outcome in outcomes:
         typer.echo(f"{outcome.scene}: {outcome.state}{': ' + outcome.detail if outcome.detail else ''}")
+    for name, message in run_guarded(lambda: Dataset.open(root).misnamed_scenes()).items():
+        warn(f"{name}: {message}")
     failed = sum(o.state == "failed" for o in outcomes)
     done = sum(o.state == "separated" for o in outcomes)
     mapped = sum(o.state == "maps added" for o in outcomes)
