@@ -48,7 +48,7 @@ def _truth_lines(scene) -> list[str]:
 
 
 def verify(root: Path) -> dict[str, list[str]]:
-    """Problems per scene (missing or changed files, unreadable manifests, unfinished swaps), of
+    """Problems per scene (missing or changed files, unreadable manifests), of
     the calibration under the key "calibration" where the dataset has one, and of each folder
     holding a scene manifest under another name than a scene's (`Dataset.misnamed_scenes`);
     empty when intact. ``root`` may also be one scene's folder: then that scene alone."""
