@@ -148,3 +148,11 @@ def test_jpeg_mosaic_frames_are_ingested_with_one_warning(tmp_path):
     assert out.stderr.count("warning:") == 1
     assert ("warning: 2 frames (a.jpg … b.jpeg): JPEG compression is lossy and mixes neighbouring pixels, which sit "
             "behind different polarizers") in out.stderr
+
+
+def test_exposure_settings_the_exif_records_as_unknown_are_none_not_libraws_placeholders():
+    from conftest import shared_data
+    from urd.core.raw import metadata
+
+    record = metadata(shared_data("raw", "canon_eos550d_magiclantern_colorchart.dng"))   # ExposureTime 0/1e6, FNumber 0/10
+    assert record["exposure_s"] is None and record["aperture"] is None and record["model"] == "Canon EOS Kiss X4"

@@ -113,20 +113,31 @@ def metadata(path: Path) -> dict:
             "camera_whitebalance": [float(v) for v in raw.camera_whitebalance],
             "cfa": raw.color_desc.decode(),
         }
-    record.update(_tiff_make_model(path))
+    record.update(_tiff_tags(path))
     return record
 
 
-def _tiff_make_model(path: Path) -> dict:
-    """Make and model from a TIFF-based RAW (DNG, ARW, CR2, NEF); empty for other containers."""
+#: EXIF exposure settings whose value 0 means "not recorded": LibRaw then reports 1 s and f/1.0.
+UNRECORDED_EXIF = {"ExposureTime": "exposure_s", "FNumber": "aperture"}
+
+
+def _tiff_tags(path: Path) -> dict:
+    """Make and model from a TIFF-based RAW (DNG, ARW, CR2, NEF), and None for the exposure
+    settings its EXIF records as 0 (unknown); empty for other containers."""
     import tifffile
 
     try:
         with tifffile.TiffFile(path) as tif:
             tags = tif.pages[0].tags
-            return {key: str(tags[code].value).strip("\x00 ") for key, code in (("make", 271), ("model", 272)) if code in tags}
+            found = {key: str(tags[code].value).strip("\x00 ") for key, code in (("make", 271), ("model", 272)) if code in tags}
+            exif = tags[34665].value if 34665 in tags and isinstance(tags[34665].value, dict) else {}
     except Exception:  # noqa: BLE001 - any non-TIFF container simply has no such tags
         return {}
+    for name, key in UNRECORDED_EXIF.items():
+        value = exif.get(name)
+        if isinstance(value, tuple) and len(value) == 2 and value[0] == 0:
+            found[key] = None
+    return found
 
 
 def description(path: Path) -> str:
