@@ -112,3 +112,12 @@ def test_separate_all_names_a_scene_folder_renamed_by_hand(base, tmp_path):
     out = invoke("separate", "--all", "--dataset", root, "--method", "none", "--force")
     assert out.exit_code == 0, out.output
     assert "kitchen: holds a scene.json but is not named scene_NN" in out.output
+
+
+def test_a_link_to_a_scene_is_named_as_one_by_separate_and_verify(base, tmp_path):
+    link = tmp_path / "link"
+    link.symlink_to(base / SCENE)
+    for args in (("separate", link, "--method", "none"), ("verify", link)):
+        out = invoke(*args)
+        assert out.exit_code == 2, out.output
+        assert f"is a symbolic link to the scene {(base / SCENE).resolve()}; give that folder itself" in " ".join(out.output.split())

@@ -222,6 +222,7 @@ def resolve_scene(scene: str, dataset: Optional[Path]):
 
     path = Path(scene)
     if (path / "scene.json").is_file():
+        refuse_scene_link(path, "SCENE")
         return Scene(path)
     if (path / "dataset.json").is_file():
         raise bad("SCENE", f"{scene} is a dataset; give one of its scenes ({', '.join(Dataset.open(path).scene_names()) or 'none yet'}) "
@@ -231,6 +232,13 @@ def resolve_scene(scene: str, dataset: Optional[Path]):
         raise bad("SCENE", f"no scene {scene!r} in {ds.root.resolve()} (scenes: {', '.join(ds.scene_names()) or 'none'}); "
                            "give a scene's name, or its folder")
     return ds.scene(scene)
+
+
+def refuse_scene_link(path: Path, option: str) -> None:
+    """A usage error naming ``option`` when the scene folder ``path`` is a symbolic link: urd works
+    on a scene inside its dataset, whose manifest knows it, and follows no link into one."""
+    if path.is_symlink():
+        raise bad(option, f"{path} is a symbolic link to the scene {path.resolve()}; give that folder itself")
 
 
 def report_truth(figures: Optional[dict]) -> None:

@@ -8,7 +8,7 @@ from typing import Optional
 
 import typer
 
-from urd.cli.common import DATASET_HELP, existing_dataset, fail, run_guarded
+from urd.cli.common import DATASET_HELP, existing_dataset, fail, refuse_scene_link, run_guarded
 from urd.core.progress import TerminalProgress, plural
 
 
@@ -49,7 +49,10 @@ def verify(dataset: Optional[Path] = typer.Argument(None, help=DATASET_HELP + " 
     from urd.core.dataset import SCENE_NAME
     from urd.report import verify as verify_dataset
 
-    problems = run_guarded(verify_dataset, existing_dataset(dataset))
+    root = existing_dataset(dataset)
+    if (root / "scene.json").is_file():
+        refuse_scene_link(root, "DATASET")
+    problems = run_guarded(verify_dataset, root)
     bad = 0
     for name, issues in problems.items():
         for issue in issues:
