@@ -95,7 +95,8 @@ def load_model(path: Path | str | None = None) -> tuple[torch.nn.Module, dict]:
     digest = hashlib.sha256(path.read_bytes()).hexdigest()
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
-        model = build_model(state["model_config"])
+        with torch.random.fork_rng():                      # the weights' random start must not move the caller's RNG
+            model = build_model(state["model_config"])
         model.load_state_dict({k: v.float() for k, v in state["model"].items()})
     except Exception as exc:  # noqa: BLE001 - any failure to read means the file is unusable
         raise WeightsError(f"weights file {path} is corrupt or does not fit the model: {exc}") from exc
@@ -194,7 +195,7 @@ class FusedNet:
         n_in = c * (5 if canonical else 3)
         x = torch.empty((b, n_in, -(-h // 8) * 8, -(-w // 8) * 8), dtype=self.dtype, memory_format=torch.channels_last)
         shape = (b, c, h, w) if canonical else (b, c, 0, 0)         # channels-last: so are R̂ and T̂
-        base_r, base_t = (torch.empty(shape, memory_format=torch.channels_last) for _ in range(2))
+        base_r, base_t = (torch.empty(shape, dtype=torch.float32, memory_format=torch.channels_last) for _ in range(2))
         for y in range(0, h, rows):
             y1 = min(h, y + rows)
             shots, perp, par = canonical_inputs(obs[..., y:y1, :], angles)
@@ -298,7 +299,8 @@ class FusedNet:
                 gain: torch.Tensor, theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """`SeparationNet.anchor` on (B, C, H, W) float32 R̂, T̂ and the canonical bases, ``strip_rows``
         rows at a time, each read with `ANCHOR_HALO` rows on either side (more than the gate and
-        the band blurs reach: the same result as the whole tile, with a strip's temporaries)."""
+        the band blurs reach: the whole tile's result, with a strip's temporaries; a few pixels may
+        differ by one float32 rounding, where an elementwise function's vector loop ends elsewhere)."""
         h = r_hat.shape[2]
         theta = theta.view(-1, 1, 1, 1) if theta.ndim == 1 else theta
         out_r, out_t = torch.empty_like(r_hat), torch.empty_like(t_hat)
@@ -425,7 +427,7 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
     unit = optics.code_scale(images)
     shot_means = np.array([_clipped_mean(shot) for shot in images]) * unit   # mean(S0) is linear in them
     s0_mean = float(np.linalg.pinv(optics.stokes_matrix(angles))[0] @ shot_means)
-    scale = torch.tensor([max(s0_mean, 1e-6)])
+    scale = torch.tensor([max(s0_mean, 1e-6)], dtype=torch.float32)
     mixing = np.eye(n, dtype=np.float32)
     if field:
         mixing = np.linalg.pinv(optics.stokes_matrix(angles)).astype(np.float32)           # shots → Stokes
@@ -444,7 +446,7 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
         """(1, N', C, h, w) float32 shots of a tile (N' = 3 when presented), linear, negatives
         clipped; built `PATCH_ROWS` rows at a time, so that a strip's temporaries stay in the
         CPU's cache, with torch ops, so the conversion runs on every intra-op thread."""
-        out = torch.empty((3 if field else len(mixing), c, y1 - y, x1 - x))
+        out = torch.empty((3 if field else len(mixing), c, y1 - y, x1 - x), dtype=torch.float32)
         for r in range(y, y1, PATCH_ROWS):
             r1 = min(y1, r + PATCH_ROWS)
             if source is None:                              # a copy torch can wrap, values unscaled

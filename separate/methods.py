@@ -259,6 +259,12 @@ METHODS: dict[str, Callable[..., tuple[Run, dict]]] = {
 }
 
 
+def sees_polarization_of(info: dict) -> bool:
+    """Whether a method (its ``info`` from `get_method`) uses the polarization, and so a reference
+    angle; the single-image methods see S0 only."""
+    return not str(info.get("reference_policy", "")).startswith("not used")
+
+
 def get_method(name: str, reference: Reference = "auto", **options) -> tuple[Run, dict]:
     """The method called ``name`` with its options and reference policy ("auto", "global" or degrees);
     ValueError naming the known methods, the bad reference, or an option the method does not take."""

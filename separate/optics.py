@@ -38,13 +38,13 @@ Array = Any  # numpy.ndarray or torch.Tensor
 
 
 def code_scale(images: np.ndarray) -> float:
-    """The linear value of one code of a stack: 1/max for unsigned integers (uint16: 1/65535),
-    1 for floats. TypeError for other dtypes (signed integers, bool)."""
+    """The linear value of one code of a stack: 1/max for 8- and 16-bit codes (uint16: 1/65535),
+    1 for floats. TypeError for other dtypes (signed or wider integers, bool)."""
     if np.issubdtype(images.dtype, np.floating):
         return 1.0
-    if np.issubdtype(images.dtype, np.unsignedinteger):
+    if images.dtype.kind == "u" and images.dtype.itemsize <= 2:          # either byte order
         return 1.0 / float(np.iinfo(images.dtype).max)
-    raise TypeError(f"expected float or unsigned-integer images, got {images.dtype}")
+    raise TypeError(f"expected float images or 8- or 16-bit codes (uint8, uint16), got {images.dtype}")
 
 
 def to_float(images: np.ndarray) -> np.ndarray:
@@ -298,6 +298,8 @@ def check_angles(angles: Sequence[float], min_span: float = 0.0) -> np.ndarray:
     phi = np.asarray(angles, dtype=np.float64)
     if phi.ndim != 1 or phi.size < 3:
         raise ValueError(f"expected at least 3 polarizer angles, got {np.degrees(phi).round(2).tolist()} deg")
+    if not np.isfinite(phi).all():
+        raise ValueError(f"expected finite polarizer angles, got {np.degrees(phi).round(2).tolist()} deg")
     if np.linalg.cond(stokes_matrix(phi)) > 100:
         raise ValueError(
             "expected polarizer angles that determine S0, S1, S2: at least 3 directions (mod 180 deg) spread "

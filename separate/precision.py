@@ -62,8 +62,8 @@ def resolve_device(device: str | Device) -> torch.device:
     cuda = torch.cuda.is_available()
     if choice is Device.CUDA and not cuda:
         build = f"built with CUDA {torch.version.cuda}" if torch.version.cuda else "a CPU-only build"
-        raise ValueError(f"--device cuda: torch {torch.__version__} ({build}) sees no CUDA device; "
-                         "use --device cpu (or auto), or install torch with CUDA on a machine with an NVIDIA GPU")
+        raise ValueError(f"device 'cuda': torch {torch.__version__} ({build}) sees no CUDA device; "
+                         "use device 'cpu' (or 'auto'), or install torch with CUDA on a machine with an NVIDIA GPU")
     return torch.device("cuda" if choice is Device.CUDA or (choice is Device.AUTO and cuda) else "cpu")
 
 

@@ -23,7 +23,7 @@ def test_auto_takes_cuda_only_where_torch_sees_it(monkeypatch, cuda, choice, exp
 
 def test_cuda_without_cuda_and_unknown_names_are_refused(monkeypatch):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    with pytest.raises(ValueError, match=r"--device cuda: torch .* sees no CUDA device; use --device cpu"):
+    with pytest.raises(ValueError, match=r"device 'cuda': torch .* sees no CUDA device; use device 'cpu'"):
         resolve_device("cuda")
     with pytest.raises(ValueError, match="expected device auto, cpu or cuda, got 'gpu'"):
         resolve_device("gpu")
@@ -49,7 +49,7 @@ def test_cli_device_cuda_without_cuda_exits_2_naming_the_way_out(tmp_path):
     shots = [arg for k in range(3) for arg in ("--images", str(tmp_path / f"shot_{k}.tiff"))]   # refused before they are read
     out = CliRunner().invoke(app, ["separate", *shots, "--out", str(tmp_path / "out"), "--device", "cuda"])
     assert out.exit_code == 2 and not (tmp_path / "out").exists()
-    assert "sees no CUDA device" in out.output and "--device cpu" in out.output
+    assert "Invalid value for '--device'" in out.output and "sees no CUDA device" in out.output and "use device 'cpu'" in out.output
     out = CliRunner().invoke(app, ["separate", "scene_01", "--dataset", str(tmp_path), "--method", "kong",
                                    "--device", "cpu"])
     assert out.exit_code == 2 and "--device" in out.output and "not kong" in out.output

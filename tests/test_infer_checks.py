@@ -132,9 +132,10 @@ def test_strips_give_the_whole_tile_bit_for_bit(dtype, weights):
         whole = FusedNet(model, dtype, strip_rows=1024)(obs, angles, scale, **theta)
         strips = FusedNet(model, dtype, strip_rows=24)(obs, angles, scale, **theta)      # 4, 4, 3 and 2 strips per level
     for a, b in zip(whole, strips):
-        if weights == "urd-anchored" and dtype == torch.bfloat16:
-            # on the AMD EPYC (AVX-512 BF16, no AMX) one pixel of the last row differs by one float32
-            # rounding (1e-7) between the two strip plans; a strip reading wrong rows changes whole rows
+        if weights == "urd-anchored":
+            # the anchor's elementwise functions (sigmoid, the Fresnel terms) run over strips of other
+            # lengths, whose vector loops end at other pixels: a few pixels differ by one float32
+            # rounding (up to 6e-8 here); a strip reading wrong rows changes whole rows
             torch.testing.assert_close(a, b, rtol=0.0, atol=1e-6)
         else:
             assert torch.equal(a, b)

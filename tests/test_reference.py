@@ -201,8 +201,9 @@ def test_one_inspection_gives_what_the_three_functions_give_and_codes_read_as_fl
     assert from_codes.warnings == inspection.warnings
     assert np.abs(from_codes.presence - inspection.presence).max() < 0.01
     np.testing.assert_allclose(present(codes, angles, 70.0)[0], present(codes / np.float32(65535), angles, 70.0)[0], atol=1e-6)
-    with pytest.raises(TypeError, match="expected float or unsigned-integer images"):
-        inspect_stack(codes.astype(np.int32), angles)
+    for other in (np.int32, np.uint32):
+        with pytest.raises(TypeError, match=r"expected float images or 8- or 16-bit codes \(uint8, uint16\)"):
+            inspect_stack(codes.astype(other), angles)
 
 
 def test_clipped_pixels_are_marked_and_warned_about():

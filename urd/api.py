@@ -13,6 +13,7 @@ whole script (``docs/examples/separate_scene.py``).
 
 from __future__ import annotations
 
+import warnings
 from functools import partial
 from pathlib import Path
 from typing import NamedTuple, Sequence
@@ -20,6 +21,7 @@ from typing import NamedTuple, Sequence
 import numpy as np
 
 from urd.core.dataset import Dataset
+from urd.core.images import FLOAT_ABOVE_WHITE
 
 
 class Layers(NamedTuple):
@@ -50,11 +52,32 @@ def separate(images: np.ndarray, angles_deg: Sequence[float], method: str = "net
 
     Returns:
         `Layers` (transmission, reflection).
-    """
-    from separate.methods import get_method
 
-    run, _ = get_method(method, reference=reference, **options)
-    r_hat, t_hat = run(images, [float(a) for a in angles_deg])
+    Raises:
+        TypeError, ValueError: a stack or angles urd cannot separate (`separate.presentation.check_stack`),
+            float values on another scale than 1.0 = white, an unknown method or option.
+
+    The warnings `urd separate` prints about the stack (clipped pixels, identical shots, too
+    little polarization, an assumed side of the reference) are issued as ``UserWarning``.
+    """
+    from separate.methods import get_method, sees_polarization_of
+    from separate.presentation import check_stack
+    from separate.reference import resolve_reference
+
+    angles = [float(a) for a in angles_deg]
+    check_stack(images, angles)
+    if images.dtype.kind == "f":
+        above = float(np.mean(images > 1.0))
+        if above > FLOAT_ABOVE_WHITE:
+            raise ValueError(f"float images are read with 1.0 as the sensor's white, and {above:.1%} of these values "
+                             f"exceed it (up to {float(images.max()):g}): scale the stack so that white is 1.0 "
+                             "(16-bit codes: pass them as uint16, or divide by 65535)")
+    run, info = get_method(method, reference=reference, **options)
+    trial = partial(run, trial=True) if sees_polarization_of(info) else None
+    inspection, chosen = resolve_reference(images, angles, reference, trial)
+    for message in inspection.warnings:
+        warnings.warn(message, UserWarning, stacklevel=2)
+    r_hat, t_hat = run(images, angles, chosen)
     return Layers(t_hat, r_hat)
 
 
@@ -69,9 +92,14 @@ def polarization_maps(images: np.ndarray, angles_deg: Sequence[float], reference
     classical Schechner inversion (a fraction of a second), "network" for the network's verdict.
     """
     from separate.maps import polarization_maps as maps
-    from separate.methods import get_method
+    from separate.methods import check_reference, get_method, sees_polarization_of
     from separate.reference import resolve_reference
 
     angles = [float(a) for a in angles_deg]
-    trial = partial(get_method(method)[0], trial=True) if reference in ("auto", "global") else None
+    reference = check_reference(reference)
+    run, info = get_method(method)
+    if not sees_polarization_of(info):
+        raise ValueError(f"method {method!r} sees only S0, so its trial separations cannot tell the two sides of the "
+                         "reference apart; settle the side with 'schechner' (the default), 'kong', 'farid' or 'network'")
+    trial = partial(run, trial=True) if reference in ("auto", "global") else None
     return maps(images, angles, resolve_reference(images, angles, reference, trial)[1])

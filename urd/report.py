@@ -3,9 +3,10 @@ data behind the HTML report (`urd.report_html`)."""
 
 from __future__ import annotations
 
+import shlex
 from pathlib import Path
 
-from urd.core.dataset import SCENE_MANIFEST, Dataset, Scene
+from urd.core.dataset import SCENE_MANIFEST, Dataset, OffsetCalibration, Scene
 from urd.core.errors import ManifestError, UrdError
 from urd.core.progress import plural
 
@@ -77,10 +78,38 @@ def _px(size: tuple[int, int]) -> str:
     return f"{size[1]}×{size[0]} px"
 
 
-def scene_view(scene, max_side: int = 2048):
+def _offset_note(scene: Scene, calibration: OffsetCalibration | None) -> str | None:
+    """A note when ``scene`` was captured on the rig with another polarizer offset than the
+    dataset's ``calibration`` (by more than its uncertainty, or with none recorded), else None; a
+    scene ingested from RAW files has the angles it was given."""
+    capture = scene.load(verify=False).get("capture", {})
+    if calibration is None or "stage" not in capture:
+        return None
+    taken = capture.get("offset_deg")
+    if taken is not None and abs(float(taken) - calibration.offset_deg) <= calibration.uncertainty_deg:
+        return None
+    how = "with no polarizer offset recorded (0°)" if taken is None else f"with the polarizer offset {float(taken):.3f}°"
+    difference = calibration.offset_deg - float(taken or 0.0)
+    return (f"its shots were taken {how} while the dataset's calibration says {calibration.offset_deg:.3f}° "
+            f"± {calibration.uncertainty_deg:.3f}°, so its angles are off by {difference:+.3f}°")
+
+
+def _next_step(scene: Scene, state: str) -> str:
+    """The command that continues a scene whose capture is unfinished or not ingested, else ""."""
+    from acquire.plan import resume_command
+
+    if state == "incomplete":
+        return resume_command(scene.path.parent, scene)
+    if state == "captured":
+        return shlex.join(["urd", "ingest", str(scene.path.parent.resolve())])
+    return ""
+
+
+def scene_view(scene, max_side: int = 2048, calibration: OffsetCalibration | None = None):
     """What the HTML report shows of one scene (`urd.report_html.SceneView`), images at most
     ``max_side`` px long. Shots or results that cannot be read, and results of another size than
-    the shots (or than the first result shown), are left out with a note saying why."""
+    the shots (or than the first result shown), are left out with a note saying why; a scene
+    captured with another polarizer offset than the dataset's ``calibration`` gets a note."""
     import tifffile
 
     from urd.core.images import u16_to_linear
@@ -89,7 +118,10 @@ def scene_view(scene, max_side: int = 2048):
     status = scene.status()
     notes = [status.problem] if status.problem else []
     if status.state == "broken":
-        return SceneView(scene.name, status.describe(), [], None, None, [], notes)
+        return SceneView(scene.name, status.describe(), [], None, None, [], notes, state="broken")
+    offset_note = _offset_note(scene, calibration)
+    if offset_note:
+        notes.append(offset_note)
     shots, reference, results, size = [], None, [], None
     if status.state == "ingested":
         try:
@@ -122,8 +154,9 @@ def scene_view(scene, max_side: int = 2048):
         notes += [f"{method}: {w}" for w in result.warnings]
         exports = [path.resolve() for path in result.files.values() if path.parent.name == "maps"]
         results.append(ResultView(method, r, t, result.description, confidence, field, result.truth_metrics, exports))
-    return SceneView(scene.name, status.describe().split(": ", 1)[1], shots, reference,
-                     scene.shot_errors_deg(), results, notes)
+    state = "separated" if results else status.state
+    return SceneView(scene.name, status.describe().split(": ", 1)[1], shots, reference, scene.shot_errors_deg(),
+                     results, notes, state, list(status.angles_deg), _next_step(scene, status.state))
 
 
 def calibration_view(ds):
@@ -161,11 +194,15 @@ def report_html(root, out, overwrite: bool = False, progress=None):
 
     ds = Dataset.open(root)
     check_report_folder(out, overwrite)              # before the scenes are read, which takes a while
+    try:
+        calibration = ds.calibration()
+    except (ManifestError, OSError):                 # `calibration_view` says why
+        calibration = None
     scenes = ds.scenes()
     views = []
     for i, scene in enumerate(scenes):
         if progress:
             progress(i, len(scenes), "report: reading scenes")
-        views.append(scene_view(scene))
+        views.append(scene_view(scene, calibration=calibration))
     return write_html_report(views, out, f"urd dataset {ds.root.resolve().name}", calibration_view(ds),
                              overwrite=overwrite, progress=progress and (lambda d, t: progress(d, t, "report: writing")))

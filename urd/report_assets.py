@@ -7,6 +7,7 @@ from __future__ import annotations
 import html
 import math
 from typing import TYPE_CHECKING
+from urllib.parse import quote
 
 import numpy as np
 
@@ -103,14 +104,14 @@ def compare_html(options: list[tuple[str, str]], left: int, right: int, size: tu
                   thumb_px: int) -> str:
     """Two selects of (relative path, label) ``options`` showing ``left`` and ``right`` first, a stage
     with the right image under the left one clipped at the divider, and a range input; ``size``
-    (H, W) is that of every view of the scene (checked on entry)."""
-    values = [v for v, _ in options]
+    (H, W) is that of every view of the scene (checked on entry). Paths are percent-encoded."""
+    values, labels = [quote(v) for v, _ in options], [label for _, label in options]
     h, w = size
     mid_w = max(round(w * min(1.0, 2 * thumb_px / max(h, w))), 360)
 
     def select(cls: str, chosen: int, side: str) -> str:
         opts = "".join(f'<option value="{_e(v)}"{" selected" if i == chosen else ""}>{_e(label)}</option>'
-                       for i, (v, label) in enumerate(options))
+                       for i, (v, label) in enumerate(zip(values, labels)))
         return f'<label>{side} <select class="cmp-select {cls}" aria-label="{side} image">{opts}</select></label>'
 
     return (f'<div class="compare" data-scene="{anchor}"><h3>Compare</h3><div class="cmp-controls">'
@@ -190,6 +191,7 @@ table.kv pre { margin: 0; font-size: 11px; white-space: pre-wrap; word-break: br
   background: rgba(12,16,24,.62); pointer-events: none; max-width: 45%; overflow: hidden; text-overflow: ellipsis;
   white-space: nowrap; }
 .cmp-tag.left { left: 8px; } .cmp-tag.right { right: 8px; }
+nav.toc .scroll { overflow-x: auto; }
 nav.toc table { border-collapse: collapse; width: 100%; font-size: 13px; }
 nav.toc th, nav.toc td { text-align: left; padding: 6px 10px 6px 0; border-bottom: 1px solid #eef0f3; }
 nav.toc th { color: var(--muted); font-weight: 500; }
@@ -202,12 +204,13 @@ svg.plot .pt { fill: #fff; stroke: #1c2330; stroke-width: 1.5; }
 svg.plot .band { fill: rgba(234,88,12,.14); } svg.plot .peak { stroke: #ea580c; stroke-dasharray: 5 4; }
 .howto ul { margin: 6px 0 0; padding-left: 20px; }
 #viewer { position: fixed; inset: 0; background: rgba(12,16,24,.92); z-index: 10; overflow: auto; display: flex;
-  flex-direction: column; align-items: center; justify-content: flex-start; padding: 44px 16px 16px; }
+  flex-direction: column; align-items: flex-start; justify-content: flex-start; padding: 44px 16px 16px; }
+#viewer .holder { margin: 0 auto; }
 #viewer[hidden] { display: none; }
 #viewer img { max-width: 96vw; max-height: calc(100vh - 90px); cursor: zoom-in; box-shadow: 0 4px 30px rgba(0,0,0,.5); }
 #viewer img.actual { max-width: none; max-height: none; cursor: zoom-out; }
 #viewer .bar { position: fixed; top: 0; left: 0; right: 0; display: flex; justify-content: space-between; align-items: center;
-  padding: 8px 14px; color: #e7ebf2; font-size: 13px; background: rgba(12,16,24,.7); }
+  padding: 8px 14px; color: #e7ebf2; font-size: 13px; background: #0c1018; z-index: 1; }
 #viewer button { font: inherit; color: #fff; background: #2b3341; border: 1px solid #4a5466; border-radius: 5px;
   padding: 2px 10px; cursor: pointer; }
 """

@@ -45,6 +45,7 @@ import tempfile
 import time
 from pathlib import Path
 from typing import Callable, Sequence
+from urllib.parse import quote
 
 import numpy as np
 import tifffile
@@ -135,6 +136,12 @@ class SceneView:
         shot_errors_deg: per-shot calibration errors (degrees, one per shot), or None.
         results: one `ResultView` per separation method.
         notes: warnings to show.
+        state: where the scene stands, which colours its badge: one of `BADGE_CLASSES`' keys
+            (separated, ingested, captured, incomplete, alignment failed, broken); anything else
+            is shown neutral.
+        captured_deg: the angles of the shots captured (deg), listed where there are no aligned
+            shots to show; empty when unknown.
+        next_step: the command line that takes the scene further (e.g. ``urd ingest DATASET``), or "".
     """
 
     name: str
@@ -144,6 +151,9 @@ class SceneView:
     shot_errors_deg: list[float] | None
     results: list[ResultView]
     notes: list[str]
+    state: str = ""
+    captured_deg: list[float] = dataclasses.field(default_factory=list)
+    next_step: str = ""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -303,6 +313,12 @@ def _remove_stale_staging(out_dir: Path, started: float) -> None:
 _e = html.escape
 
 
+def _url(path: str) -> str:
+    """A relative POSIX path as an escaped URL for href/src: percent-encoded, so that #, % and ?
+    in folder or file names stay part of the path."""
+    return _e(quote(path))
+
+
 def _fmt(value: float, digits: int = 2) -> str:
     return f"{value:.{digits}f}".replace("-", "−")
 
@@ -315,8 +331,8 @@ def _figure(image: WrittenImage, caption: str, extra: str = "", label: str = "")
     """A thumbnail linking to its full view; ``caption`` and ``extra`` are HTML."""
     (w, h), (tw, th) = image.size, image.thumb_size
     title = _e(f"{label} — {w}×{h}, click for full resolution" if label else f"{w}×{h}")
-    return (f'<figure style="flex: 0 1 {tw}px; min-width: {min(tw, 120)}px"><a class="zoom" href="{_e(image.full)}" data-caption="{_e(label)}" title="{title}">'
-            f'<img src="{_e(image.thumb)}" width="{tw}" height="{th}" loading="lazy" alt="{_e(label)}"></a>'
+    return (f'<figure style="flex: 0 1 {tw}px; min-width: {min(tw, 120)}px"><a class="zoom" href="{_url(image.full)}" data-caption="{_e(label)}" title="{title}">'
+            f'<img src="{_url(image.thumb)}" width="{tw}" height="{th}" loading="lazy" alt="{_e(label)}"></a>'
             f"<figcaption>{caption}</figcaption>{extra}</figure>")
 
 
@@ -326,6 +342,13 @@ def _colorbar(lo: str, hi: str, what: str) -> str:
     return (f'<div class="colorbar" role="img" aria-label="{_e(what)} legend, {lo} to {hi}">'
             f'<div class="ramp" style="background: linear-gradient(to right, {stops})"></div>'
             f'<div class="ticks"><span>{lo}</span><span>{_e(what)}</span><span>{hi}</span></div></div>')
+
+
+def _field_colorbar(lo: float, hi: float) -> str:
+    """The legend of a reference field spanning ``lo``..``hi`` (deg): its ends mod 180°, saying so
+    when the range passes a multiple of 180° (the field wraps: φ⊥ and φ⊥ + 180° are one direction)."""
+    wraps = math.floor(lo / 180.0) != math.floor(hi / 180.0)
+    return _colorbar(f"{_fmt(lo % 180.0, 1)}°", f"{_fmt(hi % 180.0, 1)}°", "φ⊥, wraps at 180°" if wraps else "φ⊥")
 
 
 def _calibration_html(cal: CalibrationView) -> str:
@@ -339,7 +362,7 @@ def _calibration_html(cal: CalibrationView) -> str:
         facts.append(f"<dt>fit maximum</dt><dd>stage angle {_fmt(peak, 1)}° (shaded: ± the offset's uncertainty)</dd>")
     if cal.residual_rms is not None:
         swing = max(cal.fit_intensities) - min(cal.fit_intensities) if cal.fit_intensities else 0.0
-        rel = f" ({100 * cal.residual_rms / swing:.1f}% of the modulation)" if swing > 0 else ""
+        rel = f" ({100 * cal.residual_rms / swing:.2g}% of the modulation)" if swing > 0 else ""
         facts.append(f"<dt>RMS residual</dt><dd>{cal.residual_rms:.3g}{rel}</dd>")
     notes = '<ul class="notes">' + "".join(f"<li>{_e(note)}</li>" for note in cal.notes) + "</ul>" if cal.notes else ""
     plot = f'<div class="plotbox">{calibration_svg(cal)}</div>' if cal.angles_deg or cal.fit_angles_deg else ""
@@ -365,13 +388,18 @@ def _provenance_html(provenance: dict) -> str:
     return f'<details class="prov"><summary>provenance</summary><table class="kv">{body}</table></details>'
 
 
-_STATUS_CLASSES = ("ingested", "separated", "incomplete", "broken", "captured")
+#: A scene's state (`SceneView.state`) → the class that colours its badge (`report_assets.CSS`).
+BADGE_CLASSES = {"separated": "separated", "ingested": "ingested", "captured": "captured",
+                 "incomplete": "incomplete", "alignment failed": "broken", "broken": "broken"}
 
 
-def _status_badge(status: str) -> str:
-    word = status.split(" ", 1)[0].strip().lower()
-    kind = word if word in _STATUS_CLASSES else "other"
-    return f'<span class="badge {kind}">{_e(status)}</span>'
+def _status_badge(scene: SceneView) -> str:
+    return f'<span class="badge {BADGE_CLASSES.get(scene.state, "other")}">{_e(scene.status)}</span>'
+
+
+def _shot_count(scene: SceneView) -> int:
+    """How many shots the scene has: those captured where known, else the aligned ones."""
+    return len(scene.captured_deg) or len(scene.shots)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -419,8 +447,8 @@ def _best_html(scene: SceneView) -> str:
 
 def _exports_html(exports: list[Path], links_from: Path, root: Path, stem: str) -> str:
     """Links to the exported polarization maps: a PNG preview of each (written under ``root``
-    as ``stem_map_NAME.png``, viridis over the stated range) and its float32 TIFF, relative to
-    the report folder ``links_from``."""
+    as ``stem_map_NAME.png``, `map_preview`) and its float32 TIFF, relative to the report
+    folder ``links_from``."""
     if not exports:
         return ""
     links = []
@@ -431,17 +459,19 @@ def _exports_html(exports: list[Path], links_from: Path, root: Path, stem: str) 
             links.append(f"{_e(path.stem)} (cannot be read: {_e(str(exc))})")
             continue
         write_png(root / f"{stem}_map_{path.stem}.png", rgb)
-        data = _e(Path(os.path.relpath(path, links_from)).as_posix())
-        links.append(f'<a href="{_e(stem)}_map_{_e(path.stem)}.png">{_e(path.stem)}</a> '
+        data = _url(Path(os.path.relpath(path, links_from)).as_posix())
+        links.append(f'<a href="{_url(f"{stem}_map_{path.stem}.png")}">{_e(path.stem)}</a> '
                      f'<span class="muted">({_e(span)}; <a href="{data}">TIFF</a>)</span>')
-    return ('<p class="small">polarization maps, previews in viridis over the stated range (black: dark pixels, '
-            "NaN in the data); TIFF: the float32 data, units in each file's description: " + " · ".join(links) + "</p>")
+    return ('<p class="small">polarization maps, previews over the stated range, AoLP as hue and the others in '
+            "viridis (black: dark pixels, NaN in the data); TIFF: the float32 data, units in each file's description: "
+            + " · ".join(links) + "</p>")
 
 
 def _scene_html(scene: SceneView, index: int, root: Path, folder: str, thumb_px: int, links_from: Path) -> str:
     """Write one scene's images under ``root / folder`` and return its section (links to data
     files relative to the final report folder ``links_from``)."""
-    (root / folder).mkdir(parents=True)
+    if scene.shots or scene.results:
+        (root / folder).mkdir(parents=True)
     anchor = f"scene-{index:03d}"
     notes = list(scene.notes)
     s0 = maps = None
@@ -463,7 +493,7 @@ def _scene_html(scene: SceneView, index: int, root: Path, folder: str, thumb_px:
     else:
         gain, basis = 1.0, ""
 
-    meta = [_status_badge(scene.status)]
+    meta = [_status_badge(scene)]
     if scene.reference_deg is not None:
         meta.append(f'<span class="fact">reference angle φ⊥ = <b>{_fmt(float(scene.reference_deg))}°</b></span>')
     if scene.shots:
@@ -485,9 +515,14 @@ def _scene_html(scene: SceneView, index: int, root: Path, folder: str, thumb_px:
                 caption += f' <span class="err">calib. error {_fmt_signed(float(scene.shot_errors_deg[k]))}°</span>'
             figs.append(_figure(written, caption, label=f"{scene.name} shot {k} at {float(angle):.1f}°"))
         parts.append(f'<h3>Shots</h3><div class="row strip">{"".join(figs)}</div>')
+    elif scene.captured_deg:
+        angles = ", ".join(f"{_fmt(float(a), 1)}°" for a in scene.captured_deg)
+        parts.append(f"<h3>Shots</h3><p>{len(scene.captured_deg)} captured, at φ = {angles}; no aligned images yet.</p>")
     elif scene.shot_errors_deg:
         parts.append("<h3>Shot calibration</h3><p>errors: "
                      + ", ".join(f"{_fmt_signed(float(e))}°" for e in scene.shot_errors_deg) + "</p>")
+    if scene.next_step:
+        parts.append(f'<p class="next">To continue: <code>{_e(scene.next_step)}</code></p>')
 
     s0_image = None
     if maps is not None:
@@ -524,7 +559,7 @@ def _scene_html(scene: SceneView, index: int, root: Path, folder: str, thumb_px:
             if result.reference_field is not None:
                 field_rgb, lo, hi = field_image(result.reference_field)
                 f_img = write_image(root, f"{stem}_phi", field_rgb, max(32, thumb_px // 3))     # a smooth field: small
-                cells.append(_figure(f_img, "reference φ⊥ used", _colorbar(f"{_fmt(lo, 1)}°", f"{_fmt(hi, 1)}°", "φ⊥"),
+                cells.append(_figure(f_img, "reference φ⊥ used", _field_colorbar(lo, hi),
                                      label=f"{scene.name} {result.method} reference φ⊥"))
             truth = _truth_line(result.truth) if result.truth else ""
             rows.append(f'<div class="method"><div class="method-name">{_e(result.method)}</div>{truth}'
@@ -569,15 +604,17 @@ def _howto_html() -> str:
 
 
 def _toc_html(scenes: Sequence[SceneView]) -> str:
+    if not scenes:
+        return '<nav class="card toc"><h2>Scenes</h2><p class="muted">no scenes yet</p></nav>'
     rows = "".join(
-        f'<tr><td><a href="#scene-{i:03d}">{_e(s.name)}</a></td><td>{_status_badge(s.status)}</td>'
-        f"<td>{len(s.shots)}</td><td>{_e(', '.join(r.method for r in s.results)) or '—'}</td>"
+        f'<tr><td><a href="#scene-{i:03d}">{_e(s.name)}</a></td><td>{_status_badge(s)}</td>'
+        f"<td>{_shot_count(s)}</td><td>{_e(', '.join(r.method for r in s.results)) or '—'}</td>"
         f"<td>{_fmt(float(s.reference_deg)) + '°' if s.reference_deg is not None else '—'}</td>"
         f"<td>{_best_cell(s)}</td></tr>"
         for i, s in enumerate(scenes))
-    return ('<nav class="card toc"><h2>Scenes</h2><table><thead><tr><th>scene</th><th>status</th><th>shots</th>'
+    return ('<nav class="card toc"><h2>Scenes</h2><div class="scroll"><table><thead><tr><th>scene</th><th>status</th><th>shots</th>'
             f"<th>methods</th><th>reference angle</th><th>best T̂ vs ground truth</th></tr></thead><tbody>{rows}</tbody>"
-            "</table></nav>")
+            "</table></div></nav>")
 
 
 def _best_cell(scene: SceneView) -> str:

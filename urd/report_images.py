@@ -99,16 +99,20 @@ def field_image(field_deg: np.ndarray) -> tuple[np.ndarray, float, float]:
 
 def map_preview(name: str, values: np.ndarray) -> tuple[np.ndarray, str]:
     """A polarization map (`separate.maps.MAPS`: H×W, or H×W×C averaged over C) as H×W×3 uint8
-    viridis RGB, and the range it spans in the map's units: DoLP over [0, 1], AoLP over
-    [0, 180) deg, S1 and S2 over ±their 99.5th percentile of |value|, S0 over [0, its 99.5th
-    percentile], φ⊥ and θ over their own range. NaN (dark pixels) is black."""
+    RGB, and the range it spans in the map's units: AoLP as hue over [0, 180) deg (cyclic, as
+    `aolp_image`: 0° and 180° are both red); the others in viridis, DoLP over [0, 1], S1 and S2
+    over ±their 99.5th percentile of |value|, S0 over [0, its 99.5th percentile], φ⊥ and θ over
+    their own range. NaN (dark pixels) is black."""
     values = np.asarray(values, np.float32)
     values = values.mean(axis=-1) if values.ndim == 3 else values
+    if name == "AoLP":
+        full = np.ones_like(values)
+        rgb = np.round(hsv_to_rgb(np.nan_to_num(values) / 180.0, full, full) * 255.0).astype(np.uint8)
+        rgb[~np.isfinite(values)] = 0
+        return rgb, "0 to 180 as hue, cyclic"
     finite = values[np.isfinite(values)]
     if name == "DoLP":
         lo, hi = 0.0, 1.0
-    elif name == "AoLP":
-        lo, hi = 0.0, 180.0
     elif name in ("S1", "S2"):
         hi = float(np.percentile(np.abs(finite), EXPOSURE_PERCENTILE)) if finite.size else 1.0
         lo = -hi

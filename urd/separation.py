@@ -32,6 +32,7 @@ import numpy as np
 import tifffile
 
 from separate import metrics, optics
+from separate.methods import sees_polarization_of
 from separate.reference import Inspection, resolve_reference
 from urd.core.dataset import SCENE_NAME, Scene, enclosing_dataset
 from urd.core.errors import DatasetError
@@ -357,12 +358,6 @@ def describe_incidence(incidence: dict) -> str:
                 "estimated, the network's Fresnel gate on)")
     return (f"angle of incidence not clear from the shots (clarity {incidence['clarity']:.2f}, sharpness "
             f"{incidence['sharpness']:.3f}): the network ran without its Fresnel gate")
-
-
-def sees_polarization_of(info: dict) -> bool:
-    """Whether a method (its info from `separate.methods.get_method`) uses the polarization, and
-    so a reference angle; the single-image methods see S0 only."""
-    return not str(info.get("reference_policy", "")).startswith("not used")
 
 
 def _maps(images: np.ndarray, angles: list[float], used: float | np.ndarray) -> dict[str, np.ndarray]:

@@ -176,4 +176,6 @@ def separate(images: np.ndarray, angles_deg: list[float], smoothness: float = 1.
     """(R̂, T̂) of a stack (N, H, W, C) with angles (deg), θ varying over the image; ``progress``
     as in `theta_map`."""
     i_perp, i_par, _ = canonical(images, angles_deg)
+    if not (i_perp + i_par > 0).any():                          # a dark frame: no light, and no energy to minimize
+        return np.zeros(i_perp.shape, np.float32), np.zeros(i_perp.shape, np.float32)
     return fresnel_inverse(i_perp, i_par, theta_map(i_perp, i_par, smoothness, steps, min_side, progress=progress))

@@ -1,0 +1,82 @@
+"""`urd.separate` and `urd.polarization_maps` as a library user calls them: every method checks the
+stack, the user's torch state is left alone, the warnings the CLI prints reach Python, and the
+inputs no method can use are refused with ValueError or TypeError."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import urd
+from separate import optics
+
+ANGLES = [0, 45, 90, 135]
+
+
+def pane_stack(h: int = 64, w: int = 48) -> np.ndarray:
+    """Shots at `ANGLES` of a pane at θ = 50°, φ⊥ = 20°: a striped transmission, a reflection on the right half."""
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    t = np.stack([0.3 + 0.2 * np.sin(xx / 7 + k) for k in range(3)], -1)
+    r = np.stack([0.4 + 0.3 * np.cos(yy / 5 + k) * (xx > w // 2) for k in range(3)], -1)
+    return np.stack([optics.render(r, t, np.radians(50), np.radians(20), np.radians(a)) for a in ANGLES]).astype(np.float32)
+
+
+@pytest.mark.parametrize("method", ["none", "li-brown", "arvanitopoulos"])
+def test_the_methods_that_see_s0_only_check_the_stack_like_the_others(method):
+    stack = pane_stack()
+    bad = stack.copy()
+    bad[0, 0, 0, 0] = np.nan
+    with pytest.raises(ValueError, match="expected finite pixel values"):
+        urd.separate(bad, ANGLES, method=method)
+    with pytest.raises(ValueError, match=r"expected a stack of shape \(N>=3, H, W, C\)"):
+        urd.separate(stack[..., 0], ANGLES, method=method)
+    with pytest.raises(TypeError, match="expected images as a numpy array"):
+        urd.separate(stack.tolist(), ANGLES, method=method)
+
+
+def test_angles_and_codes_urd_cannot_use_are_refused():
+    stack = pane_stack()
+    with pytest.raises(ValueError, match="expected finite polarizer angles"):
+        urd.separate(stack, [0, 45, float("nan"), 135], method="schechner")
+    with pytest.raises(TypeError, match=r"8- or 16-bit codes"):
+        urd.separate(np.rint(stack * 65535).astype(np.uint32), ANGLES, method="schechner")
+    with pytest.raises(ValueError, match="read with 1.0 as the sensor's white"):
+        urd.separate(stack * 65535, ANGLES, method="schechner")
+
+
+def test_polarization_maps_refuse_a_method_that_cannot_settle_the_side_and_bad_arguments():
+    stack = pane_stack()
+    assert abs(float(np.median(urd.polarization_maps(stack, ANGLES)["phi_perp"])) - 20.0) < 1.0
+    with pytest.raises(ValueError, match="sees only S0"):
+        urd.polarization_maps(stack, ANGLES, method="li-brown")
+    with pytest.raises(ValueError):
+        urd.polarization_maps(stack, ANGLES, reference=30, method="bogus")
+    with pytest.raises(ValueError, match="expected reference 'auto', 'global' or a finite angle"):
+        urd.polarization_maps(stack, ANGLES, reference=None)
+
+
+def test_the_network_leaves_the_callers_torch_state_alone():
+    stack = pane_stack()
+    torch.manual_seed(0)
+    expected = torch.rand(1).item()
+    torch.manual_seed(0)
+    plain = urd.separate(stack, ANGLES, precision="fp32")
+    assert torch.rand(1).item() == expected                  # the random stream is where the caller left it
+    default = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    try:
+        wide = urd.separate(stack, ANGLES, precision="fp32")
+    finally:
+        torch.set_default_dtype(default)
+    assert wide.transmission.dtype == np.float32
+    np.testing.assert_allclose(wide.transmission, plain.transmission, atol=1e-6)
+
+
+def test_the_stacks_warnings_reach_python_and_a_dark_frame_gives_dark_layers():
+    stack = pane_stack()
+    with pytest.warns(UserWarning, match="the polarizer is not turning"):
+        urd.separate(np.stack([stack[0]] * 3), [0, 45, 90], method="schechner")
+    with pytest.warns(UserWarning, match="nothing can be separated"):
+        layers = urd.separate(np.zeros((3, 16, 16, 3), np.float32), [0, 45, 90], method="kong")
+    assert not layers.transmission.any() and not layers.reflection.any()
