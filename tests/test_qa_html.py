@@ -213,3 +213,30 @@ def test_a_scene_ingested_from_raw_files_gets_no_offset_note(dataset, tmp_path):
     (scene.path / "scene.json").write_text(json.dumps(record))
     stale = OffsetCalibration(2.5, 0.2, None, 0.0, "t", None, 0)
     assert not [n for n in scene_view(Scene(scene.path), calibration=stale).notes if "polarizer offset" in n]
+
+
+def test_the_report_holds_one_scenes_views_at_a_time(tmp_path):
+    """A dataset's report makes each scene's view when it writes it and lets it go: its memory
+    does not grow with the number of scenes (12 scenes of 1536×1024: 2.0 → 0.46 GB peak)."""
+    import gc
+    import weakref
+    from collections.abc import Sequence
+
+    made, alive = [], []
+
+    class Views(Sequence):
+        def __len__(self):
+            return 4
+
+        def __getitem__(self, index):
+            if not 0 <= index < len(self):
+                raise IndexError(index)
+            gc.collect()
+            alive.append(sum(ref() is not None for ref in made))
+            view = _view(f"scene_{index + 1:02d}", "ingested", shots=3)
+            made.append(weakref.ref(view))
+            return view
+
+    write_html_report(Views(), tmp_path / "r", "t")
+    assert alive == [0, 0, 0, 0]                          # the views made before are gone
+    assert _page(tmp_path / "r" / "index.html").count('<section class="card scene"') == 4

@@ -4,6 +4,7 @@ data behind the HTML report (`urd.report_html`)."""
 from __future__ import annotations
 
 import shlex
+from collections.abc import Sequence
 from pathlib import Path
 
 from urd.core.dataset import SCENE_MANIFEST, Dataset, OffsetCalibration, Scene
@@ -198,11 +199,20 @@ def report_html(root, out, overwrite: bool = False, progress=None):
         calibration = ds.calibration()
     except (ManifestError, OSError):                 # `calibration_view` says why
         calibration = None
-    scenes = ds.scenes()
-    views = []
-    for i, scene in enumerate(scenes):
-        if progress:
-            progress(i, len(scenes), "report: reading scenes")
-        views.append(scene_view(scene, calibration=calibration))
-    return write_html_report(views, out, f"urd dataset {ds.root.resolve().name}", calibration_view(ds),
-                             overwrite=overwrite, progress=progress and (lambda d, t: progress(d, t, "report: writing")))
+    return write_html_report(SceneViews(ds.scenes(), calibration), out, f"urd dataset {ds.root.resolve().name}",
+                             calibration_view(ds), overwrite=overwrite,
+                             progress=progress and (lambda d, t: progress(d, t, "report: writing scenes")))
+
+
+class SceneViews(Sequence):
+    """The `scene_view` of each scene, made when asked for (the HTML report writes one scene's
+    images at a time and lets them go, so its memory does not grow with the dataset)."""
+
+    def __init__(self, scenes: list[Scene], calibration: OffsetCalibration | None):
+        self.scenes, self.calibration = scenes, calibration
+
+    def __len__(self) -> int:
+        return len(self.scenes)
+
+    def __getitem__(self, index: int):
+        return scene_view(self.scenes[index], calibration=self.calibration)

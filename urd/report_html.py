@@ -603,17 +603,20 @@ def _howto_html() -> str:
             "the dataset's linear 16-bit TIFFs are the data).</li></ul></section>")
 
 
-def _toc_html(scenes: Sequence[SceneView]) -> str:
-    if not scenes:
+def _toc_row(s: SceneView, i: int) -> str:
+    """The Scenes table's row of scene ``s``, the ``i``-th on the page."""
+    return (f'<tr><td><a href="#scene-{i:03d}">{_e(s.name)}</a></td><td>{_status_badge(s)}</td>'
+            f"<td>{_shot_count(s)}</td><td>{_e(', '.join(r.method for r in s.results)) or '—'}</td>"
+            f"<td>{_fmt(float(s.reference_deg)) + '°' if s.reference_deg is not None else '—'}</td>"
+            f"<td>{_best_cell(s)}</td></tr>")
+
+
+def _toc_html(rows: Sequence[str]) -> str:
+    """The Scenes table of the rows `_toc_row` made."""
+    if not rows:
         return '<nav class="card toc"><h2>Scenes</h2><p class="muted">no scenes yet</p></nav>'
-    rows = "".join(
-        f'<tr><td><a href="#scene-{i:03d}">{_e(s.name)}</a></td><td>{_status_badge(s)}</td>'
-        f"<td>{_shot_count(s)}</td><td>{_e(', '.join(r.method for r in s.results)) or '—'}</td>"
-        f"<td>{_fmt(float(s.reference_deg)) + '°' if s.reference_deg is not None else '—'}</td>"
-        f"<td>{_best_cell(s)}</td></tr>"
-        for i, s in enumerate(scenes))
     return ('<nav class="card toc"><h2>Scenes</h2><div class="scroll"><table><thead><tr><th>scene</th><th>status</th><th>shots</th>'
-            f"<th>methods</th><th>reference angle</th><th>best T̂ vs ground truth</th></tr></thead><tbody>{rows}</tbody>"
+            f"<th>methods</th><th>reference angle</th><th>best T̂ vs ground truth</th></tr></thead><tbody>{''.join(rows)}</tbody>"
             "</table></div></nav>")
 
 
@@ -628,7 +631,9 @@ def write_html_report(scenes: list[SceneView], out_dir: Path, title: str, calibr
     """Write the static HTML report of ``scenes`` into the folder ``out_dir``.
 
     Args:
-        scenes: what to show, one `SceneView` per scene, in page order.
+        scenes: what to show, one `SceneView` per scene, in page order; each is taken once, its
+            images written and let go, so a sequence that makes its views on demand
+            (`urd.report.report_html`'s) keeps one scene's images in memory at a time.
         out_dir: the report folder; it must not exist unless ``overwrite`` (see below).
         title: page title (escaped).
         calibration: the Malus-law sweep behind the polarizer offset, if any.
@@ -660,8 +665,6 @@ def write_html_report(scenes: list[SceneView], out_dir: Path, title: str, calibr
     if calibration is not None and len(calibration.fit_angles_deg) != len(calibration.fit_intensities):
         raise ValueError(f"calibration: expected one fit intensity per fit angle ({len(calibration.fit_angles_deg)}), "
                          f"got {len(calibration.fit_intensities)}")
-    for i, scene in enumerate(scenes):
-        _check_scene(scene, i)
     out_dir = Path(out_dir)
     check_report_folder(out_dir, overwrite)
     started = time.time()
@@ -673,11 +676,15 @@ def write_html_report(scenes: list[SceneView], out_dir: Path, title: str, calibr
     try:
         fcntl.flock(held, fcntl.LOCK_EX)            # marks it live (`_remove_stale_staging`); waits only for a check
         _remove_stale_staging(out_dir, started)
-        sections = []
-        for i, scene in enumerate(scenes):
+        sections, rows = [], []
+        for i in range(len(scenes)):
             if progress:
                 progress(i, len(scenes))
+            scene = scenes[i]
+            _check_scene(scene, i)
             sections.append(_scene_html(scene, i, staging, f"img/s{i:03d}-{_slug(scene.name)}", thumb_px, out_dir.resolve()))
+            rows.append(_toc_row(scene, i))
+            del scene
         count = f"{len(scenes)} scene{'s' if len(scenes) != 1 else ''}"
         page = ('<!doctype html>\n<html lang="en"><head><meta charset="utf-8">'
                 '<meta name="viewport" content="width=device-width, initial-scale=1">'
@@ -686,7 +693,7 @@ def write_html_report(scenes: list[SceneView], out_dir: Path, title: str, calibr
                 f'<header><h1>{_e(title)}</h1><p class="muted">{count}'
                 f'{" · polarizer calibrated" if calibration is not None and calibration.offset_deg is not None else ""}'
                 " · static report written by urd</p></header>"
-                + _toc_html(scenes) + _howto_html()
+                + _toc_html(rows) + _howto_html()
                 + (_calibration_html(calibration) if calibration is not None else "")
                 + "".join(sections)
                 + '</main><div id="viewer" hidden><div class="bar"><span class="caption"></span>'
