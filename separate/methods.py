@@ -35,7 +35,7 @@ import numpy as np
 
 from separate import optics
 from separate.incidence import estimate_incidence
-from separate.reference import resolve_reference
+from separate.reference import Inspection, resolve_reference
 from separate.presentation import present, present_field
 
 Run = Callable[..., tuple[np.ndarray, np.ndarray]]
@@ -263,6 +263,23 @@ def sees_polarization_of(info: dict) -> bool:
     """Whether a method (its ``info`` from `get_method`) uses the polarization, and so a reference
     angle; the single-image methods see S0 only."""
     return not str(info.get("reference_policy", "")).startswith("not used")
+
+
+def separate_inspected(images: np.ndarray, angles: list[float], run, reference: str | float,
+                       sees_polarization: bool = True) -> tuple[np.ndarray, np.ndarray, Inspection, float | np.ndarray]:
+    """Inspect the stack and choose the reference as every separation in urd does
+    (`separate.reference.resolve_reference`: for "auto" the estimated field, or the estimated
+    angle where the polarization is weak and of one orientation; for "global" the estimated
+    angle; or the given angle; an assumed side settled by separating both sides with
+    ``run(..., trial=True)``, unless the method does not ``sees_polarization``), then run the method there.
+
+    Returns:
+        R̂, T̂, the inspection, and the reference used (deg: a field on the reduced grid, or an angle).
+    """
+    trial = partial(run, trial=True) if sees_polarization else None      # silent, a fresnel network ungated
+    inspection, chosen = resolve_reference(images, angles, reference, trial)
+    r_hat, t_hat = run(images, angles, chosen)
+    return r_hat, t_hat, inspection, inspection.field if np.ndim(chosen) == 2 else chosen
 
 
 def get_method(name: str, reference: Reference = "auto", **options) -> tuple[Run, dict]:

@@ -60,9 +60,8 @@ def separate(images: np.ndarray, angles_deg: Sequence[float], method: str = "net
     The warnings `urd separate` prints about the stack (clipped pixels, identical shots, too
     little polarization, an assumed side of the reference) are issued as ``UserWarning``.
     """
-    from separate.methods import get_method, sees_polarization_of
+    from separate.methods import get_method, sees_polarization_of, separate_inspected
     from separate.presentation import check_stack
-    from separate.reference import resolve_reference
 
     angles = [float(a) for a in angles_deg]
     check_stack(images, angles)
@@ -73,11 +72,9 @@ def separate(images: np.ndarray, angles_deg: Sequence[float], method: str = "net
                              f"exceed it (up to {float(images.max()):g}): scale the stack so that white is 1.0 "
                              "(16-bit codes: pass them as uint16, or divide by 65535)")
     run, info = get_method(method, reference=reference, **options)
-    trial = partial(run, trial=True) if sees_polarization_of(info) else None
-    inspection, chosen = resolve_reference(images, angles, reference, trial)
+    r_hat, t_hat, inspection, _ = separate_inspected(images, angles, run, reference, sees_polarization_of(info))
     for message in inspection.warnings:
         warnings.warn(message, UserWarning, stacklevel=2)
-    r_hat, t_hat = run(images, angles, chosen)
     return Layers(t_hat, r_hat)
 
 

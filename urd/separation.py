@@ -32,7 +32,7 @@ import numpy as np
 import tifffile
 
 from separate import metrics, optics
-from separate.methods import sees_polarization_of
+from separate.methods import sees_polarization_of, separate_inspected
 from separate.reference import Inspection, resolve_reference
 from urd.core.dataset import SCENE_NAME, Scene, enclosing_dataset
 from urd.core.errors import DatasetError
@@ -214,23 +214,6 @@ class Separation:
     warnings: list[str]
     truth_metrics: dict | None = None
     reference_kind: str = ""
-
-
-def separate_inspected(images: np.ndarray, angles: list[float], run, reference: str | float,
-                       sees_polarization: bool = True) -> tuple[np.ndarray, np.ndarray, Inspection, float | np.ndarray]:
-    """Inspect the stack and choose the reference as every separation in urd does
-    (`separate.reference.resolve_reference`: for "auto" the estimated field, or the estimated
-    angle where the polarization is weak and of one orientation; for "global" the estimated
-    angle; or the given angle; an assumed side settled by separating both sides with
-    ``run(..., trial=True)``, unless the method does not ``sees_polarization``), then run the method there.
-
-    Returns:
-        R̂, T̂, the inspection, and the reference used (deg: a field on the reduced grid, or an angle).
-    """
-    trial = functools.partial(run, trial=True) if sees_polarization else None      # silent, a fresnel network ungated
-    inspection, chosen = resolve_reference(images, angles, reference, trial)
-    r_hat, t_hat = run(images, angles, chosen)
-    return r_hat, t_hat, inspection, inspection.field if np.ndim(chosen) == 2 else chosen
 
 
 @dataclasses.dataclass
