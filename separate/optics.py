@@ -83,16 +83,16 @@ def brewster_angle(n: float = N_GLASS) -> float:
     return float(np.arctan(n))
 
 
-def _fresnel_amplitudes(theta: Array, n: float) -> tuple[Array, Array, Array, Array]:
-    """Amplitude reflection coefficients (r_s, r_p) of one air–dielectric interface and their
-    denominators (cos θ + n cos θ_t, n cos θ + cos θ_t), at θ (rad)."""
+def _fresnel_amplitudes(theta: Array, n: float) -> tuple[Array, Array, Array, Array, Array]:
+    """Amplitude reflection coefficients (r_s, r_p) of one air–dielectric interface, their
+    denominators (cos θ + n cos θ_t, n cos θ + cos θ_t) and sin θ, at θ (rad)."""
     if n <= 1.0:
         raise ValueError(f"expected a refractive index n > 1, got {n}")
     xp = _xp(theta)
-    cos_i = xp.cos(theta)
-    cos_t = xp.cos(snell(theta, n))
+    sin_i, cos_i = xp.sin(theta), xp.cos(theta)
+    cos_t = xp.cos(xp.arcsin(sin_i / n))                        # `snell`, sin θ computed once
     den_s, den_p = cos_i + n * cos_t, n * cos_i + cos_t
-    return (cos_i - n * cos_t) / den_s, (n * cos_i - cos_t) / den_p, den_s, den_p
+    return (cos_i - n * cos_t) / den_s, (n * cos_i - cos_t) / den_p, den_s, den_p, sin_i
 
 
 def fresnel_reflectance(theta: Array, n: float = N_GLASS) -> tuple[Array, Array]:
@@ -105,20 +105,26 @@ def fresnel_reflectance(theta: Array, n: float = N_GLASS) -> tuple[Array, Array]
     Returns:
         R_s, R_p in [0, 1], the shape of ``theta``.
     """
-    r_s, r_p, _, _ = _fresnel_amplitudes(theta, n)
+    r_s, r_p = _fresnel_amplitudes(theta, n)[:2]
     return r_s**2, r_p**2
 
 
-def fresnel_reflectance_slope(theta: Array, n: float = N_GLASS) -> tuple[Array, Array]:
-    """Derivatives (dR_s/dθ, dR_p/dθ) (per rad) of `fresnel_reflectance`, for θ in [0, π/2).
+def fresnel_reflectance_and_slope(theta: Array, n: float = N_GLASS) -> tuple[Array, Array, Array, Array]:
+    """(R_s, R_p) of `fresnel_reflectance` and their derivatives (dR_s/dθ, dR_p/dθ) (per rad), for
+    θ in [0, π/2), from one evaluation of the amplitudes.
 
     With k = n cos θ_t (k² = n² − sin²θ), both amplitudes have dr/dθ = −2(n² − 1) sin θ /
     (k · denominator²), and dR/dθ = 2 r dr/dθ.
     """
-    r_s, r_p, den_s, den_p = _fresnel_amplitudes(theta, n)
-    xp = _xp(theta)
-    slope = -2.0 * (n * n - 1.0) * xp.sin(theta) / xp.sqrt(n * n - xp.sin(theta) ** 2)
-    return 2 * r_s * slope / den_s**2, 2 * r_p * slope / den_p**2
+    r_s, r_p, den_s, den_p, sin_i = _fresnel_amplitudes(theta, n)
+    slope = -2.0 * (n * n - 1.0) * sin_i / _xp(theta).sqrt(n * n - sin_i**2)
+    return r_s**2, r_p**2, 2 * r_s * slope / den_s**2, 2 * r_p * slope / den_p**2
+
+
+def fresnel_reflectance_slope(theta: Array, n: float = N_GLASS) -> tuple[Array, Array]:
+    """Derivatives (dR_s/dθ, dR_p/dθ) (per rad) of `fresnel_reflectance`, for θ in [0, π/2)
+    (`fresnel_reflectance_and_slope`)."""
+    return fresnel_reflectance_and_slope(theta, n)[2:]
 
 
 def reflectance(theta: Array, n: float = N_GLASS) -> Array:

@@ -64,8 +64,7 @@ def _energy(theta: np.ndarray, i_perp: np.ndarray, i_par: np.ndarray, smoothness
     h, w = theta.shape
     side, pixels = max(h, w), h * w
     angle = torch.from_numpy(theta)                              # torch's float64 cos/sin: ~8× numpy's here
-    r_s, r_p = (r.numpy() for r in optics.fresnel_reflectance(angle))
-    dr_s, dr_p = (d.numpy() for d in optics.fresnel_reflectance_slope(angle))
+    r_s, r_p, dr_s, dr_p = (r.numpy() for r in optics.fresnel_reflectance_and_slope(angle))
     a, b = optics.mixture_coefficients(r_s, r_p)
     da, db = mixture_coefficient_slopes(r_s, r_p, dr_s, dr_p)
     s0 = i_perp + i_par
