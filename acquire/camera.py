@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Protocol
 
 from urd.core import raw as rawio
-from urd.core.errors import DeviceError, DeviceTimeoutError
+from urd.core.errors import DeviceError, DeviceTimeoutError, RawFormatError
 
 
 class CameraKind(enum.Enum):
@@ -90,4 +90,16 @@ class Gphoto2Camera:
             fd, name = tempfile.mkstemp(dir=folder, prefix=".shot-", suffix=raws[0].suffix.lower())
             os.close(fd)
             shutil.move(raws[0], name)
-        return Path(name), rawio.metadata(Path(name))
+        return Path(name), downloaded_metadata(Path(name))
+
+
+def downloaded_metadata(path: Path) -> dict:
+    """`urd.core.raw.metadata` of a RAW file just downloaded under a temporary name; when it is
+    unreadable the file is removed and the RawFormatError says why without naming it (the
+    capture plan names the shot)."""
+    try:
+        return rawio.metadata(path)
+    except RawFormatError as exc:
+        path.unlink(missing_ok=True)
+        reason = str(exc).removeprefix(f"{path}: ")
+        raise RawFormatError(f"the camera's file is not a readable RAW file ({reason}); the download was removed") from exc

@@ -137,6 +137,7 @@ class Ell14:
         self.on_wait: Callable[[], None] | None = None
         self.on_retry: Callable[[str], None] | None = None
         self._info: Ell14Info | None = None
+        self._answered = False                       # a reply came on this link: a later silence is a stage gone away
 
     def __enter__(self) -> "Ell14":
         return self
@@ -154,10 +155,14 @@ class Ell14:
         while not line.endswith(b"\n"):
             remaining = deadline - time.monotonic()
             if remaining <= 0:
+                partial = f" (partial reply {line!r})" if line else ""
+                if self._answered:
+                    raise DeviceTimeoutError(
+                        f"ELL14 at address {self.address} stopped answering: no reply within the time-out{partial}, "
+                        "though it answered earlier; check its cable or USB adapter and its power")
                 raise DeviceTimeoutError(
-                    f"ELL14 at address {self.address} did not answer within the time-out"
-                    + (f" (partial reply {line!r})" if line else "")
-                    + ": is it powered and cabled, on this port, and at this address (--address)?"
+                    f"ELL14 at address {self.address} did not answer within the time-out{partial}"
+                    ": is it powered and cabled, on this port, and at this address (--address)?"
                 )
             self.port.timeout = min(remaining, 0.1)
             line += self.port.read_until(b"\n")
@@ -169,6 +174,7 @@ class Ell14:
         addr, code, data = (g.decode() for g in match.groups())
         if addr != self.address:
             raise ProtocolError(f"reply from address {addr}, expected {self.address}: {line!r}")
+        self._answered = True
         return code, data
 
     def _transact(self, command: str, expect: tuple[str, ...], timeout_s: float) -> tuple[str, str]:

@@ -23,7 +23,7 @@ from typing import Callable, Iterator
 from acquire.camera import Camera
 from acquire.ell14 import Ell14
 from urd.core.dataset import SCENE_NAME, Dataset, Scene
-from urd.core.errors import DatasetError, DeviceError, ManifestError, UrdError
+from urd.core.errors import DatasetError, DeviceError, ManifestError, RawFormatError, UrdError
 from urd.core.files import atomic_path, disk_full, sha256_file, write_error
 from urd.core.processes import capture_stopped
 from urd.core.progress import Progress
@@ -50,6 +50,11 @@ def plan_capture(angles_deg: list[float], done: set[int] = frozenset()) -> list[
 def shot_name(index: int, angle_deg: float, suffix: str) -> str:
     """File name of a shot, e.g. shot_01_045.0deg.dng."""
     return f"shot_{index:02d}_{angle_deg:05.1f}deg{suffix}"
+
+
+#: Range of the read-back tolerance (deg): at least 0.01 (above the ELL14's encoder step of
+#: 0.0025 deg), at most 10 (a larger one would pass a missed move and mislabel the shot).
+MIN_TOLERANCE_DEG, MAX_TOLERANCE_DEG = 0.01, 10.0
 
 
 def _angle_error(a_deg: float, b_deg: float) -> float:
@@ -119,6 +124,8 @@ def run_capture(
         elif step.kind == "trigger":
             try:
                 pending, meta = camera.capture(raw_dir, step.index)
+            except RawFormatError as exc:
+                raise DeviceError(f"shot {step.index} at {step.angle_deg:g} deg: {exc}") from exc
             except OSError as exc:
                 if disk_full(exc, raw_dir):
                     raise write_error(raw_dir / shot_name(step.index, step.angle_deg, ""), exc, full=True) from exc
@@ -246,15 +253,20 @@ def capture_scene(root: Path, stage: str, camera: str, angles_deg: list[float] |
     plan (angles, offset, tolerance; ``angles_deg`` and ``tolerance_deg`` None take them, other
     values must match) and must be captured with the camera and stage it recorded. A new scene
     takes ``angles_deg`` (default `DEFAULT_ANGLES_DEG`), ``tolerance_deg`` (default 0.5) and the
-    dataset's mounting offset calibration of this stage (`acquire.rig.offset_for_stage`). The
-    rig is opened before the dataset or any scene is made, and a scene that got no shot is
-    removed, so a failing start leaves nothing. Errors and Ctrl-C are re-raised with the
+    dataset's mounting offset calibration of this stage (`acquire.rig.offset_for_stage`).
+    ``scene_name`` with ``new``, and a tolerance outside `MIN_TOLERANCE_DEG`..`MAX_TOLERANCE_DEG`,
+    are a ValueError. The rig is opened before the dataset or any scene is made, and a scene
+    that got no shot is removed, so a failing start leaves nothing. Errors and Ctrl-C are re-raised with the
     command that resumes the capture; once every shot is taken the scene is complete instead.
     """
     from acquire.rig import offset_for_stage, open_rig
 
     if scene_name is not None and not SCENE_NAME.match(scene_name):
         raise DatasetError(f"expected a scene name like scene_01, got {scene_name!r}")
+    if scene_name is not None and new:
+        raise ValueError(f"expected a scene name or a new scene, not both (scene {scene_name!r} and new)")
+    if tolerance_deg is not None and not MIN_TOLERANCE_DEG <= tolerance_deg <= MAX_TOLERANCE_DEG:
+        raise ValueError(f"expected a tolerance between {MIN_TOLERANCE_DEG:g} and {MAX_TOLERANCE_DEG:g} deg, got {tolerance_deg:g}")
     with open_rig(stage, camera, address, sim) as rig:
         with Dataset.made_for(root) as ds, ds.lock():    # one that fails before its first shot leaves no dataset
             ds.remove_stale()

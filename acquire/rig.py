@@ -10,6 +10,9 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
+import os
+import stat
 from pathlib import Path
 from typing import Iterator
 
@@ -78,18 +81,44 @@ class Rig:
     sim: SimulatedEll14 | None = None
 
 
+MISSING_PORT_HINT = ("is the stage connected and powered? Its USB adapter is usually /dev/ttyUSB0 "
+                     "(ls /dev/ttyUSB*); --stage sim runs the simulated stage")
+
+
+def _not_serial(port: str, what: str) -> DeviceError:
+    """The error for a ``port`` that names ``what`` (a regular file, a folder, ...) instead of a serial device."""
+    return DeviceError(f"{port} is not a serial device ({what}); name the stage's serial port, "
+                       "usually /dev/ttyUSB0 (ls /dev/ttyUSB*), or --stage sim for the simulated stage")
+
+
+def check_port(port: str) -> None:
+    """DeviceError, before the port is opened, when ``port`` names nothing or something other than
+    a character device (a regular file, a folder, a socket): no serial line is there."""
+    try:
+        mode = os.stat(port).st_mode
+    except FileNotFoundError:
+        raise DeviceError(f"cannot open serial port {port}: no such device; {MISSING_PORT_HINT}") from None
+    except OSError:
+        return                                       # opening it says what is wrong (e.g. no permission)
+    if not stat.S_ISCHR(mode):
+        raise _not_serial(port, "a folder" if stat.S_ISDIR(mode) else "a regular file" if stat.S_ISREG(mode)
+                          else "not a character device")
+
+
 def open_serial(port: str, timeout_s: float = 0.1) -> serial.Serial:
     """Open a serial port at the ELL14's settings (9600 8N1), exclusively: a second capture on
     the same stage would turn it under the first one's shots. DeviceError, with what to check, if
-    it cannot."""
+    it cannot (also for a device that takes no serial settings, like /dev/null)."""
     try:
         return serial.Serial(port, 9600, bytesize=8, parity="N", stopbits=1, timeout=timeout_s, exclusive=True)
     except (serial.SerialException, OSError, ValueError) as exc:
+        cause = exc.__cause__ or exc.__context__
+        if cause is not None and cause.args[:1] == (errno.ENOTTY,):
+            raise _not_serial(port, "it takes no serial line settings") from exc
         if "exclusively lock" in str(exc):
             hint = "another program (another urd capture?) is using it; wait for it or stop it"
         elif isinstance(exc, FileNotFoundError) or "No such file" in str(exc):
-            hint = ("is the stage connected and powered? Its USB adapter is usually /dev/ttyUSB0 "
-                    "(ls /dev/ttyUSB*); --stage sim runs the simulated stage")
+            hint = MISSING_PORT_HINT
         else:
             hint = "check the port name and that you may use it (on Linux, membership of the 'dialout' group)"
         raise DeviceError(f"cannot open serial port {port}: {exc}; {hint}") from exc
@@ -97,12 +126,18 @@ def open_serial(port: str, timeout_s: float = 0.1) -> serial.Serial:
 
 @contextlib.contextmanager
 def open_rig(stage: str, camera: str, address: str = "0", sim: SimSettings | None = None) -> Iterator[Rig]:
-    """Open the stage on ``stage`` (a port, or 'sim') and the ``camera`` kind."""
+    """Open the stage on ``stage`` (a port, or 'sim') and the ``camera`` kind. A port that is no
+    serial device (`check_port`), and the virtual camera without the simulated stage, are refused
+    before the port is opened."""
     sim = sim or SimSettings()
     try:
         kind = CameraKind(camera)
     except ValueError:
         raise DeviceError(f"unknown camera {camera!r}; expected one of {[k.value for k in CameraKind]}") from None
+    if stage != SIM:
+        check_port(stage)
+        if kind is CameraKind.VIRTUAL:
+            raise DeviceError("the virtual camera needs the simulated stage (--stage sim): it reads the true polarizer angle from it")
     with contextlib.ExitStack() as stack:
         twin = None
         if stage == SIM:
@@ -117,8 +152,6 @@ def open_rig(stage: str, camera: str, address: str = "0", sim: SimSettings | Non
         stage_info = {"kind": "ELL14", "port": stage, "address": address, "serial": info.serial_number,
                       "firmware": info.firmware, "pulses_per_rev": info.pulses_per_rev}
         if kind is CameraKind.VIRTUAL:
-            if twin is None:
-                raise DeviceError("the virtual camera needs the simulated stage (--stage sim): it reads the true polarizer angle from it")
             if sim.target_angle_deg is None:
                 scene = make_glass_scene(sim.width, sim.height, sim.reflection, sim.transmission)
             else:

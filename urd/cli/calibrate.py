@@ -8,8 +8,9 @@ from typing import Optional
 
 import typer
 
-from urd.cli.common import (DATASET_HELP, HELP_OPTIONS, WorkflowOrder, check_address, choice, resolve_scene, run_guarded,
-                            warn, within)
+from urd.cli.capture import SIM_SIZE_HELP
+from urd.cli.common import (DATASET_HELP, HELP_OPTIONS, WorkflowOrder, check_address, check_rig, choice, parse_size, resolve_scene,
+                            run_guarded, warn, within)
 from urd.core.dataset import default_root
 from urd.core.progress import TerminalProgress
 
@@ -21,16 +22,25 @@ calibrate_app = typer.Typer(cls=WorkflowOrder, help="Measure the polarizer: moun
 
 @calibrate_app.command("offset")
 def calibrate_offset_cmd(
+    ctx: typer.Context,
     dataset: Optional[Path] = typer.Argument(None, help="Dataset whose polarizer to calibrate, where calibration.json is written (default: the current folder if it holds dataset.json, else ./dataset).", show_default=False),
     stage: str = typer.Option(..., help="Serial port of the ELL14 stage, or 'sim'."),
-    camera: str = typer.Option("gphoto2", help="Camera driver: gphoto2 or virtual."),
-    step: float = typer.Option(10.0, callback=within(1.0, 45.0), help="Sweep step (deg) over 180 deg."),
+    camera: str = typer.Option("gphoto2", help="Camera driver: gphoto2 or virtual (needs --stage sim)."),
+    step: float = typer.Option(10.0, callback=within(1.0, 45.0), help="Sweep step (deg), 1 to 45: one shot every STEP deg over 180 deg."),
     target_angle: float = typer.Option(0.0, callback=within(-360.0, 360.0), help="Polarization angle of the target's light (deg, image plane, CCW from x)."),
     address: str = typer.Option("0", help="ELL14 device address 0-F.", callback=check_address),
     sim_offset: float = typer.Option(0.0, callback=within(-360.0, 360.0), help="[sim] true mounting offset of the simulated polarizer (deg)."),
+    sim_size: str = typer.Option("256x192", help=SIM_SIZE_HELP),
     seed: int = typer.Option(0, callback=within(0), help="[sim/virtual] random seed."),
 ) -> None:
     """Sweep the polarizer in front of a polarized target and fit Malus's law for the mounting offset.
+
+    \b
+    Writes, in DATASET:
+      calibration.json         the fitted offset, with the history of earlier fits
+      calibration/sweep_NN/    the sweep: raw/shot_NN_ANGLEdeg.dng and scene.json
+    Later captures with this stage use the offset.
+    [sim] options need --stage sim, [virtual] options --camera virtual.
 
     \b
     Example:
@@ -42,8 +52,10 @@ def calibrate_offset_cmd(
     from urd.calibration import sweep_and_calibrate
 
     choice(CameraKind, camera, "--camera")
+    width, height = parse_size(sim_size, "--sim-size")
+    check_rig(ctx, stage, camera, ("sim_offset", "seed"), ("sim_size",))
     root = dataset or default_root()
-    sim = SimSettings(offset_deg=sim_offset, width=256, height=192, shake_px=0, shake_deg=0, seed=seed,
+    sim = SimSettings(offset_deg=sim_offset, width=width, height=height, shake_px=0, shake_deg=0, seed=seed,
                       target_angle_deg=target_angle)
     record = run_guarded(sweep_and_calibrate, root, stage, camera, step, target_angle, address, sim, progress=TerminalProgress())
     typer.echo(f"mounting offset {record.offset_deg:.3f} ± {record.uncertainty_deg:.3f} deg "

@@ -91,6 +91,33 @@ def given(ctx: typer.Context, name: str) -> bool:
     return ctx.get_parameter_source(name).name != "DEFAULT"
 
 
+def check_rig(ctx: typer.Context, stage: str, camera: str, stage_options: tuple[str, ...],
+              camera_options: tuple[str, ...]) -> None:
+    """Check the rig a command is given before any port is opened: a ``stage`` port that names no
+    serial device is a failure (exit 1, `acquire.rig.check_port`); the virtual camera without
+    the simulated stage, and simulation options that would go unused, are usage errors (exit 2).
+    ``stage_options`` (parameter names) set the simulated stage and need --stage sim,
+    ``camera_options`` set the virtual camera and need --camera virtual; only options given
+    (`given`) count."""
+    from acquire.rig import SIM, check_port
+
+    if stage != SIM:
+        run_guarded(check_port, stage)
+        if camera == "virtual":
+            raise usage(f"--camera virtual needs --stage sim: the virtual camera reads the true polarizer angle from the "
+                        f"simulated stage, and {stage} is a real port")
+    problems = []
+    for names, unused_here, needs, why in (
+            (stage_options, stage != SIM, "--stage sim", f"the simulated stage, and {stage} is a real port"),
+            (camera_options, camera != "virtual", "--camera virtual", f"the virtual camera, not the {camera} camera")):
+        unused = [f"--{name.replace('_', '-')}" for name in names if unused_here and given(ctx, name)]
+        if unused:
+            one = len(unused) == 1
+            problems.append(f"{', '.join(unused)} {'needs' if one else 'need'} {needs}: {'it sets' if one else 'they set'} {why}")
+    if problems:
+        raise usage("; ".join(problems))
+
+
 def check_address(value: str) -> str:
     """An ELL14 address: one hex digit 0-F (upper case)."""
     if not re.fullmatch(r"[0-9A-Fa-f]", value):
@@ -149,7 +176,8 @@ def end_line(bar) -> None:
 
 def parse_angles(text: str, min_distinct: int = 3, option: str = "--angles") -> list[float]:
     """'0,45,90' → [0.0, 45.0, 90.0] (degrees): finite, no direction twice (mod 180), at least
-    ``min_distinct`` of them."""
+    ``min_distinct`` of them, spread so that they determine S0, S1, S2 (`separate.optics.check_angles`,
+    the check separation applies)."""
     try:
         angles = [float(a) for a in text.split(",") if a.strip()]
     except ValueError:
@@ -163,6 +191,12 @@ def parse_angles(text: str, min_distinct: int = 3, option: str = "--angles") -> 
         raise bad(option, f"expected each polarizer direction once (angles are the same mod 180 deg), got {text!r}")
     if len(angles) < min_distinct:
         raise bad(option, f"expected at least {min_distinct} distinct polarizer angles (mod 180), got {text!r}")
+    from separate.optics import check_angles
+
+    try:
+        check_angles([math.radians(a) for a in angles])
+    except ValueError as exc:
+        raise bad(option, str(exc)) from None
     return angles
 
 

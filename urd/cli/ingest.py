@@ -40,12 +40,11 @@ def ingest(
     from urd.core.images import Transfer
     from urd.ingest import IngestOptions, ingest as ingest_workflow
 
-    opts = IngestOptions(tuple(parse_angles(angles)), choice(Motion, motion, "--motion"), half_size, gap, redo)
-    layout = method = None
-    if mosaic:
-        from urd.core.mosaic import Demosaic, MosaicLayout
+    from urd.core.mosaic import Demosaic, MosaicLayout
 
-        layout, method = choice(MosaicLayout, mosaic, "--mosaic"), choice(Demosaic, demosaic, "--demosaic")
+    opts = IngestOptions(tuple(parse_angles(angles)), choice(Motion, motion, "--motion"), half_size, gap, redo)
+    layout = choice(MosaicLayout, mosaic, "--mosaic") if mosaic else None
+    method = choice(Demosaic, demosaic, "--demosaic")
     transfer_rule = choice(Transfer, transfer, "--transfer")
     if not source.exists():
         raise bad("SOURCE", f"{source}: no such folder or file")
@@ -69,7 +68,9 @@ def ingest(
                                  "by one process (ingest them, then the dataset with --jobs)")
     unused = [f"--{name}" for name in ("demosaic", "transfer") if given(ctx, name)]
     if unused and not mosaic:
-        raise usage(f"{', '.join(unused)}: for --mosaic frames")
+        names = ", ".join(unused)
+        raise usage(f"{names} {'needs' if len(unused) == 1 else 'need'} --mosaic LAYOUT ({names}: for --mosaic frames "
+                    "from a polarization camera, not for RAW shots)")
     unused = [f"--{name}" for name in ("angles", "gap", "motion") if given(ctx, name)]
     if unused and mosaic:
         raise usage(f"{', '.join(unused)}: for RAW shots; a --mosaic frame holds its polarizer angles in its layout "
@@ -100,3 +101,7 @@ def ingest(
     if report.failed:
         failed = len(report.failed)
         fail(f"{failed} of {plural(len(report.outcomes), 'scene')} {'failed or was' if failed == 1 else 'failed or were'} flagged")
+    incomplete = [o.name for o in report.outcomes if o.state == "incomplete"]
+    if incomplete and len(incomplete) == len(report.outcomes):     # no scene ingested, now or before
+        fail(f"nothing to ingest: {plural(len(incomplete), 'incomplete capture')} ({', '.join(incomplete)}); resume "
+             f"{'it' if len(incomplete) == 1 else 'them'} with the command above, then ingest again")

@@ -2,7 +2,8 @@
 
 A workflow takes ``progress: Progress | None`` and calls ``progress(done, total, label)``
 with counts of its own units (tiles, shots, steps, patches). The CLI renders it with
-`TerminalProgress`: a bar with percentage, counts, elapsed time and ETA on stderr.
+`TerminalProgress`: a bar with percentage, counts, elapsed time and ETA on stderr, redrawn in
+place on a terminal and written as occasional plain lines anywhere else (a log file, a pipe).
 """
 
 from __future__ import annotations
@@ -30,12 +31,14 @@ LOG_INTERVAL_S = 10.0
 
 
 class TerminalProgress:
-    """Render progress callbacks as one updating line (a new line when the label changes).
+    """Render progress callbacks as one updating line on a terminal (a new line when the label
+    changes), and as plain lines on anything else (a log file of a long run): no carriage
+    returns there, one line at most every `LOG_INTERVAL_S`, besides each label's first and last.
 
     The ETA extrapolates the rate of the current label's units since its first call, counted
     from the ``done`` of that call (a resumed run starts part-way: its earlier units took no time
-    here). The line is redrawn at most every 0.2 s on a terminal and every `LOG_INTERVAL_S` on
-    anything else (a log file of a long run), besides each label's first and last call.
+    here). On a terminal the line is redrawn at most every 0.2 s, besides each label's first and
+    last call.
     """
 
     #: Bars with a line drawn and not yet ended (`end_open_lines`).
@@ -47,41 +50,49 @@ class TerminalProgress:
         self.started = time.monotonic()
         self.first_done = 0
         self.last_draw = 0.0
-        self.interval = 0.2 if stream.isatty() else LOG_INTERVAL_S
+        self.lines = not stream.isatty()             # plain lines, each ended, instead of one line redrawn
+        self.interval = LOG_INTERVAL_S if self.lines else 0.2
+        self.finished = False                        # the label's last line is written (plain lines: once)
 
     def __call__(self, done: int, total: int, label: str) -> None:
         now = time.monotonic()
         if label != self.label:
-            if self.label is not None:
+            if self.label is not None and not self.lines:
                 self.stream.write("\n")
-            self.label, self.started, self.first_done = label, now, done
-            TerminalProgress._open.add(self)
+            self.label, self.started, self.first_done, self.finished = label, now, done, False
+            if not self.lines:
+                TerminalProgress._open.add(self)
         elif done < total and now - self.last_draw < self.interval:
+            return
+        elif self.lines and done >= total and self.finished:
             return
         self.last_draw = now
         total = max(total, 1)
         frac = min(1.0, done / total)
+        self.finished = frac >= 1
         elapsed = now - self.started
         rate = (done - self.first_done) / elapsed if elapsed > 0 else 0.0
         eta = "done" if frac >= 1 else (f"ETA {_clock((total - done) / rate)}" if rate > 0 else "ETA --:--")
         bar = "#" * round(self.width * frac) + "-" * (self.width - round(self.width * frac))
-        self.stream.write(f"\r{label[:40]:<40} [{bar}] {100 * frac:3.0f}% {done}/{total} {_clock(elapsed)} {eta}  ")
+        text = f"{label[:40]:<40} [{bar}] {100 * frac:3.0f}% {done}/{total} {_clock(elapsed)} {eta}  "
+        self.stream.write(f"{text}\n" if self.lines else f"\r{text}")
         self.stream.flush()
 
     def break_line(self) -> None:
         """End the current line so that other output can follow; the progress goes on in a new
-        line with its timing (elapsed time and rate still counted from the label's first call)."""
-        if self.label is not None:
+        line with its timing (elapsed time and rate still counted from the label's first call).
+        Plain lines are ended already."""
+        if self.label is not None and not self.lines:
             self.stream.write("\n")
             self.stream.flush()
         self.last_draw = 0.0
 
     def close(self) -> None:
         """End the current line."""
-        if self.label is not None:
+        if self.label is not None and not self.lines:
             self.stream.write("\n")
             self.stream.flush()
-            self.label = None
+        self.label = None
         TerminalProgress._open.discard(self)
 
     @classmethod
