@@ -47,6 +47,7 @@ import ctypes.util
 import functools
 import hashlib
 import json
+import re
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Iterator, Sequence
@@ -89,17 +90,19 @@ def load_model(path: Path | str | None = None) -> tuple[torch.nn.Module, dict]:
     path = Path(path or DEFAULT_WEIGHTS)
     if not path.is_file() and path.name == str(path) and (WEIGHTS_DIR / f"{path}.pt").is_file():
         path = WEIGHTS_DIR / f"{path}.pt"
-    if not path.is_file():
+    if not path.exists():
         raise WeightsError(f"weights file {path} not found (shipped: {', '.join(shipped_weights())}; "
                            "train your own with 'urd train')")
+    state = read_weights(path)
+    if not isinstance(state.get("model_config"), dict):
+        raise WeightsError(f"{path} is not a urd weights or checkpoint file (no 'model_config': the network it holds is unknown)")
     digest = hashlib.sha256(path.read_bytes()).hexdigest()
     try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
         with torch.random.fork_rng():                      # the weights' random start must not move the caller's RNG
             model = build_model(state["model_config"])
         model.load_state_dict({k: v.float() for k, v in state["model"].items()})
-    except Exception as exc:  # noqa: BLE001 - any failure to read means the file is unusable
-        raise WeightsError(f"weights file {path} is corrupt or does not fit the model: {exc}") from exc
+    except Exception as exc:  # noqa: BLE001 - any failure to build or fill the network means the file is unusable
+        raise WeightsError(f"weights file {path} is corrupt or does not fit the model: {_one_line(exc)}") from exc
     model.eval()
     card_path = path.with_suffix(".json")
     card = None
@@ -114,6 +117,68 @@ def load_model(path: Path | str | None = None) -> tuple[torch.nn.Module, dict]:
                                "restore it, or move it away to use the weights without their card")
     info = {"file": str(path), "sha256": digest, "config": state["model_config"], "card": card}
     return model, info
+
+
+#: The first bytes of a zip archive, torch.save's format since torch 1.6.
+ZIP_MAGIC = b"PK\x03\x04"
+
+
+def read_weights(path: Path, device: torch.device | str = "cpu") -> dict:
+    """A weights or checkpoint file's contents (a dict whose ``model`` maps names to tensors),
+    read with tensors and plain data only (``weights_only``: no code runs on loading);
+    WeightsError in one line naming ``path`` and why it is not such a file otherwise."""
+    path = Path(path)
+    if path.is_dir():
+        run = " (a run folder: pass its best.pt or last.pt)" if (path / "best.pt").is_file() or (path / "last.pt").is_file() else ""
+        raise WeightsError(f"{path} is a folder, expected a weights or checkpoint file{run}")
+    if not path.exists():
+        raise WeightsError(f"{path}: no such file")
+    try:
+        state = torch.load(path, map_location=device, weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - any failure to read means the file is unusable; say why in one line
+        raise WeightsError(f"{path} is not a urd weights or checkpoint file ({_load_failure(path, exc)})") from exc
+    if not isinstance(state, dict) or not isinstance(state.get("model"), dict) \
+            or not all(isinstance(v, torch.Tensor) for v in state["model"].values()):
+        held = f"a {type(state).__name__}" if not isinstance(state, dict) else f"a dict of {sorted(map(str, state))[:6]}"
+        raise WeightsError(f"{path} is not a urd weights or checkpoint file (it holds {held}, not a 'model' of tensors)")
+    return state
+
+
+def _load_failure(path: Path, exc: Exception) -> str:
+    """A short reason why ``torch.load(path, weights_only=True)`` raised ``exc``."""
+    if isinstance(exc, OSError):
+        return f"cannot be read: {exc.strerror or exc}"
+    try:
+        with open(path, "rb") as f:
+            head = f.read(1024)
+    except OSError as err:
+        return f"cannot be read: {err.strerror or err}"
+    if not head:
+        return "the file is empty"
+    found = re.search(r"Unsupported global: GLOBAL (\S+)", str(exc))
+    if found:
+        return f"it holds a Python object ({found.group(1)}) besides tensors and plain data, which urd does not load"
+    if head.startswith(ZIP_MAGIC):
+        return "a damaged or truncated archive: corrupt, or not written by torch.save"
+    if _looks_like_text(head):
+        return "a text file, not one written by torch.save"
+    return "not written by torch.save"
+
+
+def _looks_like_text(head: bytes) -> bool:
+    """Whether a file's first bytes ``head`` read as UTF-8 text (no NUL; a character cut at the end is allowed)."""
+    if b"\0" in head:
+        return False
+    try:
+        head.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        return exc.start >= len(head) - 3
+    return True
+
+
+def _one_line(exc: BaseException) -> str:
+    """An error's message on one line (torch's state-dict errors run over many), at most 300 characters."""
+    return " ".join(line.strip() for line in str(exc).splitlines() if line.strip())[:300] or type(exc).__name__
 
 
 def shipped_weights() -> list[str]:

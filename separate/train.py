@@ -29,6 +29,7 @@ import torch
 import torch.distributed as dist
 
 from separate import metrics
+from separate.infer import read_weights
 from separate.model import BASES, LOSSES, UPSAMPLING, VARIANTS, with_fresnel_base
 from separate.networks import build_model
 from separate.precision import Precision, resolve
@@ -115,6 +116,12 @@ class TrainConfig:
         naming the file and the setting otherwise."""
         try:
             data = tomllib.loads(Path(path).read_text())
+        except FileNotFoundError:
+            raise ValueError(f"{path}: no such file") from None
+        except IsADirectoryError:
+            raise ValueError(f"{path} is a folder, expected a TOML file") from None
+        except OSError as exc:
+            raise ValueError(f"{path}: cannot be read: {exc.strerror or exc}") from None
         except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
             raise ValueError(f"{path}: not a valid TOML file: {exc}") from None
         names = {f.name for f in dataclasses.fields(cls)}
@@ -156,6 +163,11 @@ class TrainConfig:
 #: A limit on a setting's value: a test and its words in an error.
 Limit = tuple[Callable[[Any], bool], str]
 COUNT: Limit = (lambda v: v >= 1, "at least 1")
+#: The most threads a run may ask for: torch crashes (a segmentation fault) on a request of
+#: 100 000; 256 covers the largest hosts a run is sent to (0: torch's default, one per core).
+MAX_THREADS = 256
+#: The largest seed: torch's and numpy's generators take a seed of 64 bits; 2**63 - 1 keeps it a signed one.
+MAX_SEED = 2**63 - 1
 NONNEGATIVE: Limit = (lambda v: v >= 0, "at least 0")
 PROBABILITY: Limit = (lambda v: 0 <= v <= 1, "between 0 and 1")
 
@@ -177,12 +189,12 @@ LIMITS: dict[str, Limit] = {
     "lr_min": NONNEGATIVE,
     "steps": COUNT,
     "max_minutes": NONNEGATIVE,
-    "seed": NONNEGATIVE,
+    "seed": (lambda v: 0 <= v <= MAX_SEED, f"at least 0 and at most {MAX_SEED} (2**63 - 1)"),
     "val_samples": COUNT,
     "val_every": COUNT,
     "ckpt_every": COUNT,
     "precision": _one_of(tuple(p.value for p in Precision)),
-    "threads": NONNEGATIVE,
+    "threads": (lambda v: 0 <= v <= MAX_THREADS, f"at least 0 and at most {MAX_THREADS} (0: torch's default, one per core)"),
     "angles": _one_of(tuple(m.value for m in AngleMode)),
     "upsample": _one_of(UPSAMPLING),
     "base": _one_of(BASES),
@@ -297,11 +309,9 @@ def save_checkpoint(path: Path, model: torch.nn.Module, optim, step: int, cfg: T
 
 def load_checkpoint(path: Path, device: torch.device | str = "cpu") -> dict:
     """Read a checkpoint or weights file with tensors and plain data only (no code runs on
-    loading); WeightsError naming the file if it cannot be read that way."""
-    try:
-        return torch.load(path, map_location=device, weights_only=True)
-    except Exception as exc:  # noqa: BLE001 - any failure to read means the file is unusable
-        raise WeightsError(f"checkpoint {path} cannot be loaded safely (tensors and plain data only): {exc}") from exc
+    loading; `separate.infer.read_weights`); WeightsError in one line naming the file and why
+    it is not one otherwise."""
+    return read_weights(path, device)
 
 
 def model_config(cfg: TrainConfig) -> dict:
@@ -377,6 +387,39 @@ def run_lock(run_dir: Path) -> contextlib.AbstractContextManager:
                     unopenable=lambda exc: TrainingError(f"cannot lock run {run_dir}: {exc.strerror or exc}"))
 
 
+#: The files a run writes in its folder besides ``last.pt`` and ``.lock``.
+RUN_FILES = ("config.toml", "best.pt", "log.jsonl")
+
+
+def check_run_folder(run_dir: Path) -> None:
+    """TrainingError when ``run_dir`` holds `RUN_FILES` of an earlier run but no ``last.pt`` to
+    resume from: a new run there would overwrite best.pt and config.toml and add to log.jsonl."""
+    found = [name for name in RUN_FILES if (Path(run_dir) / name).exists()]
+    if found and not (Path(run_dir) / "last.pt").exists():
+        raise TrainingError(f"{run_dir} holds {', '.join(found)} of an earlier run but no last.pt to resume from, and a new "
+                            "run would overwrite them; use a new run folder (or restore last.pt there to resume)")
+
+
+def check_resume(state: dict, cfg: TrainConfig, source: Path, init: Path | None = None) -> None:
+    """TrainingError when the run checkpoint ``state``, read from ``source`` (a run's last.pt),
+    cannot go on with ``cfg`` (`check_resumable`) or with ``init`` weights: those apply to a new
+    run, and are accepted on resuming only when they are the very weights (SHA-256) it started from."""
+    if not all(isinstance(state.get(key), kind) for key, kind in (("train_config", dict), ("step", int), ("optim", dict))):
+        raise TrainingError(f"{source} holds weights but no training state to resume (a weights file, not a run's "
+                            "last.pt); use a new run folder, with --init to start from these weights")
+    check_resumable(state["train_config"], cfg, source)
+    origin = state.get("init") or {}
+    if init is not None and not (Path(init).is_file() and origin.get("sha256") == _sha256(Path(init))):
+        started = f"from {origin['path']}" if origin else "from scratch"
+        raise TrainingError(f"{Path(source).parent} already holds a run at step {state['step']} (started {started}): "
+                            "--init applies to a new run; use a new run folder")
+
+
+def _sha256(path: Path) -> str:
+    """A file's SHA-256 (hex)."""
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
 def check_resumable(stored: dict, cfg: TrainConfig, source: Path) -> None:
     """TrainingError naming the settings in which ``cfg`` differs from the config a checkpoint
     was trained with (``stored``), other than `RESUMABLE_CHANGES`."""
@@ -392,17 +435,47 @@ def train(cfg: TrainConfig, run_dir: Path, init: Path | None = None, progress=No
 
     ``init`` optionally starts from a weights or checkpoint file (fine-tuning); a run folder
     with ``last.pt`` always resumes from it instead, provided its config differs from ``cfg``
-    only in `RESUMABLE_CHANGES` (else TrainingError). One process (DDP: rank 0) holds the folder's
-    lock while training (`run_lock`). On Ctrl-C or SIGTERM rank 0 saves ``last.pt`` at the
-    step reached and notes it on the exception; a non-finite loss or gradient stops the run
-    with TrainingError, ``last.pt`` left at its last (finite) checkpoint.
+    only in `RESUMABLE_CHANGES` and ``init`` is none or the weights it started from (else
+    TrainingError, `check_resume`). A folder holding an earlier run's files without ``last.pt``
+    is refused (`check_run_folder`). One process (DDP: rank 0) holds the folder's lock while
+    training (`run_lock`). On Ctrl-C or SIGTERM rank 0 saves ``last.pt`` at the step reached and
+    notes it on the exception; a non-finite loss or gradient stops the run with TrainingError,
+    ``last.pt`` left at its last (finite) checkpoint. A new run that fails before its first
+    ``last.pt`` leaves no trace: the files it wrote, and the folders it made, are removed.
     """
     run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
+    if run_dir.exists() and not run_dir.is_dir():
+        raise TrainingError(f"{run_dir} is a file, expected a run folder")
     if int(os.environ.get("RANK", "0")) != 0:
+        run_dir.mkdir(parents=True, exist_ok=True)
         return _train(cfg, run_dir, init, progress)
-    with run_lock(run_dir):
-        return _train(cfg, run_dir, init, progress)
+    made = [folder for folder in (run_dir, *run_dir.parents) if not folder.exists()]     # the deepest first
+    run_dir.mkdir(parents=True, exist_ok=True)
+    before = {path.name for path in run_dir.iterdir()}
+    try:
+        with run_lock(run_dir):
+            try:
+                check_run_folder(run_dir)
+                return _train(cfg, run_dir, init, progress)
+            except BaseException:
+                if not (run_dir / "last.pt").exists():       # a failed start: nothing of it is kept
+                    for name in (*RUN_FILES, ".lock"):
+                        if name not in before:
+                            (run_dir / name).unlink(missing_ok=True)
+                raise
+    except BaseException:
+        for folder in made:                                  # only if empty: never what another process put there
+            with contextlib.suppress(OSError):
+                folder.rmdir()
+        raise
+
+
+def _config_in(run_dir: Path) -> TrainConfig | None:
+    """The settings of ``run_dir``'s config.toml; None when it is missing or not a valid config."""
+    try:
+        return TrainConfig.from_toml(Path(run_dir) / "config.toml")
+    except ValueError:
+        return None
 
 
 def rank_batches(batch: int, micro_batch: int, world: int) -> tuple[int, int]:
@@ -443,6 +516,8 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
     if resumed or init is not None:
         source = last if resumed else init
         state = load_checkpoint(source, device)
+        if resumed:
+            check_resume(state, cfg, last, init)
         stored = {"channels": 3, **state.get("model_config", {})}
         if not resumed and model.config().get("base") == "fresnel" and "base" not in stored \
                 and stored.get("variant", "canonical") == "canonical":
@@ -451,20 +526,24 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
             converted = with_fresnel_base(start)
             state = {**state, "model": converted.state_dict()}
             stored = {"channels": 3, **converted.config()}
-        if stored != {"channels": 3, **model.config()}:
+        mismatch = stored != {"channels": 3, **model.config()}
+        if mismatch and resumed:
+            raise TrainingError(f"{last} holds a network {stored}, not the {model.config()} of this config; "
+                                "use a new run folder")
+        if mismatch:
             raise WeightsError(f"{source} holds a network {stored}, not the {model.config()} of this config "
                                "(for resize up-sampling from transposed weights: tools/resize_upsampling.py)")
         model.load_state_dict(state["model"])
         if resumed:
-            check_resumable(state["train_config"], cfg, last)
             optim.load_state_dict(state["optim"])
             step, best = state["step"], state.get("best_psnr_t", -math.inf)
             elapsed_before = state.get("wall_s", 0.0)
             origin = state.get("init")
         else:
-            origin = {"path": str(init), "sha256": hashlib.sha256(Path(init).read_bytes()).hexdigest()}
-    if rank == 0:
-        (run_dir / "config.toml").write_text(cfg.to_toml())
+            origin = {"path": str(init), "sha256": _sha256(Path(init))}
+    if rank == 0 and _config_in(run_dir) != cfg:            # never rewritten when it holds these settings already
+        with atomic_path(run_dir / "config.toml", overwrite=True) as tmp:
+            tmp.write_text(cfg.to_toml())
     ddp = torch.nn.parallel.DistributedDataParallel(model) if distributed else model
     per_rank, micro = rank_batches(cfg.batch, cfg.micro_batch, world)
     val = validation_set(cfg) if rank == 0 else None
