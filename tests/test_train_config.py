@@ -137,12 +137,15 @@ def test_the_help_example_names_the_weights_of_the_paper_config():
     assert load_checkpoint(weights)["model_config"].get("upsample", "transposed") == paper.upsample
 
 
-def test_training_without_the_shared_photos_warns_and_its_model_card_says_what_it_used(tmp_path, monkeypatch):
+def test_training_without_the_shared_photos_warns_and_its_model_card_says_what_it_used(tmp_path, monkeypatch, request):
     import separate.synthesis as synthesis
     from separate.train import export_weights
 
     monkeypatch.setattr(synthesis, "SHARED_NATURAL", tmp_path / "absent")
     monkeypatch.setattr(synthesis.samples, "no_glass_captures", lambda split=None: [])
+    for pool in (synthesis.default_pool, synthesis.real_pool):      # the pools are read once per process:
+        pool.cache_clear()                                          # not the ones without the data, for later tests
+        request.addfinalizer(pool.cache_clear)
     out = invoke("train", tiny_config(tmp_path, real_prob="0.5"), tmp_path / "run")
     assert out.exit_code == 0, out.output
     assert "not found: " in out.output and "../shared/data/natural" in out.output and "../shared/data/polarization" in out.output
