@@ -8,8 +8,9 @@ same seed, so that the order of the pipelines can be judged against the noise of
 
 Runs live in ``runs_dir/<pipeline>-s<seed>`` (e.g. ``dr-nrd-s1``) (`urd train` folders: an unfinished one
 resumes); each run's best checkpoint is exported as float16 weights with a model card. The budget
-is the configs' step count unless ``steps`` overrides it for every run (a larger budget belongs in
-its own runs folder: a finished run resumed with more steps would stretch its learning-rate schedule).
+is the configs' step count unless ``steps`` overrides it for every run; another budget needs its own
+runs folder (a run resumed with more steps would stretch its learning-rate schedule), and runs
+started with another budget are refused (`check_budgets`).
 """
 
 from __future__ import annotations
@@ -75,6 +76,26 @@ def ablation_runs(seeds: Sequence[int], runs_dir: Path, configs: Path = CONFIGS,
                          "run it from a source checkout of urd, which has them in configs/")
     return [AblationRun(pipeline, seed, Path(configs) / f"{stem}.toml", Path(runs_dir) / f"{stem.removeprefix('ablation-')}-s{seed}", steps)
             for pipeline, stem in PIPELINES.items() for seed in dict.fromkeys(seeds)]
+
+
+def check_budgets(runs: Sequence[AblationRun]) -> None:
+    """TrainingError naming the runs' folder and the step counts where a run there (finished or
+    not) was started with another budget than its own: resuming it would stretch (or cut) its
+    learning-rate schedule, and a finished one would be scored as if trained for this budget."""
+    started: dict[int, list[str]] = {}
+    for run in runs:
+        last = run.folder / "last.pt"
+        if last.is_file():
+            steps = load_checkpoint(last)["train_config"]["steps"]
+            if steps != run.train_config().steps:
+                started.setdefault(steps, []).append(run.folder.name)
+    if started:
+        budget = runs[0].train_config().steps
+        found = "; ".join(f"{', '.join(names)}: {steps} steps" for steps, names in sorted(started.items()))
+        theirs = f", or --steps {next(iter(started))} to go on with these" if len(started) == 1 else ""
+        raise TrainingError(f"the runs in {runs[0].folder.parent} were started with another budget ({found}), not the {budget} steps "
+                            f"asked for: resuming them would change their learning-rate schedule; choose a new runs "
+                            f"folder (--runs) for {budget} steps{theirs}")
 
 
 def _train_run(run: AblationRun) -> None:
@@ -143,12 +164,14 @@ def curve_at(curve: dict[int, float], step: int) -> float:
 
 def format_curves(curves: dict[str, dict[int, float]], budget: int) -> str:
     """Markdown: each run's validation T̂ PSNR (``curves``: run label → `validation_curve`) at a
-    quarter, half, three quarters and all of the budget, to judge how far from convergence the runs are."""
+    quarter, half, three quarters and all of the budget, to judge how far from convergence the runs are
+    ("–" before a run's first validation)."""
     marks = [budget * k // 4 for k in (1, 2, 3, 4)]
     lines = ["Validation T̂ PSNR (dB) during training (the runs' own validation set: bsds500/val, full pipeline), "
              "by step:", "", "| run | " + " | ".join(str(m) for m in marks) + " |", "|---|" + "---|" * len(marks)]
     for label, curve in curves.items():
-        lines.append(f"| {label} | " + " | ".join(f"{curve_at(curve, m):.2f}" for m in marks) + " |")
+        figures = [curve_at(curve, m) for m in marks]
+        lines.append(f"| {label} | " + " | ".join("–" if np.isnan(x) else f"{x:.2f}" for x in figures) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -186,10 +209,12 @@ def format_ablation(runs: Sequence[AblationRun], rows: list[dict], header: str) 
 def run_ablation(out_dir: Path, runs_dir: Path, seeds: Sequence[int] = (0, 1), jobs: int = 2, count: int = 64,
                  size: int = 256, configs: Path = CONFIGS, progress: Callable[[int, int], None] | None = None,
                  command: str | None = None, steps: int | None = None) -> dict:
-    """Train what is missing (``steps`` per run, default the configs'), score every run, and
+    """Train what is missing (``steps`` per run, default the configs'; TrainingError where a run
+    in ``runs_dir`` was started with another budget, `check_budgets`), score every run, and
     write ``out_dir``/ablation.md, .csv, .png and ``out_dir``/weights; returns
     {"files": [...], "trained": [run folder names], "rows": [...]}."""
     runs = ablation_runs(seeds, runs_dir, configs, steps)
+    check_budgets(runs)
     trained = train_missing(runs, jobs, progress)
     out_dir = Path(out_dir)
     started = time.perf_counter()

@@ -25,8 +25,21 @@ SEED = 2018
 DIRECT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "urd-direct.pt"
 
 
+def largest_size() -> int:
+    """The largest patch size (px) the benchmark can draw: the second-longest shorter side among
+    the test photos (patches come from at least two of them); 0 with fewer than two photos."""
+    sides = sorted((min(image.shape[:2]) for image in default_pool("test")), reverse=True)
+    return sides[1] if len(sides) > 1 else 0
+
+
 def benchmark_set(count: int, size: int) -> dict[str, np.ndarray]:
-    """The benchmark patches (deterministic for ``count`` and ``size``)."""
+    """The benchmark patches (deterministic for ``count`` and ``size``); ValueError unless
+    ``count`` ≥ 1 and 1 ≤ ``size`` ≤ `largest_size`."""
+    if count < 1:
+        raise ValueError(f"expected at least 1 benchmark patch, got {count}")
+    if not 1 <= size <= largest_size():
+        raise ValueError(f"expected a patch size between 1 and {largest_size()} px (the shorter side of the "
+                         f"benchmark's test photos), got {size}")
     return Synthesizer(default_pool("test"), SynthesisConfig(patch=size, angles=AngleMode.CLASSIC), seed=SEED).batch(count)
 
 

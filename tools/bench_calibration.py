@@ -10,7 +10,11 @@ line per seed: the largest error of the found angles and that error over its rep
     python tools/bench_calibration.py --size 1024x768 --shake 0       # from a tripod
 """
 
+from __future__ import annotations
+
 import argparse
+import re
+import sys
 import tempfile
 from pathlib import Path
 
@@ -20,36 +24,80 @@ from acquire.plan import capture_scene
 from acquire.rig import SimSettings
 from acquire.virtual_camera import shot_truth
 from calib.store import calibrate_shots
-from urd.core.errors import CalibrationError
+from urd.core.errors import CalibrationError, UrdError
 from urd.ingest import IngestOptions, ingest_scene
 
 ANGLES_DEG = [0.0, 30.0, 60.0, 90.0, 120.0, 150.0]
 
-parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-parser.add_argument("--seeds", type=int, default=8)
-parser.add_argument("--size", default="768x512")
-parser.add_argument("--shake", type=float, default=4.0, help="camera shake between shots, max translation (px)")
-parser.add_argument("--jitter", type=float, default=2.0, help="per-shot angle error the encoder does not see, std (deg)")
-args = parser.parse_args()
-width, height = (int(v) for v in args.size.split("x"))
 
-worst = []
-for seed in range(args.seeds):
+class Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """The module docstring as written; each option's default after its help."""
+
+
+def scene_size(text: str) -> tuple[int, int]:
+    """'WxH' → (W, H) px, each 32-20000 (the virtual camera's range)."""
+    match = re.fullmatch(r"(\d+)x(\d+)", text)
+    if not match or not all(32 <= int(v) <= 20000 for v in match.groups()):
+        raise argparse.ArgumentTypeError(f"expected WxH with each side 32-20000 px, e.g. 768x512, got {text!r}")
+    return int(match[1]), int(match[2])
+
+
+def number(low: float, kind: type = float):
+    """An argparse type: a finite number (``kind``) of at least ``low``."""
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not low <= value < float("inf"):
+            raise argparse.ArgumentTypeError(f"expected at least {low:g}, got {text}")
+        return value
+    return parse
+
+
+def calibrate_seed(seed: int, width: int, height: int, shake: float, jitter: float) -> float | None:
+    """Capture, ingest and calibrate one scene; print its line and return its largest error (deg), None if refused."""
     with tempfile.TemporaryDirectory(prefix="urd-calib-") as folder:
-        sim = SimSettings(jitter_deg=args.jitter, width=width, height=height, shake_px=args.shake,
-                          shake_deg=0.5 if args.shake else 0.0, seed=seed)
+        sim = SimSettings(jitter_deg=jitter, width=width, height=height, shake_px=shake,
+                          shake_deg=0.5 if shake else 0.0, seed=seed)
         scene = capture_scene(Path(folder) / "ds", "sim", "virtual", ANGLES_DEG, sim=sim, announce=lambda line: None)
         ingest_scene(scene, IngestOptions())
         try:
             result = calibrate_shots(scene)
         except CalibrationError as exc:
             print(f"seed {seed}: refused ({exc})")
-            continue
+            return None
         true = np.array([shot_truth(scene.path / shot["file"])["true_angle_deg"] for shot in scene.load()["shots"]])
     error = np.array(result.errors_deg) - (true - ANGLES_DEG - np.mean(true - ANGLES_DEG))
-    worst.append(float(np.abs(error).max()))
-    print(f"seed {seed}: largest error {worst[-1]:.2f} deg, {np.abs(error / np.array(result.uncertainty_deg)).max():.1f} "
+    worst = float(np.abs(error).max())
+    print(f"seed {seed}: largest error {worst:.2f} deg, {np.abs(error / np.array(result.uncertainty_deg)).max():.1f} "
           f"of its reported 1 sigma (reported {min(result.uncertainty_deg):.2f}-{max(result.uncertainty_deg):.2f} deg)")
-if worst:
-    print(f"{args.size}, shake {args.shake:g} px, jitter {args.jitter:g} deg: largest error {min(worst):.2f}-{max(worst):.2f} "
-          f"deg over {len(worst)} seeds, median {np.median(worst):.2f} deg")
+    return worst
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=Formatter)
+    parser.add_argument("--seeds", type=number(1, int), default=8, help="scenes, one per seed 0..N-1")
+    parser.add_argument("--size", type=scene_size, default="768x512", help="scene size WxH (px)")
+    parser.add_argument("--shake", type=number(0.0), default=4.0, help="camera shake between shots, max translation (px)")
+    parser.add_argument("--jitter", type=number(0.0), default=2.0,
+                        help="per-shot angle error the encoder does not see, std (deg)")
+    args = parser.parse_args()
+    width, height = args.size
+    worst = []
+    try:
+        for seed in range(args.seeds):
+            found = calibrate_seed(seed, width, height, args.shake, args.jitter)
+            if found is not None:
+                worst.append(found)
+    except UrdError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    if worst:
+        print(f"{width}x{height}, shake {args.shake:g} px, jitter {args.jitter:g} deg: largest error "
+              f"{min(worst):.2f}-{max(worst):.2f} deg over {len(worst)} seeds, median {np.median(worst):.2f} deg")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -176,10 +176,21 @@ def read(path: Path) -> np.ndarray:
     return cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
 
 
+class Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """The module docstring as written; each option's default after its help."""
+
+
+def mosaic_side(text: str) -> int:
+    """A side of the synthetic mosaics: a multiple of 4 of at least 64 px."""
+    if not text.isdigit() or int(text) < 64 or int(text) % 4:
+        raise argparse.ArgumentTypeError(f"expected a multiple of 4 of at least 64 (px), got {text!r}")
+    return int(text)
+
+
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=Formatter)
     parser.add_argument("--full-size", action="store_true", help="evaluate at every pixel instead of one pixel per 2×2 cell")
-    parser.add_argument("--size", type=int, default=1024, help="side of the synthetic mosaics (px, multiple of 4)")
+    parser.add_argument("--size", type=mosaic_side, default=1024, help="side of the synthetic mosaics (px, multiple of 4)")
     parser.add_argument("--markdown", action="store_true", help="also print a summary table in Markdown")
     args = parser.parse_args()
     half = not args.full_size

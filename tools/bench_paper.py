@@ -18,14 +18,21 @@ import sys
 from pathlib import Path
 
 
+class Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """The module docstring as written; each option's default after its help, where it has one."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        return action.help if action.default is None else super()._get_help_string(action)
+
+
 def main() -> int:
-    from separate.bench_check import BenchmarkMismatch
     from separate.bench_run import DEFAULT_OUT, run_evaluation
+    from urd.core.errors import UrdError
     from urd.core.progress import TerminalProgress
 
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=Formatter)
     parser.add_argument("--quick", action="store_true", help="the reduced run, checked against the expected values")
-    parser.add_argument("--images", type=Path, default=None, help="a folder of photos to cross-validate on as well")
+    parser.add_argument("--images", type=Path, default=None, help="a folder of photos to cross-validate on as well (default: none)")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="output folder (results go to OUT/quick or OUT/full)")
     parser.add_argument("--update-expected", action="store_true", help="(--quick) rewrite separate/expected-quick.json")
     parser.add_argument("--24mp", dest="large", action="store_true", help="(full run) also time 24 MP separations")
@@ -34,11 +41,13 @@ def main() -> int:
         parser.error("--update-expected needs --quick")
     if args.large and args.quick:
         parser.error("--24mp is part of the full run only")
+    if args.images is not None and not args.images.is_dir():
+        parser.error(f"argument --images: expected a folder of photos, got {args.images}")
     progress = TerminalProgress()
     try:
         result = run_evaluation(args.out, args.quick, args.images, progress, large=args.large,
                                 update_expected=args.update_expected)
-    except BenchmarkMismatch as exc:
+    except (UrdError, OSError) as exc:                 # a BenchmarkMismatch among them
         progress.close()
         print(f"error: {exc}", file=sys.stderr)
         return 1

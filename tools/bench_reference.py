@@ -19,75 +19,122 @@ no new non-rigid deformation), so that every row sees the same layers:
 Linear values, peak 1, mean over patches; seeded (2018).
 """
 
+from __future__ import annotations
+
 import argparse
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
 from separate import metrics
-from separate.bench import SEED, benchmark_set, reshoot
+from separate.bench import SEED, benchmark_set, largest_size, reshoot
 from separate.methods import get_method
+from urd.core.errors import UrdError
 
 SWEEP_DEG = np.arange(0.0, 180.0, 22.5)
 SWEEP_SETS_DEG = {"0/45/90": (0, 45, 90), "0/60/120": (0, 60, 120), "0/45/90/135": (0, 45, 90, 135)}
 ANGLE_SETS_DEG = {"3: 0/45/90": (0, 45, 90), "3: 0/60/120": (0, 60, 120), "4: 0/45/90/135": (0, 45, 90, 135),
                   "6: 0/30/.../150": (0, 30, 60, 90, 120, 150)}
 
-parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-parser.add_argument("--count", type=int, default=16)
-parser.add_argument("--size", type=int, default=128)
-parser.add_argument("--weights", type=Path, default=None, help="network weights or checkpoint (default: shipped)")
-parser.add_argument("--skip-schechner", action="store_true", help="network only (Schechner takes ~0.4 s per patch and angle)")
-args = parser.parse_args()
-started = time.perf_counter()
-data = benchmark_set(args.count, args.size)
-samples = [{k: v[i] for k, v in data.items()} for i in range(args.count)]
-network, _ = get_method("network", weights=args.weights)
-methods = {"network": network}
-if not args.skip_schechner:
-    methods["schechner"] = get_method("schechner")[0]
+
+class Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """The module docstring as written; each option's default after its help, where it has one."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        return action.help if action.default is None else super()._get_help_string(action)
 
 
-def psnr_t(run, shots, angles_deg, t_obs, reference_deg=None):
+def at_least(low: int):
+    """An argparse type: an integer of at least ``low``."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"expected at least {low}, got {value}")
+        return value
+    return parse
+
+
+def psnr_t(run, shots, angles_deg, t_obs, reference_deg=None) -> float:
     """T̂ PSNR (dB) of ``run`` on ``shots`` against ``t_obs``."""
     return float(metrics.psnr(run(shots, list(angles_deg), reference_deg)[1], t_obs))
 
 
-for set_label, offsets in SWEEP_SETS_DEG.items():
-    rules = ("auto", "oracle", "first") if set_label == "0/45/90" else ("auto", "oracle")
-    print(f"T PSNR (dB) by phi_perp - phi0 (shots at phi0 + {set_label}), {args.count} patches of {args.size}x{args.size}")
-    print("| method | " + " | ".join(f"{d:g}°" for d in SWEEP_DEG) + " | max − min |")
-    print("|---|" + "---|" * (len(SWEEP_DEG) + 1))
-    sweep = {f"{m} ({rule})": np.zeros((args.count, len(SWEEP_DEG))) for m in methods for rule in rules}
-    for i, sample in enumerate(samples):
-        phi_perp_deg = float(np.degrees(sample["phi_perp"][0, 0]))
-        for j, delta in enumerate(SWEEP_DEG):
-            nominal = phi_perp_deg - delta + np.asarray(offsets, np.float64)
-            shots = reshoot(sample, np.radians(nominal), np.random.default_rng([SEED, i]))   # same errors and noise for every δ
-            given = {"auto": None, "oracle": phi_perp_deg, "first": nominal[0]}
-            for name, run in methods.items():
-                for rule in rules:
-                    sweep[f"{name} ({rule})"][i, j] = psnr_t(run, shots, nominal, sample["t"], given[rule])
-    for label, values in sweep.items():
-        means = values.mean(axis=0)
-        print(f"| {label} | " + " | ".join(f"{v:.2f}" for v in means) + f" | {np.ptp(means):.2f} |")
-    print()
+def sweep_tables(methods: dict, samples: list[dict], size: int) -> None:
+    """Print part 1: T̂ PSNR by φ⊥ − φ0 per angle set, method and reference rule."""
+    count = len(samples)
+    for set_label, offsets in SWEEP_SETS_DEG.items():
+        rules = ("auto", "oracle", "first") if set_label == "0/45/90" else ("auto", "oracle")
+        print(f"T PSNR (dB) by phi_perp - phi0 (shots at phi0 + {set_label}), {count} patches of {size}x{size}")
+        print("| method | " + " | ".join(f"{d:g}°" for d in SWEEP_DEG) + " | max − min |")
+        print("|---|" + "---|" * (len(SWEEP_DEG) + 1))
+        sweep = {f"{m} ({rule})": np.zeros((count, len(SWEEP_DEG))) for m in methods for rule in rules}
+        for i, sample in enumerate(samples):
+            phi_perp_deg = float(np.degrees(sample["phi_perp"][0, 0]))
+            for j, delta in enumerate(SWEEP_DEG):
+                nominal = phi_perp_deg - delta + np.asarray(offsets, np.float64)
+                shots = reshoot(sample, np.radians(nominal), np.random.default_rng([SEED, i]))   # same errors and noise for every δ
+                given = {"auto": None, "oracle": phi_perp_deg, "first": nominal[0]}
+                for name, run in methods.items():
+                    for rule in rules:
+                        sweep[f"{name} ({rule})"][i, j] = psnr_t(run, shots, nominal, sample["t"], given[rule])
+        for label, values in sweep.items():
+            means = values.mean(axis=0)
+            print(f"| {label} | " + " | ".join(f"{v:.2f}" for v in means) + f" | {np.ptp(means):.2f} |")
+        print()
 
-print(f"T PSNR (dB) of the network by angle set (phi0 uniform), {args.count} patches")
-print("| shots | auto | oracle (true phi_perp) | first shot |")
-print("|---|---|---|---|")
-rng = np.random.default_rng([SEED, 1])
-phi0 = rng.uniform(0.0, 180.0, args.count)
-for label, offsets in ANGLE_SETS_DEG.items():
-    rows = []
-    for i, sample in enumerate(samples):
-        nominal = phi0[i] + np.asarray(offsets, np.float64)
-        shots = reshoot(sample, np.radians(nominal), np.random.default_rng([SEED, i, 99]))
-        truth = float(np.degrees(sample["phi_perp"][0, 0]))
-        rows.append([psnr_t(network, shots, nominal, sample["t"]), psnr_t(network, shots, nominal, sample["t"], truth),
-                     psnr_t(network, shots, nominal, sample["t"], nominal[0])])
-    auto, oracle, first = np.mean(rows, axis=0)
-    print(f"| {label} | {auto:.2f} | {oracle:.2f} | {first:.2f} |")
-none = np.mean([metrics.psnr(s["r"] + s["t"], s["t"]) for s in samples])
-print(f"\nno separation: {none:.2f} dB; seed {SEED}; {time.perf_counter() - started:.0f} s")
+
+def angle_set_table(network, samples: list[dict]) -> None:
+    """Print part 2: the network's T̂ PSNR by angle set, φ0 uniform."""
+    count = len(samples)
+    print(f"T PSNR (dB) of the network by angle set (phi0 uniform), {count} patches")
+    print("| shots | auto | oracle (true phi_perp) | first shot |")
+    print("|---|---|---|---|")
+    rng = np.random.default_rng([SEED, 1])
+    phi0 = rng.uniform(0.0, 180.0, count)
+    for label, offsets in ANGLE_SETS_DEG.items():
+        rows = []
+        for i, sample in enumerate(samples):
+            nominal = phi0[i] + np.asarray(offsets, np.float64)
+            shots = reshoot(sample, np.radians(nominal), np.random.default_rng([SEED, i, 99]))
+            truth = float(np.degrees(sample["phi_perp"][0, 0]))
+            rows.append([psnr_t(network, shots, nominal, sample["t"]), psnr_t(network, shots, nominal, sample["t"], truth),
+                         psnr_t(network, shots, nominal, sample["t"], nominal[0])])
+        auto, oracle, first = np.mean(rows, axis=0)
+        print(f"| {label} | {auto:.2f} | {oracle:.2f} | {first:.2f} |")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=Formatter)
+    parser.add_argument("--count", type=at_least(1), default=16, help="benchmark patches")
+    parser.add_argument("--size", type=at_least(32), default=128, help="patch side (px)")
+    parser.add_argument("--weights", type=Path, default=None, help="network weights or checkpoint (default: shipped)")
+    parser.add_argument("--skip-schechner", action="store_true", help="network only (Schechner takes ~0.4 s per patch and angle)")
+    args = parser.parse_args()
+    if args.size > largest_size():
+        parser.error(f"argument --size: expected at most {largest_size()} px (the shorter side of the test photos), "
+                     f"got {args.size}")
+    started = time.perf_counter()
+    try:
+        network, _ = get_method("network", weights=args.weights)
+    except UrdError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    methods = {"network": network}
+    if not args.skip_schechner:
+        methods["schechner"] = get_method("schechner")[0]
+    data = benchmark_set(args.count, args.size)
+    samples = [{k: v[i] for k, v in data.items()} for i in range(args.count)]
+    sweep_tables(methods, samples, args.size)
+    angle_set_table(network, samples)
+    none = np.mean([metrics.psnr(s["r"] + s["t"], s["t"]) for s in samples])
+    print(f"\nno separation: {none:.2f} dB; seed {SEED}; {time.perf_counter() - started:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -43,6 +43,7 @@ from separate.infer import FusedNet, load_model, separate_stack
 from separate.tiling import OVERLAP, TILE, tile_spans
 from separate.precision import Precision, describe, native_bf16, resolve
 from separate.provenance import cpu_model
+from urd.core.errors import UrdError
 
 ANGLES = [float(a) for a in np.radians([0.0, 45.0, 90.0])]
 SCALE = torch.tensor([0.5])
@@ -190,21 +191,39 @@ def report(name: str, seconds: tuple[float, float], megapixels: float, flops_mp:
     print(line)
 
 
+class Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """The module docstring as written; each option's default after its help, where it has one."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        return action.help if action.default is None else super()._get_help_string(action)
+
+
+def positive(text: str) -> int:
+    """An integer of at least 1."""
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return int(text)
+
+
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=Formatter)
     parser.add_argument("--full", action="store_true", help="also time separate_stack on a 24 MP stack per precision")
     parser.add_argument("--compile", action="store_true", help="also time torch.compile (a minute or more to compile)")
-    parser.add_argument("--repeat", type=int, default=3, help="timed runs per figure (the best is printed)")
-    parser.add_argument("--precision", choices=["both", "fp32", "bf16"], default="both")
-    parser.add_argument("--weights", type=Path, default=None)
-    parser.add_argument("--threads", type=int, default=None,
-                        help="torch threads (default torch's: the physical cores); with 1, figures per CPU second too")
+    parser.add_argument("--repeat", type=positive, default=3, help="timed runs per figure (the best is printed)")
+    parser.add_argument("--precision", choices=["both", "fp32", "bf16"], default="both", help="the precisions timed")
+    parser.add_argument("--weights", type=Path, default=None,
+                        help="the network's weights file (.pt) (default: the shipped network's)")
+    parser.add_argument("--threads", type=positive, default=None,
+                        help="torch threads (default: torch's, the physical cores); with 1, figures per CPU second too")
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
     threads = torch.get_num_threads()
 
-    model, _ = load_model(args.weights)
+    try:
+        model, _ = load_model(args.weights)
+    except UrdError as exc:
+        raise SystemExit(f"error: {exc}") from None
     caps = torch.cpu.get_capabilities() if hasattr(torch.cpu, "get_capabilities") else {}
     flags = [k for k in ("avx2", "avx512_f", "avx512_bf16", "avx512_vnni", "amx_bf16") if caps.get(k)]
     print(f"CPU: {cpu_model()}, {threads} threads; torch {torch.__version__}, "

@@ -21,7 +21,10 @@ rest, against the observable T of the same exposure; "none" (T̂ = S0) for compa
 Linear values, peak 1; seeded (2018).
 """
 
+from __future__ import annotations
+
 import argparse
+import sys
 import time
 from pathlib import Path
 
@@ -29,10 +32,11 @@ import cv2
 import numpy as np
 
 from separate import metrics, optics
-from separate.bench import SEED, benchmark_set, reshoot
+from separate.bench import SEED, benchmark_set, largest_size, reshoot
 from separate.methods import get_method
 from separate.synthesis import noise_std
 from urd.core import samples
+from urd.core.errors import UrdError
 
 PERIOD = 8
 RING_PX = 8
@@ -71,60 +75,93 @@ def shoot(t_obs: np.ndarray, r_obs: np.ndarray, theta: float, phi_perp: float, a
     return np.clip(shots, 0.0, 1.0).astype(np.float32)
 
 
-parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-parser.add_argument("--count", type=int, default=16)
-parser.add_argument("--size", type=int, default=256)
-parser.add_argument("--weights", type=Path, default=None, help="network weights or checkpoint (default: shipped)")
-args = parser.parse_args()
-started = time.perf_counter()
-network, _ = get_method("network", weights=args.weights)
-angles = [0.0, 45.0, 90.0]
+class Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """The module docstring as written; each option's default after its help, where it has one."""
 
-print(f"Grid texture (per mille of the mean; RMS of the 8×8 phase means of the 9×9 high-pass), {args.count} scenes per set")
-print("| set | S0 (input) | T̂ | R̂ |")
-print("|---|---|---|---|")
-data = benchmark_set(args.count, args.size)
-rows = {"benchmark (bsds500/test)": [], "flat scenes": []}
-for i in range(args.count):
-    shots = data["obs"][i]
-    r_hat, t_hat = network(shots, angles)
-    rows["benchmark (bsds500/test)"].append([grid_per_mille(s0_of(shots, angles)), grid_per_mille(t_hat), grid_per_mille(r_hat)])
-rng = np.random.default_rng(SEED)
-for _ in range(args.count):
-    t_obs, r_obs, theta, phi_perp = flat_scene(rng, args.size)
-    shots = shoot(t_obs, r_obs, theta, phi_perp, angles, rng)
-    r_hat, t_hat = network(shots, angles)
-    rows["flat scenes"].append([grid_per_mille(s0_of(shots, angles)), grid_per_mille(t_hat), grid_per_mille(r_hat)])
-for capture in samples.captures():
-    stack, capture_angles = samples.load(capture, max_side=1024)
-    r_hat, t_hat = network(stack, capture_angles)
-    rows[capture.name] = [[grid_per_mille(s0_of(stack, capture_angles)), grid_per_mille(t_hat), grid_per_mille(r_hat)]]
-for label, values in rows.items():
-    s0, t, r = np.mean(values, axis=0)
-    print(f"| {label} | {s0:.3f} | {t:.3f} | {r:.3f} |")
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        return action.help if action.default is None else super()._get_help_string(action)
 
-print(f"\nHighlight halos: T̂ PSNR (dB) within {RING_PX} px of clipped pixels / elsewhere, {args.count} benchmark patches")
-print("| exposure | clipped pixels | network near | network elsewhere | none near | none elsewhere |")
-print("|---|---|---|---|---|---|")
-kernel = np.ones((2 * RING_PX + 1, 2 * RING_PX + 1), np.uint8)
-for gain in (2.0, 4.0):
-    near, far, none_near, none_far, clipped_share = [], [], [], [], []
+
+def at_least(low: int):
+    """An argparse type: an integer of at least ``low``."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"expected at least {low}, got {value}")
+        return value
+    return parse
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=Formatter)
+    parser.add_argument("--count", type=at_least(1), default=16, help="benchmark patches and flat scenes, each")
+    parser.add_argument("--size", type=at_least(32), default=256, help="patch side (px)")
+    parser.add_argument("--weights", type=Path, default=None, help="network weights or checkpoint (default: shipped)")
+    args = parser.parse_args()
+    if args.size > largest_size():
+        parser.error(f"argument --size: expected at most {largest_size()} px (the shorter side of the test photos), "
+                     f"got {args.size}")
+    started = time.perf_counter()
+    try:
+        network, _ = get_method("network", weights=args.weights)
+    except UrdError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    angles = [0.0, 45.0, 90.0]
+
+    print(f"Grid texture (per mille of the mean; RMS of the 8×8 phase means of the 9×9 high-pass), {args.count} scenes per set")
+    print("| set | S0 (input) | T̂ | R̂ |")
+    print("|---|---|---|---|")
+    data = benchmark_set(args.count, args.size)
+    rows = {"benchmark (bsds500/test)": [], "flat scenes": []}
     for i in range(args.count):
-        sample = {k: v[i] for k, v in data.items()}
-        sample = {**sample, "r": sample["r"] * gain, "t": sample["t"] * gain}
-        shots = reshoot(sample, np.radians(angles) + sample["phi_perp"][0, 0], np.random.default_rng([SEED, i]))
-        clipped = (shots >= 1.0).any(axis=(0, 3))
-        if not clipped.any():
-            continue
-        ring = (cv2.dilate(clipped.view(np.uint8), kernel) > 0) & ~clipped
-        rest = ~(ring | clipped)
-        presented = list(np.degrees(np.radians(angles) + sample["phi_perp"][0, 0]))
-        t_hat = network(shots, presented)[1]
-        s0 = s0_of(shots, presented)
-        for where, out, est in ((ring, near, t_hat), (rest, far, t_hat), (ring, none_near, s0), (rest, none_far, s0)):
-            if where.any():
-                out.append(float(metrics.psnr(est[where], sample["t"][where])))
-        clipped_share.append(float(clipped.mean()))
-    print(f"| ×{gain:g} | {100 * np.mean(clipped_share):.1f}% of {len(clipped_share)} patches | {np.mean(near):.2f} | "
-          f"{np.mean(far):.2f} | {np.mean(none_near):.2f} | {np.mean(none_far):.2f} |")
-print(f"\nseed {SEED}; {time.perf_counter() - started:.0f} s")
+        shots = data["obs"][i]
+        r_hat, t_hat = network(shots, angles)
+        rows["benchmark (bsds500/test)"].append([grid_per_mille(s0_of(shots, angles)), grid_per_mille(t_hat), grid_per_mille(r_hat)])
+    rng = np.random.default_rng(SEED)
+    for _ in range(args.count):
+        t_obs, r_obs, theta, phi_perp = flat_scene(rng, args.size)
+        shots = shoot(t_obs, r_obs, theta, phi_perp, angles, rng)
+        r_hat, t_hat = network(shots, angles)
+        rows["flat scenes"].append([grid_per_mille(s0_of(shots, angles)), grid_per_mille(t_hat), grid_per_mille(r_hat)])
+    for capture in samples.captures():
+        stack, capture_angles = samples.load(capture, max_side=1024)
+        r_hat, t_hat = network(stack, capture_angles)
+        rows[capture.name] = [[grid_per_mille(s0_of(stack, capture_angles)), grid_per_mille(t_hat), grid_per_mille(r_hat)]]
+    for label, values in rows.items():
+        s0, t, r = np.mean(values, axis=0)
+        print(f"| {label} | {s0:.3f} | {t:.3f} | {r:.3f} |")
+
+    print(f"\nHighlight halos: T̂ PSNR (dB) within {RING_PX} px of clipped pixels / elsewhere, {args.count} benchmark patches")
+    print("| exposure | clipped pixels | network near | network elsewhere | none near | none elsewhere |")
+    print("|---|---|---|---|---|---|")
+    kernel = np.ones((2 * RING_PX + 1, 2 * RING_PX + 1), np.uint8)
+    for gain in (2.0, 4.0):
+        near, far, none_near, none_far, clipped_share = [], [], [], [], []
+        for i in range(args.count):
+            sample = {k: v[i] for k, v in data.items()}
+            sample = {**sample, "r": sample["r"] * gain, "t": sample["t"] * gain}
+            shots = reshoot(sample, np.radians(angles) + sample["phi_perp"][0, 0], np.random.default_rng([SEED, i]))
+            clipped = (shots >= 1.0).any(axis=(0, 3))
+            if not clipped.any():
+                continue
+            ring = (cv2.dilate(clipped.view(np.uint8), kernel) > 0) & ~clipped
+            rest = ~(ring | clipped)
+            presented = list(np.degrees(np.radians(angles) + sample["phi_perp"][0, 0]))
+            t_hat = network(shots, presented)[1]
+            s0 = s0_of(shots, presented)
+            for where, out, est in ((ring, near, t_hat), (rest, far, t_hat), (ring, none_near, s0), (rest, none_far, s0)):
+                if where.any():
+                    out.append(float(metrics.psnr(est[where], sample["t"][where])))
+            clipped_share.append(float(clipped.mean()))
+        print(f"| ×{gain:g} | {100 * np.mean(clipped_share):.1f}% of {len(clipped_share)} patches | {np.mean(near):.2f} | "
+              f"{np.mean(far):.2f} | {np.mean(none_near):.2f} | {np.mean(none_far):.2f} |")
+    print(f"\nseed {SEED}; {time.perf_counter() - started:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -8,10 +8,13 @@ brightness = DoLP) and the presence map, all sRGB-encoded with one white point p
 (the 99.5th percentile of S0); the reference each method used (as `urd separate` chooses it:
 the estimated field, its side settled by a trial separation where it was only assumed,
 `urd.separation.separate_inspected`) and the share of light put into R̂ are written on the row.
-Prints one line per capture and method.
+Prints one line per capture and method. An existing sheet in --out is replaced only with --force.
 """
 
+from __future__ import annotations
+
 import argparse
+import sys
 import time
 from pathlib import Path
 
@@ -19,18 +22,33 @@ import cv2
 import numpy as np
 
 from separate import optics
-from separate.methods import get_method
+from separate.methods import METHODS, get_method
 from urd.core import samples
-from urd.separation import separate_inspected
+from urd.core.errors import UrdError
 from urd.core.images import srgb_to_linear, to_display
+from urd.separation import separate_inspected
 
-parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-parser.add_argument("--out", type=Path, default=Path("contact-sheets"))
-parser.add_argument("--size", type=int, default=512, help="long side of the reduced captures (px)")
-parser.add_argument("--methods", default="none,network,schechner,kong")
-parser.add_argument("--weights", type=Path, help="the network's weights (default: shipped)")
-args = parser.parse_args()
-args.out.mkdir(parents=True, exist_ok=True)
+
+class Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """The module docstring as written; each option's default after its help, where it has one."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        return action.help if action.default is None else super()._get_help_string(action)
+
+
+def method_list(text: str) -> list[str]:
+    """Comma-separated names of `separate.methods.METHODS`."""
+    names = [name for name in text.split(",") if name]
+    if not names or any(name not in METHODS for name in names):
+        raise argparse.ArgumentTypeError(f"expected some of {', '.join(sorted(METHODS))}, got {text!r}")
+    return names
+
+
+def positive(text: str) -> int:
+    """An integer of at least 1."""
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return int(text)
 
 
 def tile(image: np.ndarray, label: str, white: float) -> np.ndarray:
@@ -50,15 +68,15 @@ def aolp_tile(stokes: np.ndarray) -> np.ndarray:
     return srgb_to_linear(cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB))
 
 
-for capture in samples.captures():
-    stack, angles = samples.load(capture, args.size)
+def sheet(capture: samples.Capture, runs: dict, size: int) -> np.ndarray:
+    """One capture's contact sheet (8-bit sRGB, RGB order): a row per method of ``runs``; prints a line per method."""
+    stack, angles = samples.load(capture, size)
     stokes = optics.stokes_from_images(stack, np.radians(angles))
     s0 = stokes[0]
     white = float(np.percentile(s0, 99.5)) or 1.0
     dolp = np.clip(optics.dolp(stokes.mean(axis=-1)), 0, 1)
     rows = []
-    for name in args.methods.split(","):
-        run, _ = get_method(name, **({"weights": args.weights} if name == "network" and args.weights else {}))
+    for name, run in runs.items():
         started = time.time()
         r_hat, t_hat, inspection, used = separate_inspected(stack, angles, run, "auto")
         seconds = time.time() - started
@@ -74,6 +92,43 @@ for capture in samples.captures():
               f"R min {r_hat.min():+.3f}  {seconds:5.1f} s")
     for warning in inspection.warnings:
         print(f"{capture.name:22s} warning: {warning}")
-    sheet = np.vstack(rows)
-    cv2.imwrite(str(args.out / f"{capture.name}.png"), sheet[..., ::-1])
-    print(f"wrote {(args.out / f'{capture.name}.png').resolve()}")
+    return np.vstack(rows)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=Formatter)
+    parser.add_argument("--out", type=Path, default=Path("contact-sheets"), help="folder of the sheets, one CAPTURE.png each")
+    parser.add_argument("--size", type=positive, default=512, help="long side of the reduced captures (px)")
+    parser.add_argument("--methods", type=method_list, default="none,network,schechner,kong",
+                        help=f"comma-separated methods, a row each: some of {', '.join(sorted(METHODS))}")
+    parser.add_argument("--weights", type=Path, help="the network's weights (default: shipped)")
+    parser.add_argument("--force", action="store_true", help="replace sheets already in --out")
+    args = parser.parse_args()
+    captures = samples.captures()
+    if not captures:
+        print(f"error: no real captures in {samples.SHARED}", file=sys.stderr)
+        return 1
+    targets = {capture.name: args.out / f"{capture.name}.png" for capture in captures}
+    existing = [path.name for path in targets.values() if path.exists()]
+    if existing and not args.force:
+        print(f"error: {args.out} already holds {', '.join(existing)}; remove them, choose another --out, "
+              "or pass --force", file=sys.stderr)
+        return 1
+    try:
+        runs = {name: get_method(name, **({"weights": args.weights} if name == "network" and args.weights else {}))[0]
+                for name in args.methods}
+        args.out.mkdir(parents=True, exist_ok=True)
+        for capture in captures:
+            cv2.imwrite(str(targets[capture.name]), sheet(capture, runs, args.size)[..., ::-1])
+            print(f"wrote {targets[capture.name].resolve()}")
+    except UrdError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    except OSError as exc:
+        print(f"error: cannot write in {args.out} ({exc.strerror or exc})", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -11,7 +11,8 @@ laid out as ../shared/data, holding only what training reads, at the size it rea
   of its linear values under the capture's own file name (dphr2022-outdoor's 512² 8-bit PNGs
   with the same pixels, the Hagen mosaic as it is).
 
-There, ``mkdir -p ../shared && ln -s "$PWD/FOLDER" ../shared/data`` puts it where urd looks.
+There, ``mkdir -p ../shared && ln -s "$PWD/FOLDER" ../shared/data`` puts it where urd looks. FOLDER is
+removed and written anew on each run; a folder holding anything but a pool is refused.
 Prints each part's size and the largest Stokes difference from the full captures (16-bit rounding).
 
     python tools/gpu_pool.py [--folder .pool]
@@ -75,12 +76,19 @@ def check(out: Path) -> float:
     return worst
 
 
+class Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """The module docstring as written; each option's default after its help."""
+
+
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--folder", type=Path, default=Path(".pool"))
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=Formatter)
+    parser.add_argument("--folder", type=Path, default=Path(".pool"),
+                        help="the pool's folder, removed and written anew (refused where it holds anything but a pool)")
     args = parser.parse_args()
     if not samples.SHARED.is_dir() or not synthesis.SHARED_NATURAL.is_dir():
         raise SystemExit("expected ../shared/data (natural photos and real captures) beside the project")
+    if args.folder.exists() and not (args.folder.is_dir() and {p.name for p in args.folder.iterdir()} <= {"natural", "polarization"}):
+        raise SystemExit(f"error: {args.folder} exists and is not a pool this tool wrote; choose another --folder")
     shutil.rmtree(args.folder, ignore_errors=True)
     copy_natural(args.folder)
     copy_captures(args.folder)

@@ -17,6 +17,7 @@ time instead.
 
 import argparse
 import cProfile
+import re
 import pstats
 import time
 
@@ -56,14 +57,33 @@ def scene_stack(width: int, height: int, strong: bool) -> tuple[np.ndarray, list
     return shots, angles
 
 
+class Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """The module docstring as written; each option's default after its help."""
+
+
+def scene_size(text: str) -> tuple[int, int]:
+    """'WxH' → (W, H) px, each side at least 256 (the warm-up call separates a 256² corner)."""
+    match = re.fullmatch(r"(\d+)x(\d+)", text)
+    if not match or not all(256 <= int(v) <= 20000 for v in match.groups()):
+        raise argparse.ArgumentTypeError(f"expected WxH with each side 256-20000 px, e.g. 6000x4000, got {text!r}")
+    return int(match[1]), int(match[2])
+
+
+def positive(text: str) -> int:
+    """An integer of at least 1."""
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return int(text)
+
+
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--size", default="6000x4000")
-    parser.add_argument("--threads", type=int, default=1)
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=Formatter)
+    parser.add_argument("--size", type=scene_size, default="6000x4000", help="scene size WxH (px)")
+    parser.add_argument("--threads", type=positive, default=1, help="torch threads")
     parser.add_argument("--wall", action="store_true", help="wall-clock time instead of CPU time")
     parser.add_argument("--strong", action="store_true", help="a strongly polarized scene (no side trial)")
     args = parser.parse_args()
-    width, height = (int(v) for v in args.size.split("x"))
+    width, height = args.size
     torch.set_num_threads(args.threads)
     images, angles = scene_stack(width, height, args.strong)
     urd.separate(images[:, :256, :256], angles)                  # imports and oneDNN's first call, not profiled

@@ -24,11 +24,24 @@ from selenium.webdriver.chrome.service import Service
 
 WIDTH = 1280
 
-parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-parser.add_argument("--out", type=Path, default=Path("docs/report/demo-report.png"))
-parser.add_argument("--height", type=int, default=2600, help="viewport height (px)")
-parser.add_argument("--chromium", type=Path, default=Path("/usr/bin/chromium"))
-parser.add_argument("--chromedriver", type=Path, default=Path("/usr/bin/chromedriver"))
+
+class Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """The module docstring as written; each option's default after its help."""
+
+
+def positive(text: str) -> int:
+    """An integer of at least 1."""
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return int(text)
+
+
+parser = argparse.ArgumentParser(description=__doc__, formatter_class=Formatter)
+parser.add_argument("--out", type=Path, default=Path("docs/report/demo-report.png"),
+                    help="the PNG to write (replaced: the README's picture by default)")
+parser.add_argument("--height", type=positive, default=2600, help="viewport height (px)")
+parser.add_argument("--chromium", type=Path, default=Path("/usr/bin/chromium"), help="the Chromium binary")
+parser.add_argument("--chromedriver", type=Path, default=Path("/usr/bin/chromedriver"), help="the chromedriver binary")
 args = parser.parse_args()
 
 for binary in (args.chromium, args.chromedriver):

@@ -24,7 +24,7 @@ def bench(
     count: int = typer.Option(64, callback=within(1), help="Benchmark patches (seeded, from bsds500/test or bundled photos)."),
     size: int = typer.Option(256, callback=within(32), help="Patch size (px)."),
     methods: str = typer.Option("none,network", help="Comma-separated methods, plus 'direct' for the direct variant (shipped urd-direct.pt or --direct-weights), and LABEL=PATH for the network with other weights."),
-    direct_weights: Optional[Path] = typer.Option(None, help="Weights of the direct variant."),
+    direct_weights: Optional[Path] = typer.Option(None, help="With 'direct' in --methods: weights of the direct variant (default: the shipped urd-direct.pt)."),
     ablation: bool = typer.Option(False, "--ablation", help="The paper's pipeline ablation (DR, DR+NRD, DR+NRD+LCG) with several seeds: trains the runs missing from --runs (configs/ablation-*.toml, about 1 h of CPU each), scores them on --count patches, writes OUT/ablation; needs a source checkout (its configs/)."),
     seeds: str = typer.Option("0,1", help="With --ablation: comma-separated training seeds (at least two)."),
     jobs: int = typer.Option(2, callback=within(1), help="With --ablation: training runs side by side (one thread each)."),
@@ -37,7 +37,8 @@ def bench(
     """Benchmark the methods on synthetic data with ground truth: by default one table of RMSE /
     PSNR / SSIM of R and T per method (with network and direct: their paired T PSNR difference);
     with --quick or --full the paper's tables, robustness study and speed figures; with
-    --ablation the multi-seed pipeline ablation.
+    --ablation the multi-seed pipeline ablation. One mode (--quick, --full, --ablation,
+    --semireal, --virtual) per run.
 
     \b
     Example:
@@ -47,14 +48,18 @@ def bench(
     """
     if large and not full:
         raise usage("--24mp goes with --full")
-    if quick and full:
-        raise usage("--quick or --full, not both")
-    mode = quick or full or ablation or semireal or virtual
+    modes = [flag for flag, on in (("--quick", quick), ("--full", full), ("--ablation", ablation),
+                                   ("--semireal", semireal), ("--virtual", virtual)) if on]
+    if len(modes) > 1:
+        raise usage(f"{' or '.join(modes)}, not both" if len(modes) == 2 else f"{', '.join(modes)}: one of them per run")
+    mode = bool(modes)
     unused = [f"--{name.replace('_', '-')}" for name in ("out",) if not mode and given(ctx, name)]
     unused += [f"--{name.replace('_', '-')}" for name in ("images",) if not (quick or full) and given(ctx, name)]
     unused += [f"--{name.replace('_', '-')}" for name in ("methods", "count", "size", "direct_weights")
-               if (quick or full) and not ablation and given(ctx, name)]
+               if (quick or full) and given(ctx, name)]
     unused += [f"--{name.replace('_', '-')}" for name in ("methods", "direct_weights") if ablation and given(ctx, name)]
+    if not mode and direct_weights is not None and "direct" not in methods.split(","):
+        unused.append("--direct-weights")
     if unused:
         raise usage(f"{', '.join(unused)}: not used by this run (see each option's help for the modes it goes with)")
     if given(ctx, "methods"):
@@ -71,26 +76,27 @@ def bench(
         raise bad("--methods", "--virtual takes the methods by name, --semireal those and LABEL=PATH; 'direct' is for "
                                "the plain benchmark")
     if semireal:
-        if virtual or quick or full or ablation or given(ctx, "count") or given(ctx, "size"):
+        if given(ctx, "count") or given(ctx, "size"):
             raise usage("--semireal goes alone (with --methods, --weights and --out): it has its own scenes")
         bench_semireal(methods if given(ctx, "methods") else None, weights, out)
         return
     if weights is not None:
         raise usage("--weights goes with --semireal")
     if virtual:
-        if quick or full or ablation or given(ctx, "count") or given(ctx, "size"):
+        if given(ctx, "count") or given(ctx, "size"):
             raise usage("--virtual goes alone (with --methods and --out): it has its own scenes")
         bench_virtual(methods if given(ctx, "methods") else None, out)
         return
     if not ablation and (seeds != "0,1" or jobs != 2 or runs is not None or steps is not None):
         raise usage("--seeds, --jobs, --runs and --steps go with --ablation")
     if ablation:
-        from separate.ablation import ablation_runs, run_ablation
+        from separate.ablation import ablation_runs, check_budgets, run_ablation
         from separate.bench_run import DEFAULT_OUT
 
         seed_list = parse_seeds(seeds)
+        check_size(size)
         runs = runs or Path("runs/ablation" + (f"-{steps}" if steps else ""))
-        run_guarded(ablation_runs, seed_list, runs, steps=steps)          # its configs are there: before making folders
+        run_guarded(check_budgets, run_guarded(ablation_runs, seed_list, runs, steps=steps))   # before making folders
         folder = writable((out or DEFAULT_OUT) / ("ablation" + (f"-{steps}" if steps else "")))
         bar = TerminalProgress()
         result = run_guarded(run_ablation, folder, runs, seed_list, jobs, count, size,
@@ -99,8 +105,7 @@ def bench(
         bar.close()
         typer.echo(Path(result["files"][0]).read_text())
         typer.echo(f"table, CSV, plot and weights in {folder.resolve()}")
-        if not (quick or full):
-            return
+        return
     if quick or full:
         from separate.bench_run import DEFAULT_OUT, run_evaluation
 
@@ -111,6 +116,7 @@ def bench(
         return
     from separate.bench import format_paired, format_table, run_benchmark
 
+    check_size(size)
     rows = run_guarded(run_benchmark, [m for m in methods.split(",") if m], count, size, direct_weights)
     typer.echo(format_table(rows))
     if {"network", "direct"} <= {r["method"] for r in rows}:
@@ -150,6 +156,15 @@ def bench_virtual(methods: Optional[str], out: Optional[Path]) -> None:
     write_bytes_atomic(folder / "tables.md", tables.encode(), overwrite=True)
     typer.echo(tables)
     typer.echo(f"wrote {(folder / 'tables.md').resolve()}")
+
+
+def check_size(size: int) -> None:
+    """A usage error naming --size when the benchmark's photos are too small for ``size`` (px) patches."""
+    from separate.bench import largest_size
+
+    largest = largest_size()
+    if size > largest:
+        raise bad("--size", f"expected at most {largest} px (the shorter side of the benchmark's test photos), got {size}")
 
 
 def writable(folder: Path) -> Path:
