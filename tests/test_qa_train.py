@@ -193,6 +193,7 @@ def test_a_resume_with_another_width_says_use_a_new_run_folder(tmp_path):
     assert "resize_upsampling" not in out.output and "resuming" not in out.output
 
 
+@pytest.mark.slow
 def test_the_time_cap_says_so_and_the_same_command_with_init_resumes(tmp_path):
     config = tiny_config(tmp_path, steps="4", max_minutes="0.0001")
     weights = tiny_weights(tmp_path / "w.pt", config)
