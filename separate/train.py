@@ -33,6 +33,7 @@ from separate.infer import read_weights
 from separate.model import BASES, LOSSES, UPSAMPLING, VARIANTS, with_fresnel_base
 from separate.networks import build_model
 from separate.precision import Precision, resolve
+from separate.provenance import cpu_model
 from separate.synthesis import READ_VAR_LOG10, SHOT_GAIN_LOG10, AngleMode, SynthesisConfig, Synthesizer, default_pool, training_data
 from urd.core.files import atomic_path, pid_lock
 from urd.core.processes import interrupts_deferred
@@ -491,6 +492,17 @@ def rank_batches(batch: int, micro_batch: int, world: int) -> tuple[int, int]:
     return per_rank, micro
 
 
+def training_setup(device: torch.device, bf16: bool, world: int) -> str:
+    """What a training session runs on, as a model card states it: the GPU or this machine's CPU,
+    the precision, and the processes (DDP ranks) and threads."""
+    compute = "bf16 autocast" if bf16 else "fp32"
+    if device.type == "cuda":
+        return f"{torch.cuda.get_device_name(device)}{f' ×{world} (DDP)' if world > 1 else ''}, {compute}"
+    threads = torch.get_num_threads()
+    return (f"{cpu_model()}, {compute}, {world} process{'es' if world > 1 else ''} × "
+            f"{threads} thread{'s' if threads > 1 else ''}")
+
+
 def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict:
     """`train`'s loop, in a folder already locked."""
     distributed = int(os.environ.get("WORLD_SIZE", "1")) > 1
@@ -510,6 +522,7 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
     step, best, started = 0, -math.inf, time.time()
     elapsed_before = 0.0
     origin = None
+    trained_on = ""                                         # what earlier sessions of a resumed run ran on
     data = training_data(cfg.real_prob)[0]                 # for the model card (`export_weights`)
     last = run_dir / "last.pt"
     resumed = last.exists()
@@ -539,6 +552,7 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
             step, best = state["step"], state.get("best_psnr_t", -math.inf)
             elapsed_before = state.get("wall_s", 0.0)
             origin = state.get("init")
+            trained_on = state.get("trained_on", "")
         else:
             origin = {"path": str(init), "sha256": _sha256(Path(init))}
     if rank == 0 and _config_in(run_dir) != cfg:            # never rewritten when it holds these settings already
@@ -548,6 +562,8 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
     per_rank, micro = rank_batches(cfg.batch, cfg.micro_batch, world)
     val = validation_set(cfg) if rank == 0 else None
     use_bf16 = resolve(cfg.precision, device) is Precision.BF16
+    setup = training_setup(device, use_bf16, world)
+    trained_on = trained_on if trained_on.endswith(setup) else f"{trained_on}; then {setup}" if trained_on else setup
     record: dict = {"step": step}
     saved = step if resumed else None                  # the step last.pt holds
     wall = elapsed_before                                   # training time (s), the same on every rank
@@ -555,7 +571,7 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
     def keep(path: Path, with_optim: bool, **extra) -> None:
         """A checkpoint of the run as it is now: ``last.pt`` with the optimizer, ``best.pt`` without."""
         save_checkpoint(path, model, optim if with_optim else None, step, cfg,
-                        {"best_psnr_t": best, "wall_s": wall, "init": origin, "data": data, **extra})
+                        {"best_psnr_t": best, "wall_s": wall, "init": origin, "data": data, "trained_on": trained_on, **extra})
 
     log = open(run_dir / "log.jsonl", "a") if rank == 0 else None
     if rank == 0 and init is not None and not resumed:          # the starting weights compete for best.pt
@@ -633,13 +649,13 @@ def _same_weights(a: dict, b: dict) -> bool:
             and all(a["model"][k].dtype == v.dtype and torch.equal(a["model"][k], v) for k, v in b["model"].items()))
 
 
-def export_weights(checkpoint: Path, output: Path, device: str, note: str = "", parent: dict | None = None) -> dict:
+def export_weights(checkpoint: Path, output: Path, device: str | None = None, note: str = "", parent: dict | None = None) -> dict:
     """Write a checkpoint's network as shipped weights (float16: half the size, loaded as
     float32) plus a model card (``output`` with .json) and return the card. A weights file
     already holding exactly these weights is kept as it is (same bytes, same SHA-256).
 
-    The card records the training config, steps, patches seen, wall time, ``device``, and the
-    validation figures logged at that checkpoint. ``parent`` is the card of the weights the run
+    The card records the training config, steps, patches seen, wall time, ``device`` (default:
+    what the run recorded it trained on, `training_setup`), and the validation figures logged at that checkpoint. ``parent`` is the card of the weights the run
     was initialized from (`train` with ``init``): the card then lists every stage and the totals.
     WeightsError if ``parent`` does not describe the weights the run started from.
     """
@@ -660,7 +676,8 @@ def export_weights(checkpoint: Path, output: Path, device: str, note: str = "", 
         "model": state["model_config"],
         "parameters": sum(v.numel() for v in state["model"].values()),
         "training": {"config": cfg, "steps": state["step"], "patches_seen": state["step"] * cfg["batch"],
-                     "wall_time_s": round(state.get("wall_s", 0.0)), "device": device,
+                     "wall_time_s": round(state.get("wall_s", 0.0)),
+                     "device": device or state.get("trained_on") or "not recorded in the checkpoint",
                      "data": state.get("data", "synthesized from bsds500/train + sunhays80 (../shared/data/natural)")
                              + ", pipeline " + cfg["pipeline"]},
         "validation": state.get("val"),

@@ -232,3 +232,20 @@ def test_a_weights_file_in_place_of_last_pt_is_one_error_line(tmp_path):
     assert error_lines(out.output) == [f"Error: {run / 'last.pt'} holds weights but no training state to resume (a weights "
                                        "file, not a run's last.pt); use a new run folder, with --init to start from these weights"]
     assert "Traceback" not in out.output and sorted(p.name for p in run.iterdir()) == [".lock", "last.pt"]
+
+
+@pytest.mark.slow
+def test_the_model_card_says_what_the_run_trained_on_and_a_resume_elsewhere_adds_to_it(tmp_path):
+    from separate.provenance import cpu_model
+    from separate.train import export_weights
+
+    config = tiny_config(tmp_path, steps="2")
+    assert invoke("train", config, tmp_path / "run").exit_code == 0
+    card = export_weights(tmp_path / "run" / "best.pt", tmp_path / "w.pt")
+    assert card["training"]["device"] == f"{cpu_model()}, fp32, 1 process × 1 thread"
+    last = tmp_path / "run" / "last.pt"
+    state = load_checkpoint(last)
+    torch.save({**state, "trained_on": "NVIDIA H200, bf16 autocast"}, last)     # its first session ran elsewhere
+    assert invoke("train", tiny_config(tmp_path, steps="3"), tmp_path / "run").exit_code == 0
+    assert load_checkpoint(last)["trained_on"] == f"NVIDIA H200, bf16 autocast; then {cpu_model()}, fp32, 1 process × 1 thread"
+    assert export_weights(last, tmp_path / "v.pt", "given")["training"]["device"] == "given"
