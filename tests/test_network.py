@@ -412,7 +412,8 @@ def test_training_continues_from_the_shipped_weights(tmp_path):
     def export(parent):
         """tools/export_weights.py in this process (torch is loaded already): its exit code, stdout, stderr."""
         argv = ["export_weights.py", str(tmp_path / "tuned" / "last.pt"), str(tmp_path / "w.pt"), "--parent", str(parent)]
-        with mock.patch.object(sys, "argv", argv), contextlib.redirect_stdout(io.StringIO()) as stdout:
+        with mock.patch.object(sys, "argv", argv), mock.patch.object(sys, "path", [str(root / "tools"), *sys.path]), \
+                contextlib.redirect_stdout(io.StringIO()) as stdout:
             try:
                 runpy.run_path(str(root / "tools" / "export_weights.py"), run_name="__main__")
             except SystemExit as exc:

@@ -23,14 +23,14 @@ from __future__ import annotations
 
 import argparse
 import os
-import re
-import shutil
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 from separate.provenance import cpu_model
+
+from toolargs import Formatter, positive, scene_size, scratch
 
 
 # A wrapper process runs one command and reports its own children's peak RSS (KiB): the
@@ -62,49 +62,21 @@ def run(args: list[str]) -> tuple[float, float, str]:
     return elapsed, int(lines[-1]) / 1024**2, "\n".join(lines[:-1])
 
 
-class Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
-    """The module docstring as written; each option's default after its help, where it has one."""
-
-    def _get_help_string(self, action: argparse.Action) -> str | None:
-        return action.help if action.default is None else super()._get_help_string(action)
-
-
-def scene_size(text: str) -> str:
-    """'WxH' with each side 32-20000 px (the virtual camera's range), as given."""
-    match = re.fullmatch(r"(\d+)x(\d+)", text)
-    if not match or not all(32 <= int(v) <= 20000 for v in match.groups()):
-        raise argparse.ArgumentTypeError(f"expected WxH with each side 32-20000 px, e.g. 6000x4000, got {text!r}")
-    return text
-
-
-def positive(text: str) -> int:
-    """An integer of at least 1."""
-    if not text.isdigit() or int(text) < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return int(text)
-
-
-def scratch(folder: Path) -> Path:
-    """``folder`` emptied for a new dataset; SystemExit where it holds something other than a dataset."""
-    if folder.exists() and not (folder.is_dir() and (not any(folder.iterdir()) or (folder / "dataset.json").is_file())):
-        sys.exit(f"error: {folder} exists and is not a dataset; this tool removes its --folder: choose another")
-    shutil.rmtree(folder, ignore_errors=True)
-    return folder
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=Formatter)
-    parser.add_argument("--size", type=scene_size, default="6000x4000", help="scene size WxH (px)")
+    parser.add_argument("--size", type=scene_size("6000x4000"), default="6000x4000", help="scene size WxH (px)")
     parser.add_argument("--folder", type=Path, default=Path("/tmp/urd-bench-24mp"),
                         help="scratch dataset folder, removed and made anew")
     parser.add_argument("--precision", default="auto", choices=["auto", "fp32", "bf16"], help="the network's precision")
     parser.add_argument("--tile", type=positive, default=None, help="network tile (px) (default: the CLI's)")
     parser.add_argument("--runs", type=positive, default=1, help="separations of the scene, each in a fresh process")
     args = parser.parse_args()
+    width, height = args.size
+    size = f"{width}x{height}"
     folder = scratch(args.folder)
     rate_before = fp32_rate()
     capture = subprocess.run([sys.executable, "-m", "urd.cli", "capture", str(folder), "--stage", "sim", "--camera", "virtual",
-                              "--sim-size", args.size, "--sim-shake", "8"], capture_output=True, text=True)
+                              "--sim-size", size, "--sim-shake", "8"], capture_output=True, text=True)
     if capture.returncode:
         sys.exit(f"urd capture failed:\n{capture.stderr}")
     ingest_s, ingest_gb, _ = run(["ingest", str(folder / "scene_01")])
@@ -117,7 +89,7 @@ def main() -> None:
     capped = [f"{k}={os.environ[k]}" for k in ("ONEDNN_MAX_CPU_ISA", "ATEN_CPU_CAPABILITY", "MKL_ENABLE_INSTRUCTIONS")
               if k in os.environ]
     print(f"CPU: {cpu_model()}, {os.cpu_count()} cores" + (f"; instruction sets capped: {' '.join(capped)}" if capped else ""))
-    print(f"scene {args.size}, 3 shots; network precision {precision}" + (f", tile {args.tile} px" if args.tile else ""))
+    print(f"scene {size}, 3 shots; network precision {precision}" + (f", tile {args.tile} px" if args.tile else ""))
     print(f"urd ingest   (decode + align + write):  {ingest_s:6.1f} s, peak memory {ingest_gb:.2f} GiB")
     if args.runs > 1:
         print("urd separate runs: " + ", ".join(f"{seconds:.1f} s" for seconds, _, _ in separations) + "; the median below")
@@ -126,7 +98,6 @@ def main() -> None:
     from bench_speed import flops_per_mp          # after the timed commands: this process stays out of their way
     from separate.infer import load_model
 
-    width, height = (int(v) for v in args.size.split("x"))
     network_gflop = flops_per_mp(load_model()[0]) * width * height / 1e15
     rate = max(rate_before, rate_after)
     end_to_end = (f"network {network_gflop:.0f} GFLOP in urd separate's {separate_s:.1f} s: "

@@ -10,7 +10,6 @@ refused), then times each method of `separate.methods.METHODS` on its aligned st
 from __future__ import annotations
 
 import argparse
-import shutil
 import subprocess
 import sys
 import time
@@ -20,17 +19,7 @@ from separate.methods import METHODS, get_method
 from urd.core.dataset import Dataset
 from urd.core.errors import UrdError
 
-
-class Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
-    """The module docstring as written; each option's default after its help."""
-
-
-def scratch(folder: Path) -> Path:
-    """``folder`` emptied for a new dataset; SystemExit where it holds something other than a dataset."""
-    if folder.exists() and not (folder.is_dir() and (not any(folder.iterdir()) or (folder / "dataset.json").is_file())):
-        sys.exit(f"error: {folder} exists and is not a dataset; this tool removes its --folder: choose another")
-    shutil.rmtree(folder, ignore_errors=True)
-    return folder
+from toolargs import Formatter, scratch
 
 
 def main() -> int:

@@ -13,7 +13,6 @@ line per seed: the largest error of the found angles and that error over its rep
 from __future__ import annotations
 
 import argparse
-import re
 import sys
 import tempfile
 from pathlib import Path
@@ -27,19 +26,9 @@ from calib.store import calibrate_shots
 from urd.core.errors import CalibrationError, UrdError
 from urd.ingest import IngestOptions, ingest_scene
 
+from toolargs import Formatter, scene_size
+
 ANGLES_DEG = [0.0, 30.0, 60.0, 90.0, 120.0, 150.0]
-
-
-class Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
-    """The module docstring as written; each option's default after its help."""
-
-
-def scene_size(text: str) -> tuple[int, int]:
-    """'WxH' → (W, H) px, each 32-20000 (the virtual camera's range)."""
-    match = re.fullmatch(r"(\d+)x(\d+)", text)
-    if not match or not all(32 <= int(v) <= 20000 for v in match.groups()):
-        raise argparse.ArgumentTypeError(f"expected WxH with each side 32-20000 px, e.g. 768x512, got {text!r}")
-    return int(match[1]), int(match[2])
 
 
 def number(low: float, kind: type = float):
@@ -78,7 +67,7 @@ def calibrate_seed(seed: int, width: int, height: int, shake: float, jitter: flo
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=Formatter)
     parser.add_argument("--seeds", type=number(1, int), default=8, help="scenes, one per seed 0..N-1")
-    parser.add_argument("--size", type=scene_size, default="768x512", help="scene size WxH (px)")
+    parser.add_argument("--size", type=scene_size("768x512"), default="768x512", help="scene size WxH (px)")
     parser.add_argument("--shake", type=number(0.0), default=4.0, help="camera shake between shots, max translation (px)")
     parser.add_argument("--jitter", type=number(0.0), default=2.0,
                         help="per-shot angle error the encoder does not see, std (deg)")

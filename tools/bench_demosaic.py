@@ -45,6 +45,8 @@ import numpy as np
 from separate import optics
 from urd.core.mosaic import ANGLES_DEG, Demosaic, MosaicLayout, build_mosaic, demosaic
 
+from toolargs import Formatter
+
 SHARED = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
 DATA = SHARED / "polarization"
 PHOTOS = SHARED / "natural" / "bsds500" / "test"
@@ -174,10 +176,6 @@ def show(title: str, rows: dict) -> None:
 
 def read(path: Path) -> np.ndarray:
     return cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-
-
-class Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
-    """The module docstring as written; each option's default after its help."""
 
 
 def mosaic_side(text: str) -> int:

@@ -33,30 +33,12 @@ from separate.bench import SEED, benchmark_set, largest_size, reshoot
 from separate.methods import get_method
 from urd.core.errors import UrdError
 
+from toolargs import Formatter, at_least, check_patch_side
+
 SWEEP_DEG = np.arange(0.0, 180.0, 22.5)
 SWEEP_SETS_DEG = {"0/45/90": (0, 45, 90), "0/60/120": (0, 60, 120), "0/45/90/135": (0, 45, 90, 135)}
 ANGLE_SETS_DEG = {"3: 0/45/90": (0, 45, 90), "3: 0/60/120": (0, 60, 120), "4: 0/45/90/135": (0, 45, 90, 135),
                   "6: 0/30/.../150": (0, 30, 60, 90, 120, 150)}
-
-
-class Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
-    """The module docstring as written; each option's default after its help, where it has one."""
-
-    def _get_help_string(self, action: argparse.Action) -> str | None:
-        return action.help if action.default is None else super()._get_help_string(action)
-
-
-def at_least(low: int):
-    """An argparse type: an integer of at least ``low``."""
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-        if value < low:
-            raise argparse.ArgumentTypeError(f"expected at least {low}, got {value}")
-        return value
-    return parse
 
 
 def psnr_t(run, shots, angles_deg, t_obs, reference_deg=None) -> float:
@@ -115,9 +97,7 @@ def main() -> int:
     parser.add_argument("--weights", type=Path, default=None, help="network weights or checkpoint (default: shipped)")
     parser.add_argument("--skip-schechner", action="store_true", help="network only (Schechner takes ~0.4 s per patch and angle)")
     args = parser.parse_args()
-    if args.size > largest_size():
-        parser.error(f"argument --size: expected at most {largest_size()} px (the shorter side of the test photos), "
-                     f"got {args.size}")
+    check_patch_side(parser, args.size, largest_size())
     started = time.perf_counter()
     try:
         network, _ = get_method("network", weights=args.weights)

@@ -45,6 +45,8 @@ from separate.precision import Precision, describe, native_bf16, resolve
 from separate.provenance import cpu_model
 from urd.core.errors import UrdError
 
+from toolargs import Formatter, positive
+
 ANGLES = [float(a) for a in np.radians([0.0, 45.0, 90.0])]
 SCALE = torch.tensor([0.5])
 THETA = torch.tensor([np.radians(50.0)], dtype=torch.float32)
@@ -189,20 +191,6 @@ def report(name: str, seconds: tuple[float, float], megapixels: float, flops_mp:
         per_cpu = flops_mp * megapixels / cpu / 1e9
         line += f"; per CPU-s {per_cpu:6.1f} GFLOP = {per_cpu / rate[1]:4.0%} of matmul's"
     print(line)
-
-
-class Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
-    """The module docstring as written; each option's default after its help, where it has one."""
-
-    def _get_help_string(self, action: argparse.Action) -> str | None:
-        return action.help if action.default is None else super()._get_help_string(action)
-
-
-def positive(text: str) -> int:
-    """An integer of at least 1."""
-    if not text.isdigit() or int(text) < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return int(text)
 
 
 def main() -> None:

@@ -23,22 +23,7 @@ from separate.bench import format_aoi_table, format_paired, format_table, larges
 from separate.methods import METHODS
 from urd.core.errors import UrdError
 
-
-class Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
-    """The module docstring as written; each option's default after its help."""
-
-
-def at_least(low: int):
-    """An argparse type: an integer of at least ``low``."""
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-        if value < low:
-            raise argparse.ArgumentTypeError(f"expected at least {low}, got {value}")
-        return value
-    return parse
+from toolargs import Formatter, at_least, check_patch_side
 
 
 def method_list(text: str) -> list[str]:
@@ -76,9 +61,7 @@ def main() -> int:
                         help="comma-separated methods: names, 'direct' (the direct variant's shipped weights), "
                              "LABEL=PATH (the network with the weights at PATH)")
     args = parser.parse_args()
-    if args.size > largest_size():
-        parser.error(f"argument --size: expected at most {largest_size()} px (the shorter side of the test photos), "
-                     f"got {args.size}")
+    check_patch_side(parser, args.size, largest_size())
     started = time.perf_counter()
     try:
         rows = run_benchmark(args.methods, args.count, args.size, reference=args.reference)

@@ -38,6 +38,8 @@ from separate.synthesis import noise_std
 from urd.core import samples
 from urd.core.errors import UrdError
 
+from toolargs import Formatter, at_least, check_patch_side
+
 PERIOD = 8
 RING_PX = 8
 
@@ -75,35 +77,13 @@ def shoot(t_obs: np.ndarray, r_obs: np.ndarray, theta: float, phi_perp: float, a
     return np.clip(shots, 0.0, 1.0).astype(np.float32)
 
 
-class Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
-    """The module docstring as written; each option's default after its help, where it has one."""
-
-    def _get_help_string(self, action: argparse.Action) -> str | None:
-        return action.help if action.default is None else super()._get_help_string(action)
-
-
-def at_least(low: int):
-    """An argparse type: an integer of at least ``low``."""
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-        if value < low:
-            raise argparse.ArgumentTypeError(f"expected at least {low}, got {value}")
-        return value
-    return parse
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=Formatter)
     parser.add_argument("--count", type=at_least(1), default=16, help="benchmark patches and flat scenes, each")
     parser.add_argument("--size", type=at_least(32), default=256, help="patch side (px)")
     parser.add_argument("--weights", type=Path, default=None, help="network weights or checkpoint (default: shipped)")
     args = parser.parse_args()
-    if args.size > largest_size():
-        parser.error(f"argument --size: expected at most {largest_size()} px (the shorter side of the test photos), "
-                     f"got {args.size}")
+    check_patch_side(parser, args.size, largest_size())
     started = time.perf_counter()
     try:
         network, _ = get_method("network", weights=args.weights)

@@ -28,12 +28,7 @@ from urd.core.errors import UrdError
 from urd.core.images import srgb_to_linear, to_display
 from urd.separation import separate_inspected
 
-
-class Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
-    """The module docstring as written; each option's default after its help, where it has one."""
-
-    def _get_help_string(self, action: argparse.Action) -> str | None:
-        return action.help if action.default is None else super()._get_help_string(action)
+from toolargs import Formatter, positive
 
 
 def method_list(text: str) -> list[str]:
@@ -42,13 +37,6 @@ def method_list(text: str) -> list[str]:
     if not names or any(name not in METHODS for name in names):
         raise argparse.ArgumentTypeError(f"expected some of {', '.join(sorted(METHODS))}, got {text!r}")
     return names
-
-
-def positive(text: str) -> int:
-    """An integer of at least 1."""
-    if not text.isdigit() or int(text) < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return int(text)
 
 
 def tile(image: np.ndarray, label: str, white: float) -> np.ndarray:

@@ -28,16 +28,12 @@ from separate.provenance import cpu_model
 from separate.train import export_weights, load_checkpoint
 from urd.core.errors import UrdError
 
-
-class Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
-    """The module docstring as written; each option's default after its help, where it has one."""
-
-    def _get_help_string(self, action: argparse.Action) -> str | None:
-        return action.help if action.default is None else super()._get_help_string(action)
+from toolargs import Formatter
 
 
 def default_device(train_config: dict) -> str:
-    """The card's device line: this machine's CPU with the run's precision and threads (from its config)."""
+    """The card's device line for a checkpoint that does not record it (`separate.train.training_setup`):
+    this machine's CPU with the run's precision and threads (from its config)."""
     precision = train_config.get("precision", "auto")
     chosen = resolve(precision).value if precision == "auto" else precision
     compute = "bf16 autocast" if chosen == "bf16" else "fp32"
@@ -88,9 +84,10 @@ def main() -> int:
     parser.add_argument("checkpoint", type=Path, help="the training checkpoint (a run's best.pt or last.pt)")
     parser.add_argument("output", type=Path, help="the weights file to write (.pt); its card goes beside it, as .json")
     parser.add_argument("--device", default=None,
-                        help="what the run trained on, for the card (default: this machine's CPU, "
-                             f"'{cpu_model()} (the machine that exported it)', with the precision and threads of "
-                             "the run's config; name the GPU or machine where the run trained elsewhere)")
+                        help="what the run trained on, for the card (default: what the checkpoint records, "
+                             "each training session's GPU or CPU, precision and threads; for checkpoints from before "
+                             f"urd recorded it, this machine's CPU, '{cpu_model()} (the machine that exported it)', "
+                             "with the precision and threads of the run's config)")
     parser.add_argument("--note", default=None, help="a free-text note for the card (default: none)")
     parser.add_argument("--parent", type=Path, default=None,
                         help="the card (.json) of the weights the run was initialized from, with urd train --init "
@@ -115,7 +112,7 @@ def main() -> int:
         if not isinstance(state, dict) or not {"model", "model_config", "train_config", "step"} <= state.keys():
             raise SystemExit(f"error: {args.checkpoint} is not a training checkpoint (a run's best.pt or last.pt: "
                              "weights with their training config and step)")
-        device = args.device if args.device is not None else default_device(state["train_config"])
+        device = args.device or state.get("trained_on") or default_device(state["train_config"])
         existing = [path for path in (output, card) if path.exists()]
         if existing and not args.force:
             with tempfile.TemporaryDirectory(prefix="urd-export-") as folder:

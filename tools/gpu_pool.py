@@ -28,6 +28,8 @@ import numpy as np
 from separate import synthesis
 from urd.core import samples
 
+from toolargs import Formatter
+
 
 def size_mb(folder: Path) -> float:
     return sum(f.stat().st_size for f in folder.rglob("*") if f.is_file()) / 1e6
@@ -74,10 +76,6 @@ def check(out: Path) -> float:
         b, _ = synthesis.capture_stokes(small)
         worst = max(worst, float(np.abs(a - b).max()))
     return worst
-
-
-class Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
-    """The module docstring as written; each option's default after its help."""
 
 
 def main() -> None:

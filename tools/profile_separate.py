@@ -17,7 +17,6 @@ time instead.
 
 import argparse
 import cProfile
-import re
 import pstats
 import time
 
@@ -26,6 +25,8 @@ import torch
 
 import urd
 from acquire.virtual_camera import GlassScene, make_glass_scene
+
+from toolargs import Formatter, positive, scene_size
 
 #: The steps reported: (label, file suffix, function name).
 STEPS = [
@@ -57,28 +58,10 @@ def scene_stack(width: int, height: int, strong: bool) -> tuple[np.ndarray, list
     return shots, angles
 
 
-class Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
-    """The module docstring as written; each option's default after its help."""
-
-
-def scene_size(text: str) -> tuple[int, int]:
-    """'WxH' → (W, H) px, each side at least 256 (the warm-up call separates a 256² corner)."""
-    match = re.fullmatch(r"(\d+)x(\d+)", text)
-    if not match or not all(256 <= int(v) <= 20000 for v in match.groups()):
-        raise argparse.ArgumentTypeError(f"expected WxH with each side 256-20000 px, e.g. 6000x4000, got {text!r}")
-    return int(match[1]), int(match[2])
-
-
-def positive(text: str) -> int:
-    """An integer of at least 1."""
-    if not text.isdigit() or int(text) < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return int(text)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=Formatter)
-    parser.add_argument("--size", type=scene_size, default="6000x4000", help="scene size WxH (px)")
+    # each side at least 256: the warm-up call separates a 256² corner
+    parser.add_argument("--size", type=scene_size("6000x4000", low=256), default="6000x4000", help="scene size WxH (px)")
     parser.add_argument("--threads", type=positive, default=1, help="torch threads")
     parser.add_argument("--wall", action="store_true", help="wall-clock time instead of CPU time")
     parser.add_argument("--strong", action="store_true", help="a strongly polarized scene (no side trial)")

@@ -22,18 +22,9 @@ import numpy as np
 from selenium import webdriver
 from selenium.webdriver.chrome.service import Service
 
+from toolargs import Formatter, positive
+
 WIDTH = 1280
-
-
-class Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
-    """The module docstring as written; each option's default after its help."""
-
-
-def positive(text: str) -> int:
-    """An integer of at least 1."""
-    if not text.isdigit() or int(text) < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return int(text)
 
 
 parser = argparse.ArgumentParser(description=__doc__, formatter_class=Formatter)

@@ -22,12 +22,7 @@ from separate.infer import WEIGHTS_DIR, load_model
 from separate.model import with_resize_upsampling
 from urd.core.errors import UrdError
 
-
-class Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
-    """The module docstring as written; each option's default after its help, where it has one."""
-
-    def _get_help_string(self, action: argparse.Action) -> str | None:
-        return action.help if action.default is None else super()._get_help_string(action)
+from toolargs import Formatter
 
 
 def main() -> int:

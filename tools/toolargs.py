@@ -1,0 +1,70 @@
+"""What the scripts in tools/ share to read their command line: the help formatter, the argparse
+types they repeat, the patch benchmarks' --size check and the scratch benchmarks' --folder guard.
+
+Imported by the scripts in tools/ (``from toolargs import Formatter, at_least``): each runs as
+``python tools/NAME.py``, which puts tools/ first on ``sys.path``; code that runs a script by
+other means (``runpy.run_path``, a ``-c`` snippet) puts tools/ on ``sys.path`` itself. Not a
+tool of its own: run, it only shows this text with ``--help``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import shutil
+import sys
+from pathlib import Path
+
+
+class Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """The module docstring as written; each option's default after its help, where it has one."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        return action.help if action.default is None else super()._get_help_string(action)
+
+
+def at_least(low: int):
+    """An argparse type: an integer of at least ``low``."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"expected at least {low}, got {value}")
+        return value
+    return parse
+
+
+def positive(text: str) -> int:
+    """An argparse type: an integer of at least 1, written in digits only."""
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return int(text)
+
+
+def scene_size(example: str, low: int = 32):
+    """An argparse type: 'WxH' → (W, H) px, each side ``low``-20000 (32-20000: the virtual
+    camera's range); ``example`` is shown in the refusal."""
+    def parse(text: str) -> tuple[int, int]:
+        match = re.fullmatch(r"(\d+)x(\d+)", text)
+        if not match or not all(low <= int(v) <= 20000 for v in match.groups()):
+            raise argparse.ArgumentTypeError(f"expected WxH with each side {low}-20000 px, e.g. {example}, got {text!r}")
+        return int(match[1]), int(match[2])
+    return parse
+
+
+def check_patch_side(parser: argparse.ArgumentParser, side: int, largest: int) -> None:
+    """A usage error (exit status 2) where --size ``side`` is over ``largest`` px, the shorter side of
+    the test photos (`separate.bench.largest_size`: it loads them, so it is called after parsing)."""
+    if side > largest:
+        parser.error(f"argument --size: expected at most {largest} px (the shorter side of the test photos), got {side}")
+
+
+def scratch(folder: Path) -> Path:
+    """``folder`` emptied for a new dataset; SystemExit where it holds something other than a dataset."""
+    if folder.exists() and not (folder.is_dir() and (not any(folder.iterdir()) or (folder / "dataset.json").is_file())):
+        sys.exit(f"error: {folder} exists and is not a dataset; this tool removes its --folder: choose another")
+    shutil.rmtree(folder, ignore_errors=True)
+    return folder
+
