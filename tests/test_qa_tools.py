@@ -155,7 +155,10 @@ def test_bench_baselines_help_runs_nothing_and_its_folder_is_checked(tmp_path):
     assert code == 0 and printed.startswith("usage:") and "1-megapixel" in printed and "--folder" in printed
     (tmp_path / "mine.txt").write_text("keep")
     code, _, err = tool("bench_baselines.py", "--folder", tmp_path)
-    assert code == 1 and "not a dataset" in err and (tmp_path / "mine.txt").read_text() == "keep"
+    assert code == 1 and "not a scratch folder this tool made" in err and (tmp_path / "mine.txt").read_text() == "keep"
+    (tmp_path / "dataset.json").write_text("{}")                   # a dataset of the user's is not the tool's either
+    code, _, err = tool("bench_baselines.py", "--folder", tmp_path)
+    assert code == 1 and (tmp_path / "dataset.json").is_file() and (tmp_path / "mine.txt").is_file()
 
 
 # 7. tools: bad arguments are usage errors (2), the project's errors one line (1)

@@ -15,8 +15,8 @@ the higher of the two: on a shared machine a single reading can be half the CPU'
 Single runs on a shared 2-core machine spread by 5-15%: ``--runs N`` separates the scene N
 times (each a fresh process, ``--force`` after the first) and prints every run and the median.
 
---folder is a scratch dataset, removed and made anew on each run; a folder that holds anything
-but a dataset is refused, so that a mistyped path deletes nothing of yours.
+--folder is a scratch dataset, removed and made anew on each run; a folder that this tool did
+not make is refused (even a dataset), so that a mistyped path deletes nothing of yours.
 """
 
 from __future__ import annotations

@@ -3,8 +3,8 @@
     python tools/bench_baselines.py [--folder /tmp/urd-bench-1mp]
 
 Captures the scene with the simulated rig and ingests it (not timed) into --folder, a scratch
-dataset removed and made anew on each run (a folder that holds anything but a dataset is
-refused), then times each method of `separate.methods.METHODS` on its aligned stack.
+dataset removed and made anew on each run (a folder this tool did not make is refused, even a
+dataset), then times each method of `separate.methods.METHODS` on its aligned stack.
 """
 
 from __future__ import annotations

@@ -61,10 +61,17 @@ def check_patch_side(parser: argparse.ArgumentParser, side: int, largest: int) -
         parser.error(f"argument --size: expected at most {largest} px (the shorter side of the test photos), got {side}")
 
 
-def scratch(folder: Path) -> Path:
-    """``folder`` emptied for a new dataset; SystemExit where it holds something other than a dataset."""
-    if folder.exists() and not (folder.is_dir() and (not any(folder.iterdir()) or (folder / "dataset.json").is_file())):
-        sys.exit(f"error: {folder} exists and is not a dataset; this tool removes its --folder: choose another")
-    shutil.rmtree(folder, ignore_errors=True)
-    return folder
+#: The file a tool leaves in the scratch folder it makes: only such a folder (or an empty one) is removed.
+SCRATCH_MARK = ".urd-tool-scratch"
 
+
+def scratch(folder: Path) -> Path:
+    """``folder`` removed and made anew, with `SCRATCH_MARK` in it; SystemExit where it exists and
+    is neither empty nor marked as a tool's scratch folder (a dataset of yours is not removed)."""
+    if folder.exists() and not (folder.is_dir() and (not any(folder.iterdir()) or (folder / SCRATCH_MARK).is_file())):
+        sys.exit(f"error: {folder} exists and is not a scratch folder this tool made (no {SCRATCH_MARK} in it); "
+                 "this tool removes its --folder: choose another")
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    (folder / SCRATCH_MARK).write_text("made by a urd tool (tools/): removed and made anew on its next run\n")
+    return folder
