@@ -81,7 +81,8 @@ class Gphoto2Camera:
 
     def capture(self, folder: Path, index: int) -> tuple[Path, dict]:
         with tempfile.TemporaryDirectory(dir=folder, prefix=".gphoto2-") as tmp:
-            self._run(["--capture-image-and-download", "--filename", "shot.%C", "--force-overwrite"], "trigger and download", cwd=Path(tmp))
+            self._run(["--capture-image-and-download", "--keep", "--filename", "shot.%C", "--force-overwrite"],
+                      "trigger and download", cwd=Path(tmp))           # --keep: the card keeps every shot too
             files = sorted(Path(tmp).iterdir())
             raws = [f for f in files if f.suffix.lower() in rawio.RAW_SUFFIXES]
             if not raws:
@@ -95,11 +96,12 @@ class Gphoto2Camera:
 
 def downloaded_metadata(path: Path) -> dict:
     """`urd.core.raw.metadata` of a RAW file just downloaded under a temporary name; when it is
-    unreadable the file is removed and the RawFormatError says why without naming it (the
-    capture plan names the shot)."""
+    unreadable the download is removed (the camera's card keeps the shot: `GPhoto2Camera.capture`
+    downloads with --keep) and the RawFormatError says why without naming it (the capture plan names the shot)."""
     try:
         return rawio.metadata(path)
     except RawFormatError as exc:
         path.unlink(missing_ok=True)
         reason = str(exc).removeprefix(f"{path}: ")
-        raise RawFormatError(f"the camera's file is not a readable RAW file ({reason}); the download was removed") from exc
+        raise RawFormatError(f"the camera's file is not a readable RAW file ({reason}); the download was removed, "
+                             "the camera's card keeps the shot") from exc

@@ -92,7 +92,8 @@ def check_budgets(runs: Sequence[AblationRun]) -> None:
     if started:
         budget = runs[0].train_config().steps
         found = "; ".join(f"{', '.join(names)}: {steps} steps" for steps, names in sorted(started.items()))
-        theirs = f", or --steps {next(iter(started))} to go on with these" if len(started) == 1 else ""
+        theirs = (f", or --runs {runs[0].folder.parent} --steps {next(iter(started))} to go on with these"
+                  if len(started) == 1 else "")
         raise TrainingError(f"the runs in {runs[0].folder.parent} were started with another budget ({found}), not the {budget} steps "
                             f"asked for: resuming them would change their learning-rate schedule; choose a new runs "
                             f"folder (--runs) for {budget} steps{theirs}")

@@ -74,8 +74,12 @@ def _like(value: np.ndarray, x: Array) -> Array:
 
 def snell(theta: Array, n: float = N_GLASS) -> Array:
     """Angle of refraction (rad) for incidence ``theta`` (rad) from air into index ``n``."""
-    xp = _xp(theta)
-    return xp.arcsin(xp.sin(theta) / n)
+    return _refraction(_xp(theta).sin(theta), n)
+
+
+def _refraction(sin_i: Array, n: float) -> Array:
+    """`snell` from sin θ."""
+    return _xp(sin_i).arcsin(sin_i / n)
 
 
 def brewster_angle(n: float = N_GLASS) -> float:
@@ -90,7 +94,7 @@ def _fresnel_amplitudes(theta: Array, n: float) -> tuple[Array, Array, Array, Ar
         raise ValueError(f"expected a refractive index n > 1, got {n}")
     xp = _xp(theta)
     sin_i, cos_i = xp.sin(theta), xp.cos(theta)
-    cos_t = xp.cos(xp.arcsin(sin_i / n))                        # `snell`, sin θ computed once
+    cos_t = xp.cos(_refraction(sin_i, n))
     den_s, den_p = cos_i + n * cos_t, n * cos_i + cos_t
     return (cos_i - n * cos_t) / den_s, (n * cos_i - cos_t) / den_p, den_s, den_p, sin_i
 
@@ -119,12 +123,6 @@ def fresnel_reflectance_and_slope(theta: Array, n: float = N_GLASS) -> tuple[Arr
     r_s, r_p, den_s, den_p, sin_i = _fresnel_amplitudes(theta, n)
     slope = -2.0 * (n * n - 1.0) * sin_i / _xp(theta).sqrt(n * n - sin_i**2)
     return r_s**2, r_p**2, 2 * r_s * slope / den_s**2, 2 * r_p * slope / den_p**2
-
-
-def fresnel_reflectance_slope(theta: Array, n: float = N_GLASS) -> tuple[Array, Array]:
-    """Derivatives (dR_s/dθ, dR_p/dθ) (per rad) of `fresnel_reflectance`, for θ in [0, π/2)
-    (`fresnel_reflectance_and_slope`)."""
-    return fresnel_reflectance_and_slope(theta, n)[2:]
 
 
 def reflectance(theta: Array, n: float = N_GLASS) -> Array:

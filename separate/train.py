@@ -393,12 +393,12 @@ RUN_FILES = ("config.toml", "best.pt", "log.jsonl")
 
 
 def check_run_folder(run_dir: Path) -> None:
-    """TrainingError when ``run_dir`` holds `RUN_FILES` of an earlier run but no ``last.pt`` to
-    resume from: a new run there would overwrite best.pt and config.toml and add to log.jsonl."""
-    found = [name for name in RUN_FILES if (Path(run_dir) / name).exists()]
-    if found and not (Path(run_dir) / "last.pt").exists():
-        raise TrainingError(f"{run_dir} holds {', '.join(found)} of an earlier run but no last.pt to resume from, and a new "
-                            "run would overwrite them; use a new run folder (or restore last.pt there to resume)")
+    """TrainingError when ``run_dir`` holds an earlier run's ``best.pt`` but no ``last.pt`` to resume
+    from: a new run there would overwrite it. (A start killed before its first checkpoint leaves
+    config.toml and log.jsonl only; a new run takes the folder over.)"""
+    if (Path(run_dir) / "best.pt").exists() and not (Path(run_dir) / "last.pt").exists():
+        raise TrainingError(f"{run_dir} holds best.pt of an earlier run but no last.pt to resume from, and a new "
+                            "run would overwrite it; use a new run folder (or restore last.pt there to resume)")
 
 
 def check_resume(state: dict, cfg: TrainConfig, source: Path, init: Path | None = None) -> None:
@@ -437,12 +437,13 @@ def train(cfg: TrainConfig, run_dir: Path, init: Path | None = None, progress=No
     ``init`` optionally starts from a weights or checkpoint file (fine-tuning); a run folder
     with ``last.pt`` always resumes from it instead, provided its config differs from ``cfg``
     only in `RESUMABLE_CHANGES` and ``init`` is none or the weights it started from (else
-    TrainingError, `check_resume`). A folder holding an earlier run's files without ``last.pt``
+    TrainingError, `check_resume`). A folder holding an earlier run's ``best.pt`` without ``last.pt``
     is refused (`check_run_folder`). One process (DDP: rank 0) holds the folder's lock while
     training (`run_lock`). On Ctrl-C or SIGTERM rank 0 saves ``last.pt`` at the step reached and
     notes it on the exception; a non-finite loss or gradient stops the run with TrainingError,
-    ``last.pt`` left at its last (finite) checkpoint. A new run that fails before its first
-    ``last.pt`` leaves no trace: the files it wrote, and the folders it made, are removed.
+    ``last.pt`` left at its last (finite) checkpoint. A new run that fails before it logs anything
+    (and so before its first ``last.pt``) leaves no trace: the files it wrote, and the folders it
+    made, are removed; one that fails later keeps its log.jsonl and best.pt to look at.
     """
     run_dir = Path(run_dir)
     if run_dir.exists() and not run_dir.is_dir():
@@ -459,7 +460,8 @@ def train(cfg: TrainConfig, run_dir: Path, init: Path | None = None, progress=No
                 check_run_folder(run_dir)
                 return _train(cfg, run_dir, init, progress)
             except BaseException:
-                if not (run_dir / "last.pt").exists():       # a failed start: nothing of it is kept
+                log = run_dir / "log.jsonl"
+                if not (run_dir / "last.pt").exists() and not (log.exists() and log.stat().st_size):   # a failed start
                     for name in (*RUN_FILES, ".lock"):
                         if name not in before:
                             (run_dir / name).unlink(missing_ok=True)
@@ -643,10 +645,16 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
     return record
 
 
-def _same_weights(a: dict, b: dict) -> bool:
-    """Whether two weights files' contents are equal (config, tensor names, dtypes and values)."""
-    return (a.get("model_config") == b["model_config"] and a["model"].keys() == b["model"].keys()
-            and all(a["model"][k].dtype == v.dtype and torch.equal(a["model"][k], v) for k, v in b["model"].items()))
+def holds_weights(path: Path, weights: dict) -> bool:
+    """Whether the file at ``path`` is a weights file holding exactly ``weights`` (config, tensor
+    names, dtypes and values); False when it is missing or not a weights file at all."""
+    try:
+        held = load_checkpoint(path) if path.is_file() else None
+    except WeightsError:
+        return False
+    return held is not None and held.get("model_config") == weights["model_config"] \
+        and held["model"].keys() == weights["model"].keys() \
+        and all(held["model"][k].dtype == v.dtype and torch.equal(held["model"][k], v) for k, v in weights["model"].items())
 
 
 def export_weights(checkpoint: Path, output: Path, device: str | None = None, note: str = "", parent: dict | None = None) -> dict:
@@ -666,7 +674,7 @@ def export_weights(checkpoint: Path, output: Path, device: str | None = None, no
     output = Path(output)
     output.parent.mkdir(parents=True, exist_ok=True)
     weights = {"model": {k: v.half().contiguous() for k, v in state["model"].items()}, "model_config": state["model_config"]}
-    if not (output.is_file() and _same_weights(load_checkpoint(output), weights)):   # torch.save's bytes differ each time
+    if not holds_weights(output, weights):              # torch.save's bytes differ each time
         with atomic_path(output, overwrite=True) as tmp:
             torch.save(weights, tmp)
     cfg = state["train_config"]

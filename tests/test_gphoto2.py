@@ -59,7 +59,8 @@ def test_trigger_download_and_metadata(fake_gphoto2, tmp_path):
     with rawpy.imread(str(path)) as raw:
         assert raw.raw_image.shape == (32, 48)
     assert meta["exposure_s"] == pytest.approx(1 / 250, rel=1e-3)
-    assert "--capture-image-and-download" in (fake_gphoto2 / "calls.log").read_text()
+    calls = (fake_gphoto2 / "calls.log").read_text()
+    assert "--capture-image-and-download" in calls and "--keep" in calls     # the card keeps every shot too
 
 
 def test_camera_errors_are_clear(fake_gphoto2, tmp_path, monkeypatch):

@@ -62,3 +62,16 @@ def test_training_bar_ends_where_the_time_cap_stops_the_run():
     assert projected_steps(100000, 60.0, resumed, {"step": 430, "wall_s": 1030.0}) == 460
     assert projected_steps(100000, 60.0, resumed, resumed) == 100000                          # no pace yet
     assert projected_steps(100000, 60.0, first, {"step": 50, "wall_s": 70.0}) == 50           # past the cap: where it is
+
+
+def test_a_label_naming_the_item_at_hand_does_not_start_a_line_per_item(monkeypatch):
+    now = [0.0]
+    monkeypatch.setattr(progress.time, "monotonic", lambda: now[0])
+    out = io.StringIO()
+    bar = progress.TerminalProgress(out)
+    for done in range(6):                     # a benchmark naming each scene it scores, a tenth of a second apart
+        bar(done, 6, f"semi-real: scene {done}")
+        now[0] += 0.1
+    bar(6, 6, "semi-real")
+    bar(0, 2, "tables")                       # a new step: another total
+    assert [line.split()[0:2] for line in out.getvalue().splitlines()] == [["semi-real:", "scene"], ["semi-real", "[########################]"], ["tables", "[------------------------]"]]

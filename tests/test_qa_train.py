@@ -137,13 +137,23 @@ def test_a_toml_given_as_init_is_one_error_line_and_leaves_no_run_folder(tmp_pat
     assert "Traceback" not in out.output and not (tmp_path / "new").exists()
 
 
-def test_a_failed_start_in_an_existing_folder_removes_only_what_it_wrote(tmp_path):
+def test_a_failed_start_in_an_existing_folder_removes_only_what_it_wrote(tmp_path, monkeypatch):
+    import separate.train
+
     run = tmp_path / "run"
     run.mkdir()
     (run / "notes.txt").write_text("mine")
     out = invoke("train", tiny_config(tmp_path), run, "--init", tiny_config(tmp_path, "other.toml"))
     assert out.exit_code == 1, out.output
     assert sorted(p.name for p in run.iterdir()) == ["notes.txt"]
+
+    def no_validation(cfg):                         # fails after config.toml is written, before anything is logged
+        assert (run / "config.toml").is_file()
+        raise OSError("no validation photos")
+
+    monkeypatch.setattr(separate.train, "validation_set", no_validation)
+    out = invoke("train", tiny_config(tmp_path), run)
+    assert out.exit_code != 0 and sorted(p.name for p in run.iterdir()) == ["notes.txt"], out.output
 
 
 @pytest.mark.parametrize("args, expected", [

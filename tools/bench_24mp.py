@@ -64,7 +64,7 @@ def run(args: list[str]) -> tuple[float, float, str]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=Formatter)
-    parser.add_argument("--size", type=scene_size("6000x4000"), default="6000x4000", help="scene size WxH (px)")
+    parser.add_argument("--size", type=scene_size(), default="6000x4000", help="scene size WxH (px)")
     parser.add_argument("--folder", type=Path, default=Path("/tmp/urd-bench-24mp"),
                         help="scratch dataset folder, removed and made anew")
     parser.add_argument("--precision", default="auto", choices=["auto", "fp32", "bf16"], help="the network's precision")

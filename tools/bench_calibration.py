@@ -67,7 +67,7 @@ def calibrate_seed(seed: int, width: int, height: int, shake: float, jitter: flo
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=Formatter)
     parser.add_argument("--seeds", type=number(1, int), default=8, help="scenes, one per seed 0..N-1")
-    parser.add_argument("--size", type=scene_size("768x512"), default="768x512", help="scene size WxH (px)")
+    parser.add_argument("--size", type=scene_size(), default="768x512", help="scene size WxH (px)")
     parser.add_argument("--shake", type=number(0.0), default=4.0, help="camera shake between shots, max translation (px)")
     parser.add_argument("--jitter", type=number(0.0), default=2.0,
                         help="per-shot angle error the encoder does not see, std (deg)")

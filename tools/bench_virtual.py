@@ -20,7 +20,7 @@ from toolargs import Formatter, positive, scene_size
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=Formatter)
-    parser.add_argument("--size", type=scene_size("768x512"), default="768x512", help="scene size WxH (px)")
+    parser.add_argument("--size", type=scene_size(), default="768x512", help="scene size WxH (px)")
     parser.add_argument("--pairs", type=positive, default=4, help="photo pairs per angle of incidence")
     parser.add_argument("--weights", type=Path, default=None, help="network weights (default: shipped)")
     parser.add_argument("--methods", nargs="+", choices=sorted(METHODS), default=list(DEFAULT_METHODS), metavar="METHOD",

@@ -21,11 +21,10 @@ import sys
 import tempfile
 from pathlib import Path
 
-import torch
 
 from separate.precision import resolve
 from separate.provenance import cpu_model
-from separate.train import export_weights, load_checkpoint
+from separate.train import export_weights, holds_weights, load_checkpoint
 from urd.core.errors import UrdError
 
 from toolargs import Formatter
@@ -69,14 +68,11 @@ def unchanged(output: Path, trial: Path) -> bool:
     if not (output.is_file() and card.is_file()):
         return False
     try:
-        old, new = load_checkpoint(output), load_checkpoint(trial)
         old_card = json.loads(card.read_text(encoding="utf-8"))
-    except (UrdError, ValueError, OSError):
+    except (ValueError, OSError):
         return False
-    same_weights = (old.get("model_config") == new["model_config"] and old["model"].keys() == new["model"].keys()
-                    and all(old["model"][k].dtype == v.dtype and torch.equal(old["model"][k], v) for k, v in new["model"].items()))
     new_card = json.loads(trial_card.read_text(encoding="utf-8"))
-    return same_weights and {**old_card, "sha256": None} == {**new_card, "sha256": None}
+    return holds_weights(output, load_checkpoint(trial)) and {**old_card, "sha256": None} == {**new_card, "sha256": None}
 
 
 def main() -> int:

@@ -28,7 +28,7 @@ import numpy as np
 from separate import synthesis
 from urd.core import samples
 
-from toolargs import Formatter
+from toolargs import Formatter, scratch
 
 
 def size_mb(folder: Path) -> float:
@@ -81,13 +81,11 @@ def check(out: Path) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=Formatter)
     parser.add_argument("--folder", type=Path, default=Path(".pool"),
-                        help="the pool's folder, removed and written anew (refused where it holds anything but a pool)")
+                        help="the pool's folder, removed and written anew (refused unless this tool made it)")
     args = parser.parse_args()
     if not samples.SHARED.is_dir() or not synthesis.SHARED_NATURAL.is_dir():
         raise SystemExit("expected ../shared/data (natural photos and real captures) beside the project")
-    if args.folder.exists() and not (args.folder.is_dir() and {p.name for p in args.folder.iterdir()} <= {"natural", "polarization"}):
-        raise SystemExit(f"error: {args.folder} exists and is not a pool this tool wrote; choose another --folder")
-    shutil.rmtree(args.folder, ignore_errors=True)
+    scratch(args.folder)
     copy_natural(args.folder)
     copy_captures(args.folder)
     for part in ("natural", "polarization"):

@@ -61,7 +61,7 @@ def scene_stack(width: int, height: int, strong: bool) -> tuple[np.ndarray, list
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=Formatter)
     # each side at least 256: the warm-up call separates a 256² corner
-    parser.add_argument("--size", type=scene_size("6000x4000", low=256), default="6000x4000", help="scene size WxH (px)")
+    parser.add_argument("--size", type=scene_size(low=256), default="6000x4000", help="scene size WxH (px)")
     parser.add_argument("--threads", type=positive, default=1, help="torch threads")
     parser.add_argument("--wall", action="store_true", help="wall-clock time instead of CPU time")
     parser.add_argument("--strong", action="store_true", help="a strongly polarized scene (no side trial)")

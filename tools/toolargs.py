@@ -10,7 +10,6 @@ tool of its own: run, it only shows this text with ``--help``.
 from __future__ import annotations
 
 import argparse
-import re
 import shutil
 import sys
 from pathlib import Path
@@ -43,14 +42,18 @@ def positive(text: str) -> int:
     return int(text)
 
 
-def scene_size(example: str, low: int = 32):
-    """An argparse type: 'WxH' → (W, H) px, each side ``low``-20000 (32-20000: the virtual
-    camera's range); ``example`` is shown in the refusal."""
+def scene_size(low: int = 32):
+    """An argparse type: 'WxH' → (W, H) px, the virtual camera's sensor as `urd capture --sim-size`
+    takes it (`urd.cli.common.parse_size`: each side even, ``low`` to 20000)."""
+    import typer
+
+    from urd.cli.common import parse_size
+
     def parse(text: str) -> tuple[int, int]:
-        match = re.fullmatch(r"(\d+)x(\d+)", text)
-        if not match or not all(low <= int(v) <= 20000 for v in match.groups()):
-            raise argparse.ArgumentTypeError(f"expected WxH with each side {low}-20000 px, e.g. {example}, got {text!r}")
-        return int(match[1]), int(match[2])
+        try:
+            return parse_size(text, "--size", low)
+        except typer.BadParameter as exc:
+            raise argparse.ArgumentTypeError(exc.message) from None
     return parse
 
 
@@ -67,11 +70,17 @@ SCRATCH_MARK = ".urd-tool-scratch"
 
 def scratch(folder: Path) -> Path:
     """``folder`` removed and made anew, with `SCRATCH_MARK` in it; SystemExit where it exists and
-    is neither empty nor marked as a tool's scratch folder (a dataset of yours is not removed)."""
-    if folder.exists() and not (folder.is_dir() and (not any(folder.iterdir()) or (folder / SCRATCH_MARK).is_file())):
-        sys.exit(f"error: {folder} exists and is not a scratch folder this tool made (no {SCRATCH_MARK} in it); "
-                 "this tool removes its --folder: choose another")
-    shutil.rmtree(folder, ignore_errors=True)
-    folder.mkdir(parents=True)
-    (folder / SCRATCH_MARK).write_text("made by a urd tool (tools/): removed and made anew on its next run\n")
+    is a link, or neither empty nor marked as a tool's scratch folder (a dataset of yours is not
+    removed), or cannot be removed or made."""
+    if folder.is_symlink() or folder.exists() and not (
+            folder.is_dir() and (not any(folder.iterdir()) or (folder / SCRATCH_MARK).is_file())):
+        sys.exit(f"error: {folder} exists and is not a scratch folder this tool made (no {SCRATCH_MARK} in it, or a "
+                 "link); this tool removes its --folder: choose another")
+    try:
+        if folder.exists():
+            shutil.rmtree(folder)
+        folder.mkdir(parents=True)
+        (folder / SCRATCH_MARK).write_text("made by a urd tool (tools/): removed and made anew on its next run\n")
+    except OSError as exc:
+        sys.exit(f"error: cannot make the scratch folder {folder} anew ({exc.strerror or exc})")
     return folder

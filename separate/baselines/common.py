@@ -48,7 +48,7 @@ def fresnel_inverse(i_perp: np.ndarray, i_par: np.ndarray, theta: np.ndarray | f
 
 def mixture_coefficient_slopes(r_s: Array, r_p: Array, dr_s: Array, dr_p: Array) -> tuple[Array, Array]:
     """Derivatives (da, db) of `separate.optics.mixture_coefficients` for reflectance derivatives dR_s, dR_p
-    (e.g. per radian of θ, `separate.optics.fresnel_reflectance_slope`)."""
+    (e.g. per radian of θ, `separate.optics.fresnel_reflectance_and_slope`)."""
     ratio = (r_s + r_p) / (r_s - r_p)
     dratio = 2 * (r_s * dr_p - r_p * dr_s) / (r_s - r_p) ** 2
     return dratio * (1 - r_p) - ratio * dr_p, ratio * dr_s - dratio * (1 - r_s)

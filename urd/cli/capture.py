@@ -27,7 +27,7 @@ def check_tolerance(value: float) -> float:
     MIN_TOLERANCE_DEG..MAX_TOLERANCE_DEG (0.01 to 10)."""
     from acquire.plan import MAX_TOLERANCE_DEG, MIN_TOLERANCE_DEG
 
-    return within(high=MAX_TOLERANCE_DEG)(within(MIN_TOLERANCE_DEG)(value))
+    return within(high=MAX_TOLERANCE_DEG)(within(MIN_TOLERANCE_DEG)(value))     # each bound's own message
 
 
 def sim_settings(offset: float, jitter: float, faults: str, size: str, shake: float, reflection, transmission, seed: int):

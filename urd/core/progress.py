@@ -31,9 +31,11 @@ LOG_INTERVAL_S = 10.0
 
 
 class TerminalProgress:
-    """Render progress callbacks as one updating line on a terminal (a new line when the label
-    changes), and as plain lines on anything else (a log file of a long run): no carriage
-    returns there, one line at most every `LOG_INTERVAL_S`, besides each label's first and last.
+    """Render progress callbacks as one updating line on a terminal (a new line when a new step
+    starts: the label changes and the count starts again or has another total; a label that
+    changes while the count goes on, naming the item at hand, stays on its line), and as plain
+    lines on anything else (a log file of a long run): no carriage returns there, one line at
+    most every `LOG_INTERVAL_S`, besides each step's first and last.
 
     The ETA extrapolates the rate of the current label's units since its first call, counted
     from the ``done`` of that call (a resumed run starts part-way: its earlier units took no time
@@ -53,19 +55,24 @@ class TerminalProgress:
         self.lines = not stream.isatty()             # plain lines, each ended, instead of one line redrawn
         self.interval = LOG_INTERVAL_S if self.lines else 0.2
         self.finished = False                        # the label's last line is written (plain lines: once)
+        self.done, self.total = 0, 0                 # the last call's counts
 
     def __call__(self, done: int, total: int, label: str) -> None:
         now = time.monotonic()
-        if label != self.label:
+        goes_on = self.label is not None and total == self.total and done >= self.done
+        self.done, self.total = done, total
+        if label != self.label and not goes_on:
             if self.label is not None and not self.lines:
                 self.stream.write("\n")
             self.label, self.started, self.first_done, self.finished = label, now, done, False
             if not self.lines:
                 TerminalProgress._open.add(self)
         elif done < total and now - self.last_draw < self.interval:
+            self.label = label
             return
         elif self.lines and done >= total and self.finished:
             return
+        self.label = label
         self.last_draw = now
         total = max(total, 1)
         frac = min(1.0, done / total)
