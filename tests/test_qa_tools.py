@@ -75,6 +75,25 @@ def test_export_refuses_to_replace_other_weights_but_exports_the_same_again(tmp_
     assert tool("export_weights.py", first, out)[0] == 1                                       # the card alone is there
     assert tool("export_weights.py", second, out, "--force")[0] == 0
     assert out.read_bytes() != kept[0]
+    out.write_text("not weights")                                                              # --force replaces any file
+    assert tool("export_weights.py", second, out, "--force")[0] == 0 and out.read_bytes()[:2] == b"PK"
+
+
+def test_a_scratch_folder_is_made_anew_only_when_the_tool_made_it(tmp_path, monkeypatch):
+    monkeypatch.syspath_prepend(str(TOOLS))
+    from toolargs import SCRATCH_MARK, scratch
+
+    folder = scratch(tmp_path / "bench")
+    (folder / "dataset.json").write_text("{}")                       # what the tool then writes there
+    assert sorted(p.name for p in scratch(folder).iterdir()) == [SCRATCH_MARK]     # made anew
+    (tmp_path / "link").symlink_to(folder)
+    with pytest.raises(SystemExit, match="not a scratch folder this tool made"):
+        scratch(tmp_path / "link")
+    (folder / SCRATCH_MARK).unlink()
+    (folder / "dataset.json").write_text("{}")                       # a dataset of the user's
+    with pytest.raises(SystemExit, match="not a scratch folder this tool made"):
+        scratch(folder)
+    assert (folder / "dataset.json").is_file()
 
 
 # 2. export_weights.py: the card's device is this machine and the run's precision; --help explains
