@@ -297,7 +297,7 @@ def capture_scene(root: Path, stage: str, camera: str, angles_deg: list[float] |
             planned = scene.capture_angles_deg()
             done = {shot.index for shot in scene.shots()}
             steps = len(plan_capture(planned, done))
-            announce(f"capturing {scene.path.resolve()} at {planned} deg ({len(planned) - len(done)} shots to take)")
+            announce(f"capturing {scene.path.resolve()} at {planned} deg ({len(planned) - len(done)} shot{'' if len(planned) - len(done) == 1 else 's'} to take)")
             try:
                 with _shown(rig.stage, progress, steps, f"capture {scene.name}", announce) as show:
                     run_capture(scene, rig.stage, rig.camera, planned, progress=show)

@@ -49,7 +49,7 @@ def test_commands_without_a_dataset_use_the_current_dataset_or_dataset_folder(tm
     inside = urd("report", cwd=tmp_path / "dataset")
     assert inside.returncode == 0 and re.search(r"scene_01: 3 shots .* aligned, .* none", inside.stdout)
     lost = urd("separate", "scene_01", cwd=tmp_path / "dataset" / "scene_01")
-    assert lost.returncode == 1 and "no dataset: " in lost.stderr and "does not exist" in lost.stderr
+    assert lost.returncode == 1 and "lies inside the dataset" in lost.stderr and "(in scene_01)" in lost.stderr
 
 
 def test_version_and_help_show_the_sim_and_virtual_prefixes():

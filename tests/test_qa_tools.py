@@ -193,7 +193,7 @@ def test_bench_baselines_help_runs_nothing_and_its_folder_is_checked(tmp_path):
     ("bench_texture.py", ("--weights", "/nonexist.pt"), 1, "/nonexist.pt"),
     ("bench_speed.py", ("--weights", "/nonexist.pt"), 1, "/nonexist.pt"),
     ("resize_upsampling.py", ("--weights", "/nonexist.pt", "--out", "{tmp}/r.pt"), 1, "/nonexist.pt"),
-    ("bench_virtual.py", ("--size", "abc"), 2, "--size: expected WxH"),
+    ("bench_virtual.py", ("--size", "abc"), 2, "--size: expected WIDTHxHEIGHT"),
     ("bench_virtual.py", ("--methods", "bogus"), 2, "--methods"),
     ("bench_calibration.py", ("--seeds", "0"), 2, "--seeds"),
     ("bench_calibration.py", ("--size", "768"), 2, "--size"),

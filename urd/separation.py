@@ -43,11 +43,17 @@ FULL_SCALE = 2.0
 PREVIEW_SIDE = 2048
 
 
+#: What a result TIFF's ImageDescription says of its values (JSON).
+LINEAR_TIFF_DESCRIPTION = json.dumps({"encoding": f"linear light, 65535 = {FULL_SCALE:g} (1 = one shot's white)",
+                                      "full_scale": FULL_SCALE, "software": "urd"})
+
+
 def write_linear_tiff(path: Path, image: np.ndarray, overwrite: bool = False) -> None:
-    """Linear H×W×3 → 16-bit TIFF with full scale `FULL_SCALE`, atomically."""
+    """Linear H×W×3 → 16-bit TIFF with full scale `FULL_SCALE`, stated in its ImageDescription
+    (`LINEAR_TIFF_DESCRIPTION`), atomically."""
     data = linear_to_u16(image, FULL_SCALE)
     with atomic_path(path, overwrite) as tmp:
-        tifffile.imwrite(tmp, data, photometric="rgb")
+        tifffile.imwrite(tmp, data, photometric="rgb", description=LINEAR_TIFF_DESCRIPTION, metadata=None)
 
 
 def write_preview(path: Path, image: np.ndarray, white: float, overwrite: bool = False, max_side: int = PREVIEW_SIDE) -> None:
@@ -133,13 +139,16 @@ ANGLE_CONVENTION = "degrees in the image plane from the +x axis (towards increas
 
 
 def write_float_map(path: Path, values: np.ndarray, quantity: str, unit: str, overwrite: bool = False) -> None:
-    """A float32 map (H×W or H×W×C) as a TIFF whose ImageDescription is JSON: ``quantity``,
-    ``unit`` and urd's angle convention; atomically."""
+    """A float32 map (H×W or H×W×C) as a one-page TIFF (RGB where C is 3, the channels of each
+    pixel together: what image programs read as an H×W image) whose ImageDescription is JSON:
+    ``quantity``, ``unit`` and urd's angle convention; atomically."""
+    values = np.asarray(values, np.float32)
     description = json.dumps({"quantity": quantity, "unit": unit, "angle_convention": ANGLE_CONVENTION,
                               "software": "urd"})
+    layout = ({"photometric": "rgb"} if values.ndim == 3 and values.shape[2] == 3 else
+              {"photometric": "minisblack", "planarconfig": "contig"} if values.ndim == 3 else {"photometric": "minisblack"})
     with atomic_path(path, overwrite) as tmp:
-        tifffile.imwrite(tmp, np.asarray(values, np.float32), photometric="minisblack", description=description,
-                         metadata=None)
+        tifffile.imwrite(tmp, values, description=description, metadata=None, **layout)
 
 
 def write_maps(folder: Path, maps: dict[str, np.ndarray], overwrite: bool = False) -> list[Path]:

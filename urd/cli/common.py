@@ -137,7 +137,13 @@ def choice(kind: type[enum.Enum], value: str, option: str) -> enum.Enum:
 def existing_dataset(dataset: Optional[Path]) -> Path:
     """The dataset a command reads: ``dataset``, else `urd.core.dataset.default_root`; an error saying
     how to make one when its folder does not exist."""
+    from urd.core.dataset import enclosing_dataset
+
     root = dataset or default_root()
+    inside = enclosing_dataset(Path(".")) if dataset is None else None
+    if not root.exists() and inside is not None:
+        fail(f"no dataset named, and this folder lies inside the dataset {inside} (in {Path('.').resolve().relative_to(inside)}): "
+             f"run the command from {inside}, or name that dataset in it")
     if not root.exists():
         fail(f"no dataset: {root.resolve()} does not exist. Make one with 'urd capture --stage PORT' or "
              "'urd ingest RAW_FOLDER' (both create ./dataset by default), or name an existing dataset folder")

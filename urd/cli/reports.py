@@ -53,17 +53,17 @@ def verify(dataset: Optional[Path] = typer.Argument(None, help=DATASET_HELP + " 
     if (root / "scene.json").is_file():
         refuse_scene_link(root, "DATASET")
     problems = run_guarded(verify_dataset, root)
-    bad = 0
     for name, issues in problems.items():
         for issue in issues:
             typer.secho(f"{name}: {issue}", fg=typer.colors.RED, err=True)
-        bad += bool(issues)
         if not issues:
             typer.echo(f"{name}: ok")
     scenes = sum(bool(SCENE_NAME.match(name)) for name in problems)
-    misnamed = len(problems) - scenes - ("calibration" in problems)        # folders named like no scene
-    what = " and ".join([plural(scenes, "scene")] + (["the calibration"] if "calibration" in problems else [])
-                        + ([plural(misnamed, "misnamed scene folder")] if misnamed else []))
+    bad_scenes = sum(bool(SCENE_NAME.match(name)) and bool(issues) for name, issues in problems.items())
+    misnamed = len(problems) - scenes - ("calibration" in problems)        # folders named like no scene: each a problem
+    bad = ([f"{bad_scenes} of {plural(scenes, 'scene')}"] if bad_scenes else []) \
+        + (["the calibration"] if problems.get("calibration") else []) + ([plural(misnamed, "misnamed scene folder")] if misnamed else [])
     if bad:
-        fail(f"{bad} of {what} {'has' if bad == 1 else 'have'} problems")
+        fail(f"problems in {' and '.join(bad)}")
+    what = " and ".join([plural(scenes, "scene")] + (["the calibration"] if "calibration" in problems else []))
     typer.echo(f"{'all ' if scenes > 1 else ''}{what} intact")

@@ -9,7 +9,7 @@ from typing import Optional
 
 import typer
 
-from urd.cli.common import (DATASET_HELP, bad, choice, existing_dataset, given, parse_angles, parse_params, parse_reference,
+from urd.cli.common import (DATASET_HELP, bad, choice, existing_dataset, fail, given, parse_angles, parse_params, parse_reference,
                             report_truth, resolve_scene, run_guarded, show_previews, usage, warn, within)
 from urd.core.errors import DatasetError
 from urd.core.progress import TerminalProgress, plural
@@ -201,7 +201,8 @@ def separate_dataset(dataset: Optional[Path], method: str, weights: Optional[Pat
                      colour_match: bool, return_copies: bool, incidence: Optional[float], params: dict, force: bool,
                      reference, maps: bool, jobs: int, network_device=None) -> None:
     """``urd separate --all``: every scene that needs it (`urd.batch.separate_all`), one line per
-    scene; exit 1 when any failed. ``network_device``: the networks' torch device."""
+    scene; exit 1 when any failed, or when no scene is ingested.
+    ``network_device``: the networks' torch device."""
     from separate.methods import NETWORKS, get_method
     from urd.batch import separate_all
     from urd.core.dataset import Dataset
@@ -224,3 +225,5 @@ def separate_dataset(dataset: Optional[Path], method: str, weights: Optional[Pat
         f"; results in each scene's results/{method}/ (look at them: urd report {root} --html report)" if done else ""))
     if failed:
         raise typer.Exit(1)
+    if outcomes and all(o.state == "skipped" and o.detail.startswith("not ingested") for o in outcomes):
+        fail(f"nothing was separated: no scene is ingested yet; run urd ingest {root} first")

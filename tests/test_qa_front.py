@@ -1,0 +1,54 @@
+"""A new user following the README: result files other programs read, and batch commands that say
+when nothing was done or where the dataset is."""
+
+import json
+
+import cv2
+import numpy as np
+import tifffile
+from typer.testing import CliRunner
+
+from urd.cli import app
+from urd.separation import FULL_SCALE, write_float_map, write_linear_tiff
+
+SIM = ("--stage", "sim", "--camera", "virtual", "--sim-size", "96x64")
+
+
+def invoke(*args):
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+def test_a_three_channel_map_is_one_rgb_page_that_opencv_reads_as_the_image(tmp_path):
+    values = np.random.default_rng(0).random((20, 30, 3)).astype(np.float32)
+    write_float_map(tmp_path / "S0.tiff", values, "Stokes S0", "linear")
+    with tifffile.TiffFile(tmp_path / "S0.tiff") as tiff:
+        assert len(tiff.pages) == 1 and tiff.pages[0].shape == (20, 30, 3)
+        assert json.loads(tiff.pages[0].description)["unit"] == "linear"
+    read = cv2.imread(str(tmp_path / "S0.tiff"), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(read[..., ::-1], values)
+
+
+def test_a_result_tiff_states_its_full_scale(tmp_path):
+    write_linear_tiff(tmp_path / "T.tiff", np.full((4, 5, 3), 1.0, np.float32))
+    with tifffile.TiffFile(tmp_path / "T.tiff") as tiff:
+        description = json.loads(tiff.pages[0].description)
+        assert description["full_scale"] == FULL_SCALE == 2.0 and "65535 = 2" in description["encoding"]
+        assert tiff.asarray()[0, 0, 0] == round(65535 / 2)
+
+
+def test_separate_all_before_ingest_exits_1_naming_the_ingest_command(tmp_path):
+    root = tmp_path / "ds"
+    assert invoke("capture", root, *SIM).exit_code == 0
+    out = invoke("separate", "--all", "--dataset", root)
+    assert out.exit_code == 1, out.output
+    assert "scene_01: skipped: not ingested" in out.stdout and f"run urd ingest {root} first" in out.stderr
+
+
+def test_a_command_run_inside_a_scene_folder_names_the_dataset_around_it(tmp_path, monkeypatch):
+    root = tmp_path / "ds"
+    assert invoke("capture", root, *SIM).exit_code == 0
+    monkeypatch.chdir(root / "scene_01")
+    for args in (["report"], ["verify"], ["separate", "scene_01"]):
+        out = invoke(*args)
+        assert out.exit_code == 1, out.output
+        assert f"lies inside the dataset {root.resolve()} (in scene_01)" in out.stderr and "Make one" not in out.stderr
