@@ -39,7 +39,7 @@ def test_a_result_tiff_states_its_full_scale(tmp_path):
 def test_separate_all_before_ingest_exits_1_naming_the_ingest_command(tmp_path):
     root = tmp_path / "ds"
     assert invoke("capture", root, *SIM).exit_code == 0
-    out = invoke("separate", "--all", "--dataset", root)
+    out = invoke("separate", "--all", "--dataset", root, "--method", "none")
     assert out.exit_code == 1, out.output
     assert "scene_01: skipped: not ingested" in out.stdout and f"run urd ingest {root} first" in out.stderr
 
@@ -52,3 +52,20 @@ def test_a_command_run_inside_a_scene_folder_names_the_dataset_around_it(tmp_pat
         out = invoke(*args)
         assert out.exit_code == 1, out.output
         assert f"lies inside the dataset {root.resolve()} (in scene_01)" in out.stderr and "Make one" not in out.stderr
+
+
+def test_the_text_report_gives_an_unfinished_captures_resume_command(tmp_path, monkeypatch):
+    from acquire.virtual_camera import VirtualCamera
+
+    root, capture = tmp_path / "ds", VirtualCamera.capture
+
+    def stopping(self, folder, index):
+        if index == 1:
+            raise KeyboardInterrupt
+        return capture(self, folder, index)
+
+    monkeypatch.setattr(VirtualCamera, "capture", stopping)
+    assert invoke("capture", root, *SIM).exit_code == 130
+    out = invoke("report", root)
+    assert out.exit_code == 0 and "INCOMPLETE (1 of 3 shots" in out.stdout
+    assert f"resume it with: urd capture {root.resolve()} --stage sim --camera virtual" in out.stdout and "--scene scene_01" in out.stdout

@@ -32,6 +32,10 @@ def report_text(root: Path) -> str:
         if missing:
             lines.append(f"    {plural(len(missing), 'listed file')} missing or of another size ({', '.join(missing[:3])}"
                          f"{', …' if len(missing) > 3 else ''}): run urd verify {ds.root}")
+        if status.state == "incomplete":
+            from acquire.plan import resume_command
+
+            lines.append(f"    resume it with: {resume_command(ds.root, scene)}")
         if status.state != "broken":
             lines += [f"    {note}" for note in (scene.lost_truth(), scene.unfinished_swap()) if note]
         lines += [f"    {line}" for line in _truth_lines(scene)]
