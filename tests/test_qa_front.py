@@ -2,9 +2,11 @@
 when nothing was done or where the dataset is."""
 
 import json
+import re
 
 import cv2
 import numpy as np
+import pytest
 import tifffile
 from typer.testing import CliRunner
 
@@ -69,3 +71,14 @@ def test_the_text_report_gives_an_unfinished_captures_resume_command(tmp_path, m
     out = invoke("report", root)
     assert out.exit_code == 0 and "INCOMPLETE (1 of 3 shots" in out.stdout
     assert f"resume it with: urd capture {root.resolve()} --stage sim --camera virtual" in out.stdout and "--scene scene_01" in out.stdout
+
+
+@pytest.mark.slow
+def test_the_text_report_says_when_a_scenes_angles_predate_the_calibration(tmp_path):
+    root = tmp_path / "ds"
+    assert invoke("capture", root, *SIM, "--sim-offset", "3").exit_code == 0           # before the calibration
+    out = invoke("calibrate", "offset", root, "--stage", "sim", "--camera", "virtual", "--sim-offset", "3", "--step", "30",
+                 "--sim-size", "96x64")
+    assert out.exit_code == 0, out.output
+    report = invoke("report", root).stdout
+    assert "scene_01: " in report and re.search(r"taken with the polarizer offset 0\.000° .* angles are off by \+[23]\.\d{3}°", report)

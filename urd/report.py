@@ -14,7 +14,8 @@ from urd.core.progress import plural
 
 def report_text(root: Path) -> str:
     """One line per scene (state, angles, calibration, results); broken scenes say why, and so do
-    scenes with missing files, a lost ground truth or an unfinished swap; folders holding a scene
+    scenes with missing files, a lost ground truth, an unfinished swap or shots taken with another
+    polarizer offset than the dataset's calibration; folders holding a scene
     manifest under another name than a scene's are named."""
     ds = Dataset.open(root)
     try:
@@ -22,7 +23,7 @@ def report_text(root: Path) -> str:
         offset = (f"{calibration.offset_deg:.3f} ± {calibration.uncertainty_deg:.3f} deg" if calibration
                   else "not calibrated")
     except (ManifestError, OSError) as exc:        # the scenes are still worth listing
-        offset = f"unreadable ({exc})"
+        calibration, offset = None, f"unreadable ({exc})"
     scenes = ds.scenes()
     lines = [f"dataset {ds.root.resolve()}: {plural(len(scenes), 'scene')}; polarizer offset {offset}"]
     for scene in scenes:
@@ -37,7 +38,8 @@ def report_text(root: Path) -> str:
 
             lines.append(f"    resume it with: {resume_command(ds.root, scene)}")
         if status.state != "broken":
-            lines += [f"    {note}" for note in (scene.lost_truth(), scene.unfinished_swap()) if note]
+            lines += [f"    {note}" for note in (scene.lost_truth(), scene.unfinished_swap(), _offset_note(scene, calibration))
+                      if note]
         lines += [f"    {line}" for line in _truth_lines(scene)]
     lines += [f"  {name}: {message}" for name, message in ds.misnamed_scenes().items()]
     return "\n".join(lines)

@@ -29,13 +29,13 @@ def separate(
     out: Path = typer.Option(Path("separated"), help="Output folder for --images."),
     reference: str = typer.Option("auto", help="Reference angle (deg): the glass's s-direction, where the reflection is brightest; 'auto' estimates it per pixel from the shots (a smooth field, for wide views and curved panes; one angle where the polarization is weak and of one orientation), 'global' one angle for the whole view."),
     weights: Optional[Path] = typer.Option(None, help="Weights file of the network or ceilnet, or a shipped one by name: urd-anchored (the default: the network anchored to the Fresnel inversion by a learned gate), urd-canonical (the same network without the gate), urd-canonical-transposed (the paper's decoder), urd-direct, ceilnet."),
-    tile: Optional[int] = typer.Option(None, help="Network tile size (px, at least 320: twice the 160 px overlap; default for the network 2048 in bf16, 1408 in fp32 (CPU), for ceilnet 1024: separate.infer.default_tile); memory grows with it, not with the image.", show_default=False),
+    tile: Optional[int] = typer.Option(None, help="Network tile size (px, at least 320: twice the 160 px overlap; default for the network 2048 in bf16, 1408 in fp32 (CPU), for ceilnet 1024); memory grows with it, not with the image.", show_default=False),
     precision: str = typer.Option("auto", help="Network arithmetic: auto (bf16 where the CPU or GPU runs it natively, else fp32), fp32 or bf16."),
     device: str = typer.Option("auto", help="Where the network runs: auto (a CUDA GPU where torch sees one, else the CPU), cpu or cuda."),
     colour_match: bool = typer.Option(False, help="Match each colour channel's histogram of T to the darkest observation's (paper §3.4)."),
     return_copies: Optional[bool] = typer.Option(None, "--return-copies/--keep-copies", help="Network: move light that R shows as a local copy of T (the scene's own polarization: sky, no glass) back into T (separate/copies.py). Default: --return-copies.", show_default=False),
     incidence: Optional[float] = typer.Option(None, "--incidence", help="Network: the angle of incidence on the glass (deg, between the camera's axis and the pane's normal) where you know it; the network's Fresnel gate uses it instead of the estimate from the shots. Schechner takes it as --param theta_deg=DEG.", show_default=False),
-    param: Optional[list[str]] = typer.Option(None, "--param", help="A baseline's parameter as NAME=VALUE (repeat), e.g. --method kong --param smoothness=0.5; names and paper defaults in each baseline's docstring (separate/baselines/)."),
+    param: Optional[list[str]] = typer.Option(None, "--param", help="A baseline's parameter as NAME=VALUE (repeat), e.g. --method kong --param smoothness=0.5; an unknown NAME is refused with the method's parameter names (docs/baselines.md)."),
     force: bool = typer.Option(False, help="Replace existing results of this method (only once the new ones are complete)."),
     maps: bool = typer.Option(False, "--maps", help="Also write the polarization maps: S0, S1, S2, DoLP, AoLP, phi_perp, theta as float32 TIFF with units (results/METHOD/maps/); on a scene that has results of the method, adds the maps to them without separating again."),
     all_scenes: bool = typer.Option(False, "--all", help="Every ingested scene of the dataset without results of this method (with --force: every ingested scene)."),
@@ -146,6 +146,8 @@ def separate(
                         "the new shots would not match them; pass --force to separate again with maps")
     if target is not None and not force and not adding_maps:
         run_guarded(target.check_no_results, method)
+    if target is not None:
+        run_guarded(target.check_ingested)                   # before the network is set up and its precision told
     network_device = chosen = None
     if method in NETWORKS:                               # torch is imported for the networks only, after the checks above
         from separate.precision import describe, resolve, resolve_device

@@ -70,15 +70,9 @@ class SceneResults:
     def results_dir(self, method: str) -> Path:
         return self.path / "results" / method
 
-    def load_stack(self, codes: bool = False) -> tuple["Any", list[float]]:
-        """The aligned stack (N, H, W, 3) float32 linear, hash-verified, and its best known
-        polarizer angles (deg); with ``codes`` the stored uint16 codes (65535 = 1.0; half the
-        memory, `separate.optics.code_scale`)."""
-        import numpy as np
-        import tifffile
-
-        from urd.core.images import u16_to_linear
-
+    def check_ingested(self) -> dict:
+        """The scene's ingest record; DatasetError saying what to run where the capture is
+        incomplete, not ingested, or failed to align."""
         ingest = self._data().get("ingest")
         if not self.is_complete():
             raise DatasetError(f"{self.name} is an incomplete capture ({len(self.shots())} of "
@@ -88,6 +82,18 @@ class SceneResults:
             raise DatasetError(f"{self.name} is not ingested yet; run: urd ingest {self.path}")
         if not ingest["ok"]:
             raise DatasetError(f"{self.name}: {ingest['error']}")
+        return ingest
+
+    def load_stack(self, codes: bool = False) -> tuple["Any", list[float]]:
+        """The aligned stack (N, H, W, 3) float32 linear, hash-verified, and its best known
+        polarizer angles (deg); with ``codes`` the stored uint16 codes (65535 = 1.0; half the
+        memory, `separate.optics.code_scale`). DatasetError unless it is ingested (`check_ingested`)."""
+        import numpy as np
+        import tifffile
+
+        from urd.core.images import u16_to_linear
+
+        ingest = self.check_ingested()
         try:
             self.check_files(ingest["aligned"])
         except ManifestError as exc:
