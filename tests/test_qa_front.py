@@ -82,3 +82,10 @@ def test_the_text_report_says_when_a_scenes_angles_predate_the_calibration(tmp_p
     assert out.exit_code == 0, out.output
     report = invoke("report", root).stdout
     assert "scene_01: " in report and re.search(r"taken with the polarizer offset 0\.000° .* angles are off by \+[23]\.\d{3}°", report)
+
+
+def test_weights_that_are_a_folder_are_a_usage_error_pointing_at_its_best_pt(tmp_path):
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "best.pt").write_bytes(b"")
+    out = invoke("separate", "--images", tmp_path / "a.tiff", "--weights", tmp_path / "run")
+    assert out.exit_code == 2 and "is a folder, expected a weights file (a run folder: pass its best.pt)" in out.output

@@ -59,6 +59,9 @@ def separate(
 
     if method not in METHODS:
         raise bad("--method", f"expected one of {', '.join(sorted(METHODS))}, got {method!r}")
+    if weights is not None and weights.is_dir():
+        run = " (a run folder: pass its best.pt)" if (weights / "best.pt").is_file() else ""
+        raise bad("--weights", f"{weights} is a folder, expected a weights file{run}")
     raws = [Path(name).name for name in [*(images or []), *([scene] if scene else [])]
             if Path(name).suffix.lower() in RAW_SUFFIXES]
     if raws:
