@@ -148,3 +148,18 @@ def mounted_tmpfs(folder: Path, options: str, what: str):
         yield folder
     finally:
         subprocess.run(["umount", str(folder)])
+
+
+def stop_capture_before_shot(monkeypatch, index: int = 1) -> None:
+    """Make the virtual camera raise KeyboardInterrupt (a Ctrl-C) when shot ``index`` is triggered:
+    the capture stops there, incomplete (`monkeypatch.undo()` lets the next capture go on)."""
+    from acquire.virtual_camera import VirtualCamera
+
+    capture = VirtualCamera.capture
+
+    def stopping(self, folder, shot):
+        if shot == index:
+            raise KeyboardInterrupt
+        return capture(self, folder, shot)
+
+    monkeypatch.setattr(VirtualCamera, "capture", stopping)

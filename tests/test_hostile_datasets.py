@@ -13,6 +13,7 @@ import pytest
 from typer.testing import CliRunner
 
 from rig import capture_virtual, separated_virtual_scene
+from conftest import stop_capture_before_shot
 from urd.cli import app
 from urd.core.dataset import Dataset
 from urd.core.errors import DatasetError
@@ -175,16 +176,7 @@ def test_a_hard_linked_lock_or_a_fifo_is_refused_naming_the_file(base, tmp_path)
 
 def interrupted_capture(root, monkeypatch):
     """A capture at 96×64 stopped (Ctrl-C) before its second shot."""
-    from acquire.virtual_camera import VirtualCamera
-
-    capture = VirtualCamera.capture
-
-    def stopping(self, folder, i):
-        if i == 1:
-            raise KeyboardInterrupt
-        return capture(self, folder, i)
-
-    monkeypatch.setattr(VirtualCamera, "capture", stopping)
+    stop_capture_before_shot(monkeypatch)
     out = invoke("capture", root, *SIM, "--seed", "3", "--angles", "0,60,120")
     monkeypatch.undo()
     assert out.exit_code == 130, out.output

@@ -10,6 +10,7 @@ import pytest
 import tifffile
 from typer.testing import CliRunner
 
+from conftest import stop_capture_before_shot
 from urd.cli import app
 from urd.separation import FULL_SCALE, write_float_map, write_linear_tiff
 
@@ -57,16 +58,8 @@ def test_a_command_run_inside_a_scene_folder_names_the_dataset_around_it(tmp_pat
 
 
 def test_the_text_report_gives_an_unfinished_captures_resume_command(tmp_path, monkeypatch):
-    from acquire.virtual_camera import VirtualCamera
-
-    root, capture = tmp_path / "ds", VirtualCamera.capture
-
-    def stopping(self, folder, index):
-        if index == 1:
-            raise KeyboardInterrupt
-        return capture(self, folder, index)
-
-    monkeypatch.setattr(VirtualCamera, "capture", stopping)
+    root = tmp_path / "ds"
+    stop_capture_before_shot(monkeypatch)
     assert invoke("capture", root, *SIM).exit_code == 130
     out = invoke("report", root)
     assert out.exit_code == 0 and "INCOMPLETE (1 of 3 shots" in out.stdout

@@ -19,10 +19,10 @@ from typer.testing import CliRunner
 
 import acquire.plan
 import acquire.rig
+from conftest import stop_capture_before_shot
 from acquire.ell14 import Ell14
 from acquire.plan import MAX_TOLERANCE_DEG, capture_scene, shot_name
 from acquire.sim_ell14 import SimulatedEll14
-from acquire.virtual_camera import VirtualCamera
 from separate.optics import check_angles
 from urd.cli import app
 from urd.core.dataset import Dataset
@@ -255,16 +255,9 @@ def test_a_corrupt_download_names_the_shot_and_says_it_was_removed(tmp_path, cor
 
 def test_ingest_of_only_an_incomplete_capture_exits_1_and_of_a_complete_one_beside_it_0(tmp_path, monkeypatch):
     root = tmp_path / "ds"
-    capture = VirtualCamera.capture
-
-    def stopping(self, folder, index):
-        if index == 1:
-            raise KeyboardInterrupt
-        return capture(self, folder, index)
-
-    monkeypatch.setattr(VirtualCamera, "capture", stopping)
+    stop_capture_before_shot(monkeypatch)
     assert invoke("capture", root, *SIM).exit_code == 130
-    monkeypatch.setattr(VirtualCamera, "capture", capture)
+    monkeypatch.undo()
     for source in (root, root / "scene_01"):
         out = invoke("ingest", source)
         assert out.exit_code == 1, out.output
