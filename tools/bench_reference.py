@@ -31,9 +31,8 @@ import numpy as np
 from separate import metrics
 from separate.bench import SEED, benchmark_set, largest_size, reshoot
 from separate.methods import get_method
-from urd.core.errors import UrdError
 
-from toolargs import Formatter, at_least, check_patch_side
+from toolargs import Formatter, at_least, check_patch_side, load_network
 
 SWEEP_DEG = np.arange(0.0, 180.0, 22.5)
 SWEEP_SETS_DEG = {"0/45/90": (0, 45, 90), "0/60/120": (0, 60, 120), "0/45/90/135": (0, 45, 90, 135)}
@@ -99,11 +98,7 @@ def main() -> int:
     args = parser.parse_args()
     check_patch_side(parser, args.size, largest_size())
     started = time.perf_counter()
-    try:
-        network, _ = get_method("network", weights=args.weights)
-    except UrdError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
+    network = load_network(args.weights)
     methods = {"network": network}
     if not args.skip_schechner:
         methods["schechner"] = get_method("schechner")[0]

@@ -33,12 +33,10 @@ import numpy as np
 
 from separate import metrics, optics
 from separate.bench import SEED, benchmark_set, largest_size, reshoot
-from separate.methods import get_method
 from separate.synthesis import noise_std
 from urd.core import samples
-from urd.core.errors import UrdError
 
-from toolargs import Formatter, at_least, check_patch_side
+from toolargs import Formatter, at_least, check_patch_side, load_network
 
 PERIOD = 8
 RING_PX = 8
@@ -85,11 +83,7 @@ def main() -> int:
     args = parser.parse_args()
     check_patch_side(parser, args.size, largest_size())
     started = time.perf_counter()
-    try:
-        network, _ = get_method("network", weights=args.weights)
-    except UrdError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
+    network = load_network(args.weights)
     angles = [0.0, 45.0, 90.0]
 
     print(f"Grid texture (per mille of the mean; RMS of the 8×8 phase means of the 9×9 high-pass), {args.count} scenes per set")

@@ -84,3 +84,15 @@ def scratch(folder: Path) -> Path:
     except OSError as exc:
         sys.exit(f"error: cannot make the scratch folder {folder} anew ({exc.strerror or exc})")
     return folder
+
+
+def load_network(weights: Path | None):
+    """The network's run function (`separate.methods.get_method`) with ``weights`` (None: shipped);
+    SystemExit with the one-line reason where they cannot be loaded."""
+    from separate.methods import get_method
+    from urd.core.errors import UrdError
+
+    try:
+        return get_method("network", weights=weights)[0]
+    except UrdError as exc:
+        sys.exit(f"error: {exc}")
