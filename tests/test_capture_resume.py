@@ -15,6 +15,7 @@ from typer.testing import CliRunner
 
 from acquire.plan import new_capture_scene, resume_command
 from acquire.virtual_camera import VirtualCamera, shot_truth
+from conftest import stop_capture_before_shot
 from urd.cli import app
 from urd.core.dataset import Dataset
 from urd.core.progress import TerminalProgress
@@ -26,18 +27,6 @@ def invoke(*args):
     return CliRunner().invoke(app, [str(a) for a in args])
 
 
-def stop_at_shot(monkeypatch, index):
-    """Ctrl-C when the virtual camera is triggered for shot ``index``."""
-    capture = VirtualCamera.capture
-
-    def stopping(self, folder, i):
-        if i == index:
-            raise KeyboardInterrupt
-        return capture(self, folder, i)
-
-    monkeypatch.setattr(VirtualCamera, "capture", stopping)
-
-
 def resume_line(stderr):
     match = re.search(r"Resume with: (.+)$", stderr, re.M)
     assert match, stderr
@@ -46,7 +35,7 @@ def resume_line(stderr):
 
 def interrupted_scene(root, monkeypatch, *options):
     """Capture at 96×64 (seed 3, 0/60/120 deg, plus ``options``) stopped before shot 1; the printed resume command."""
-    stop_at_shot(monkeypatch, 1)
+    stop_capture_before_shot(monkeypatch, 1)
     out = invoke("capture", root, *SIM, "--sim-size", "96x64", "--seed", "3", "--angles", "0,60,120", *options)
     monkeypatch.undo()
     assert out.exit_code == 130, out.output
@@ -180,7 +169,7 @@ def test_an_unusable_camera_is_reported_with_the_virtual_one_before_anything_is_
 
 def test_an_interrupted_calibration_sweep_says_what_it_kept_and_is_never_fitted(tmp_path, monkeypatch):
     root = tmp_path / "ds"
-    stop_at_shot(monkeypatch, 2)
+    stop_capture_before_shot(monkeypatch, 2)
     out = invoke("calibrate", "offset", root, *SIM, "--step", "30")
     monkeypatch.undo()
     assert out.exit_code == 130, out.output

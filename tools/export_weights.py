@@ -21,7 +21,6 @@ import sys
 import tempfile
 from pathlib import Path
 
-
 from separate.precision import resolve
 from separate.provenance import cpu_model
 from separate.train import export_weights, holds_weights, load_checkpoint

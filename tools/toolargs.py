@@ -1,10 +1,11 @@
 """What the scripts in tools/ share to read their command line: the help formatter, the argparse
-types they repeat, the patch benchmarks' --size check and the scratch benchmarks' --folder guard.
+types they repeat, the patch benchmarks' --size check, the scratch benchmarks' --folder guard and
+the network's loader.
 
 Imported by the scripts in tools/ (``from toolargs import Formatter, at_least``): each runs as
 ``python tools/NAME.py``, which puts tools/ first on ``sys.path``; code that runs a script by
 other means (``runpy.run_path``, a ``-c`` snippet) puts tools/ on ``sys.path`` itself. Not a
-tool of its own: run, it only shows this text with ``--help``.
+tool of its own.
 """
 
 from __future__ import annotations

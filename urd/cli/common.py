@@ -118,6 +118,14 @@ def check_rig(ctx: typer.Context, stage: str, camera: str, stage_options: tuple[
         raise usage("; ".join(problems))
 
 
+def refuse_weights_folder(path: Optional[Path], option: str) -> None:
+    """A usage error naming ``option`` when the weights file ``path`` is a folder (a run folder
+    points at its best.pt)."""
+    if path is not None and path.is_dir():
+        raise bad(option, f"{path} is a folder, expected a weights file"
+                  + (" (a run folder: pass its best.pt)" if (path / "best.pt").is_file() else ""))
+
+
 def check_address(value: str) -> str:
     """An ELL14 address: one hex digit 0-F (upper case)."""
     if not re.fullmatch(r"[0-9A-Fa-f]", value):
@@ -140,8 +148,8 @@ def existing_dataset(dataset: Optional[Path]) -> Path:
     from urd.core.dataset import enclosing_dataset
 
     root = dataset or default_root()
-    inside = enclosing_dataset(Path(".")) if dataset is None else None
-    if not root.exists() and inside is not None:
+    inside = enclosing_dataset(Path(".")) if dataset is None and not root.exists() else None
+    if inside is not None:
         fail(f"no dataset named, and this folder lies inside the dataset {inside} (in {Path('.').resolve().relative_to(inside)}): "
              f"run the command from {inside}, or name that dataset in it")
     if not root.exists():

@@ -10,7 +10,7 @@ from typing import Optional
 import typer
 
 from urd.cli.common import (DATASET_HELP, bad, choice, existing_dataset, fail, given, parse_angles, parse_params, parse_reference,
-                            report_truth, resolve_scene, run_guarded, show_previews, usage, warn, within)
+                            refuse_weights_folder, report_truth, resolve_scene, run_guarded, show_previews, usage, warn, within)
 from urd.core.errors import DatasetError
 from urd.core.progress import TerminalProgress, plural
 
@@ -59,9 +59,7 @@ def separate(
 
     if method not in METHODS:
         raise bad("--method", f"expected one of {', '.join(sorted(METHODS))}, got {method!r}")
-    if weights is not None and weights.is_dir():
-        run = " (a run folder: pass its best.pt)" if (weights / "best.pt").is_file() else ""
-        raise bad("--weights", f"{weights} is a folder, expected a weights file{run}")
+    refuse_weights_folder(weights, "--weights")
     raws = [Path(name).name for name in [*(images or []), *([scene] if scene else [])]
             if Path(name).suffix.lower() in RAW_SUFFIXES]
     if raws:

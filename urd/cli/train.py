@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Optional
 
 import typer
 
-from urd.cli.common import bad, run_guarded, usage, warn
+from urd.cli.common import bad, refuse_weights_folder, run_guarded, usage, warn
 from urd.core.progress import TerminalProgress
 
 if TYPE_CHECKING:
@@ -115,9 +115,7 @@ def check_paths(config: Path, run_dir: Path, init: Optional[Path]) -> None:
         raise bad("CONFIG", f"{config}: no such file")
     if run_dir.exists() and not run_dir.is_dir():
         raise bad("RUN_DIR", f"{run_dir} is a file, expected a run folder")
-    if init is not None and init.is_dir():
-        raise bad("--init", f"{init} is a folder, expected a weights or checkpoint file"
-                  + (" (a run folder: pass its best.pt)" if (init / "best.pt").is_file() else ""))
+    refuse_weights_folder(init, "--init")
     if init is not None and not init.exists():
         raise bad("--init", f"{init}: no such file")
 
