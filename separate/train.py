@@ -448,16 +448,23 @@ def train(cfg: TrainConfig, run_dir: Path, init: Path | None = None, progress=No
     run_dir = Path(run_dir)
     if run_dir.exists() and not run_dir.is_dir():
         raise TrainingError(f"{run_dir} is a file, expected a run folder")
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1 and not dist.is_initialized():
+        _join_process_group()                      # every rank, before rank 0 may refuse the start
     if int(os.environ.get("RANK", "0")) != 0:
-        run_dir.mkdir(parents=True, exist_ok=True)
+        refusal = _share_start(None)
+        if refusal is not None:
+            raise TrainingError(f"rank 0 did not start the run: {refusal}")
         return _train(cfg, run_dir, init, progress)
     made = [folder for folder in (run_dir, *run_dir.parents) if not folder.exists()]     # the deepest first
-    run_dir.mkdir(parents=True, exist_ok=True)
-    before = {path.name for path in run_dir.iterdir()}
+    told = False                                             # whether the other ranks know this rank starts
     try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        before = {path.name for path in run_dir.iterdir()}
         with run_lock(run_dir):
             try:
                 check_run_folder(run_dir)
+                told = True
+                _share_start(None)
                 return _train(cfg, run_dir, init, progress)
             except BaseException:
                 log = run_dir / "log.jsonl"
@@ -466,11 +473,31 @@ def train(cfg: TrainConfig, run_dir: Path, init: Path | None = None, progress=No
                         if name not in before:
                             (run_dir / name).unlink(missing_ok=True)
                 raise
-    except BaseException:
+    except BaseException as exc:
+        if not told:
+            _share_start(exc)                                # a refused start: the other ranks are told why
         for folder in made:                                  # only if empty: never what another process put there
             with contextlib.suppress(OSError):
                 folder.rmdir()
         raise
+
+
+def _join_process_group() -> None:
+    """Join torchrun's process group: nccl on CUDA (this rank's GPU made current), gloo on the CPU."""
+    if torch.cuda.is_available():
+        torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", 0)))
+    dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+
+
+def _share_start(refusal: BaseException | None) -> str | None:
+    """Under DDP, rank 0's word on starting, told to every rank: rank 0 sends ``refusal`` (the error
+    that stops it before training, or None for a start); another rank gets it back, as a message
+    or None. Without a process group: None, nothing sent."""
+    if not dist.is_initialized():
+        return None
+    word = [None if refusal is None else str(refusal) or type(refusal).__name__]
+    dist.broadcast_object_list(word, src=0)
+    return word[0]
 
 
 def _config_in(run_dir: Path) -> TrainConfig | None:
@@ -507,9 +534,7 @@ def training_setup(device: torch.device, bf16: bool, world: int) -> str:
 
 def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict:
     """`train`'s loop, in a folder already locked."""
-    distributed = int(os.environ.get("WORLD_SIZE", "1")) > 1
-    if distributed:
-        dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+    distributed = dist.is_initialized()
     rank = dist.get_rank() if distributed else 0
     world = dist.get_world_size() if distributed else 1
     device = torch.device(f"cuda:{int(os.environ.get('LOCAL_RANK', 0))}" if torch.cuda.is_available() else "cpu")

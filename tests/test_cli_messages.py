@@ -346,3 +346,17 @@ def test_training_says_from_which_step_it_resumes(tmp_path):
     again = invoke("train", config, tmp_path / "run")
     assert again.exit_code == 0, again.output
     assert f"resuming {tmp_path / 'run'} from step 2 of 3" in again.output and "stopped at step 3" in again.output
+
+
+def test_a_dataset_made_in_a_folder_of_other_files_says_so_and_leaves_them(tmp_path):
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    (folder / "notes.txt").write_text("mine")
+    first = invoke("capture", folder, *SIM, "--sim-size", "96x64")
+    assert first.exit_code == 0, first.output
+    assert "holds other files but no urd dataset: the dataset is made there, beside them" in first.stderr
+    assert (folder / "notes.txt").read_text() == "mine" and (folder / "scene_01" / "scene.json").is_file()
+    again = invoke("capture", folder, *SIM, "--sim-size", "96x64")       # now a dataset: nothing to say
+    assert again.exit_code == 0 and "no urd dataset" not in again.stderr
+    new = invoke("capture", tmp_path / "new", *SIM, "--sim-size", "96x64")
+    assert new.exit_code == 0 and "no urd dataset" not in new.stderr

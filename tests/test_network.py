@@ -284,21 +284,45 @@ def test_a_training_time_schedule_reaches_lr_min_in_a_fresh_and_a_resumed_run(tm
     assert untimed[0]["lr"] > 5e-5                                        # by steps alone: warming up, 8.5e-5
 
 
-@pytest.mark.slow
-def test_ddp_with_two_gloo_processes(tmp_path):
-    cfg = tmp_path / "ddp.toml"
-    cfg.write_text('width = 8\npatch = 32\nbatch = 8\nmicro_batch = 4\nsteps = 4\nval_samples = 8\nval_every = 4\nprecision = "fp32"\nthreads = 1\n')
+def torchrun_train(config: Path, run_dir: Path) -> subprocess.CompletedProcess:
+    """``urd train CONFIG RUN_DIR`` under torchrun: two CPU ranks (gloo), one thread each."""
     import socket
 
     with socket.socket() as sock:                      # a free port for the rendezvous
         sock.bind(("127.0.0.1", 0))
         port = str(sock.getsockname()[1])
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    out = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", port,
-                          "-m", "urd.cli", "train", str(cfg), str(tmp_path / "run")], capture_output=True, text=True,
-                         timeout=600, env=env)
+    return subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", port,
+                           "-m", "urd.cli", "train", str(config), str(run_dir)], capture_output=True, text=True,
+                          timeout=600, env=env)
+
+
+@pytest.mark.slow
+def test_ddp_with_two_gloo_processes(tmp_path):
+    cfg = tmp_path / "ddp.toml"
+    cfg.write_text('width = 8\npatch = 32\nbatch = 8\nmicro_batch = 4\nsteps = 4\nval_samples = 8\nval_every = 4\nprecision = "fp32"\nthreads = 1\n')
+    out = torchrun_train(cfg, tmp_path / "run")
     assert out.returncode == 0, out.stderr[-2000:]
-    assert torch.load(tmp_path / "run" / "last.pt", weights_only=True)["step"] == 4
+    state = torch.load(tmp_path / "run" / "last.pt", weights_only=True)
+    assert state["step"] == 4 and "2 processes" in state["trained_on"]
+
+
+@pytest.mark.slow
+def test_a_start_rank_0_refuses_ends_every_rank_with_its_reason(tmp_path):
+    # rank 0 refuses a folder holding an earlier run's best.pt; rank 1 is told why instead of waiting
+    # in the rendezvous until torchrun kills it
+    cfg = tmp_path / "ddp.toml"
+    cfg.write_text('width = 4\npatch = 32\nbatch = 4\nmicro_batch = 2\nsteps = 2\nval_samples = 4\nprecision = "fp32"\nthreads = 1\n')
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / "best.pt").write_bytes(b"an earlier run's weights")
+    out = torchrun_train(cfg, run_dir)
+    assert out.returncode != 0
+    reason = "holds best.pt of an earlier run but no last.pt"
+    assert sum(reason in line for line in out.stderr.splitlines()) == 2, out.stderr[-3000:]   # rank 0's, and rank 1's
+    assert "rank 0 did not start the run" in out.stderr and "SIGKILL" not in out.stderr
+    assert sorted(p.name for p in run_dir.iterdir()) == ["best.pt"]
+    assert (run_dir / "best.pt").read_bytes() == b"an earlier run's weights"
 
 
 @pytest.mark.parametrize("tile,overlap", [(64, 32), (512, 128), (768, 160), (1024, 0)])

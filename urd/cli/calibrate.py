@@ -10,7 +10,7 @@ import typer
 
 from urd.cli.capture import SIM_SIZE_HELP
 from urd.cli.common import (DATASET_HELP, HELP_OPTIONS, WorkflowOrder, check_address, check_rig, choice, parse_size, resolve_scene,
-                            run_guarded, warn, within)
+                            note_new_dataset, run_guarded, warn, within)
 from urd.core.dataset import default_root
 from urd.core.progress import TerminalProgress
 
@@ -55,6 +55,7 @@ def calibrate_offset_cmd(
     width, height = parse_size(sim_size, "--sim-size")
     check_rig(ctx, stage, camera, ("sim_offset", "seed"), ("sim_size",))
     root = dataset or default_root()
+    note_new_dataset(root)
     sim = SimSettings(offset_deg=sim_offset, width=width, height=height, shake_px=0, shake_deg=0, seed=seed,
                       target_angle_deg=target_angle)
     record = run_guarded(sweep_and_calibrate, root, stage, camera, step, target_angle, address, sim, progress=TerminalProgress())

@@ -8,8 +8,8 @@ from typing import Optional
 
 import typer
 
-from urd.cli.common import (DATASET_HELP, bad, check_address, check_rig, choice, given, parse_angles, parse_size, run_guarded,
-                            usage, within)
+from urd.cli.common import (DATASET_HELP, bad, check_address, check_rig, choice, given, note_new_dataset, parse_angles, parse_size,
+                            run_guarded, usage, within)
 from urd.core.dataset import SCENE_NAME, default_root
 from urd.core.progress import TerminalProgress
 
@@ -94,6 +94,7 @@ def capture(
     angle_list = parse_angles(angles) if given(ctx, "angles") else None
     sim = sim_settings(sim_offset, sim_jitter, sim_faults, sim_size, sim_shake, reflection, transmission, seed)
     check_rig(ctx, stage, camera, SIM_STAGE_OPTIONS, VIRTUAL_CAMERA_OPTIONS)
+    note_new_dataset(dataset or default_root())
     bar = TerminalProgress()
     result = run_guarded(capture_scene, dataset or default_root(), stage, camera, angle_list, scene, new_scene,
                          tolerance if given(ctx, "tolerance") else None, address, sim,

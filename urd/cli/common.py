@@ -8,6 +8,7 @@ Errors print one line, "Error: ...": bad arguments name the option ("Invalid val
 
 from __future__ import annotations
 
+import contextlib
 import enum
 import json
 import math
@@ -18,7 +19,7 @@ from typing import Optional
 
 import typer
 
-from urd.core.dataset import default_root
+from urd.core.dataset import DATASET_MANIFEST, default_root
 from urd.core.manifest import MAX_ANGLE_DEG
 from urd.core.errors import CaptureInterrupted, UrdError
 from urd.core.processes import Terminated
@@ -160,6 +161,17 @@ def existing_dataset(dataset: Optional[Path]) -> Path:
 
 def warn(message: str) -> None:
     typer.secho(f"warning: {message}", fg=typer.colors.YELLOW, err=True)
+
+
+def note_new_dataset(root: Path) -> None:
+    """Warn when ``root`` is an existing folder that holds other files but no dataset: the dataset a
+    command is about to make goes in beside them."""
+    root = Path(root)
+    with contextlib.suppress(OSError):
+        if root.is_dir() and not (root / DATASET_MANIFEST).exists() and any(root.iterdir()):
+            warn(f"{root.resolve()} holds other files but no urd dataset: the dataset is made there, beside them "
+                 "(dataset.json, calibration.json, scene_NN folders; nothing of yours is changed); name a new or "
+                 "empty folder to keep it apart")
 
 
 def run_guarded(func, *args, **kwargs):

@@ -7,7 +7,7 @@ from typing import Optional
 
 import typer
 
-from urd.cli.common import bad, choice, fail, given, parse_angles, run_guarded, usage, warn, within
+from urd.cli.common import bad, choice, fail, given, note_new_dataset, parse_angles, run_guarded, usage, warn, within
 from urd.core.dataset import default_root
 from urd.core.progress import TerminalProgress, plural
 
@@ -78,6 +78,8 @@ def ingest(
     if mosaic and given(ctx, "half_size"):
         raise usage(f"--{'' if half_size else 'no-'}half-size: for RAW shots; --mosaic frames are always demosaiced at "
                     "half size (one pixel per 2x2 polarizer cell)")
+    if not recorded:
+        note_new_dataset(dataset or default_root())
     report = run_guarded(ingest_workflow, source, dataset or default_root(), opts, layout, method, transfer_rule,
                          progress=TerminalProgress(), jobs=jobs)
     for path in report.ignored:
