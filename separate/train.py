@@ -443,14 +443,27 @@ def train(cfg: TrainConfig, run_dir: Path, init: Path | None = None, progress=No
     notes it on the exception; a non-finite loss or gradient stops the run with TrainingError,
     ``last.pt`` left at its last (finite) checkpoint. A new run that fails before it logs anything
     (and so before its first ``last.pt``) leaves no trace: the files it wrote, and the folders it
-    made, are removed; one that fails later keeps its log.jsonl and best.pt to look at.
+    made, are removed; one that fails later keeps its log.jsonl and best.pt to look at. Under
+    torchrun (``WORLD_SIZE`` > 1) every rank joins the process group first (and leaves it at the
+    end) unless the caller has one, and a start that rank 0 refuses is refused on every rank.
     """
     run_dir = Path(run_dir)
     if run_dir.exists() and not run_dir.is_dir():
         raise TrainingError(f"{run_dir} is a file, expected a run folder")
-    if int(os.environ.get("WORLD_SIZE", "1")) > 1 and not dist.is_initialized():
+    joined = int(os.environ.get("WORLD_SIZE", "1")) > 1 and not dist.is_initialized()
+    if joined:
         _join_process_group()                      # every rank, before rank 0 may refuse the start
-    if int(os.environ.get("RANK", "0")) != 0:
+    record = _started(cfg, run_dir, init, progress)
+    if joined:
+        dist.barrier()                             # no rank leaves while another still talks to it
+        dist.destroy_process_group()
+    return record
+
+
+def _started(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict:
+    """`train` on this rank: rank 0 locks and checks the folder and tells the other ranks whether
+    it starts (`_share_start`); the others wait for its word."""
+    if dist.is_initialized() and dist.get_rank() != 0:
         refusal = _share_start(None)
         if refusal is not None:
             raise TrainingError(f"rank 0 did not start the run: {refusal}")
@@ -475,7 +488,8 @@ def train(cfg: TrainConfig, run_dir: Path, init: Path | None = None, progress=No
                 raise
     except BaseException as exc:
         if not told:
-            _share_start(exc)                                # a refused start: the other ranks are told why
+            with contextlib.suppress(Exception):             # a refused start: the other ranks, if still there, are told why
+                _share_start(exc)
         for folder in made:                                  # only if empty: never what another process put there
             with contextlib.suppress(OSError):
                 folder.rmdir()
@@ -664,9 +678,6 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
         if rank == 0 and saved is not None:
             exc.add_note(f"{last} keeps step {saved}")
         raise
-    if distributed:
-        dist.barrier()                                  # no rank leaves while another still talks to it
-        dist.destroy_process_group()
     return record
 
 

@@ -360,3 +360,27 @@ def test_a_dataset_made_in_a_folder_of_other_files_says_so_and_leaves_them(tmp_p
     assert again.exit_code == 0 and "no urd dataset" not in again.stderr
     new = invoke("capture", tmp_path / "new", *SIM, "--sim-size", "96x64")
     assert new.exit_code == 0 and "no urd dataset" not in new.stderr
+
+
+def test_no_note_where_the_command_refuses_a_dataset_inside_another_and_hidden_files_do_not_count(tmp_path):
+    root = tmp_path / "ds"
+    assert invoke("capture", root, *SIM, "--sim-size", "96x64").exit_code == 0
+    nested = invoke("capture", root / "scene_01", *SIM, "--sim-size", "96x64")
+    assert nested.exit_code == 1 and "cannot hold another" in nested.stderr and "no urd dataset" not in nested.stderr
+    hidden = tmp_path / "hidden"
+    hidden.mkdir()
+    (hidden / ".DS_Store").write_bytes(b"")
+    out = invoke("capture", hidden, *SIM, "--sim-size", "96x64")
+    assert out.exit_code == 0 and "no urd dataset" not in out.stderr
+
+
+def test_an_ingest_that_fails_in_a_folder_of_other_files_says_so_and_leaves_only_them(tmp_path):
+    raw = tmp_path / "raw"
+    raw.mkdir()
+    (raw / "readme.txt").write_text("no shots here")
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    (folder / "notes.txt").write_text("mine")
+    out = invoke("ingest", raw, folder)
+    assert out.exit_code == 1 and "holds other files but no urd dataset" in out.stderr
+    assert sorted(p.name for p in folder.iterdir()) == ["notes.txt"]          # no dataset.json, no lock left

@@ -308,21 +308,29 @@ def test_ddp_with_two_gloo_processes(tmp_path):
 
 
 @pytest.mark.slow
-def test_a_start_rank_0_refuses_ends_every_rank_with_its_reason(tmp_path):
-    # rank 0 refuses a folder holding an earlier run's best.pt; rank 1 is told why instead of waiting
-    # in the rendezvous until torchrun kills it
+@pytest.mark.parametrize("case", ["best.pt without last.pt", "a resume while another process trains"])
+def test_a_start_rank_0_refuses_ends_every_rank_with_its_reason(tmp_path, case):
+    # rank 0 refuses the run folder; rank 1 is told why instead of waiting in the rendezvous until
+    # torchrun kills it
     cfg = tmp_path / "ddp.toml"
-    cfg.write_text('width = 4\npatch = 32\nbatch = 4\nmicro_batch = 2\nsteps = 2\nval_samples = 4\nprecision = "fp32"\nthreads = 1\n')
+    tiny = 'width = 4\npatch = 32\nbatch = 4\nmicro_batch = 2\nsteps = 2\nval_samples = 4\nprecision = "fp32"\nthreads = 1\n'
+    cfg.write_text(tiny)
     run_dir = tmp_path / "run"
-    run_dir.mkdir()
-    (run_dir / "best.pt").write_bytes(b"an earlier run's weights")
-    out = torchrun_train(cfg, run_dir)
+    if case == "best.pt without last.pt":
+        run_dir.mkdir()
+        (run_dir / "best.pt").write_bytes(b"an earlier run's weights")
+        reason, holder = "holds best.pt of an earlier run but no last.pt", contextlib.nullcontext()
+    else:
+        train(TrainConfig.from_toml(cfg), run_dir)
+        cfg.write_text(tiny.replace("steps = 2", "steps = 4"))
+        reason, holder = "is being trained by another process", run_lock(run_dir)
+    before = {path.name: path.read_bytes() for path in run_dir.iterdir() if path.is_file()}
+    with holder:
+        out = torchrun_train(cfg, run_dir)
     assert out.returncode != 0
-    reason = "holds best.pt of an earlier run but no last.pt"
     assert sum(reason in line for line in out.stderr.splitlines()) == 2, out.stderr[-3000:]   # rank 0's, and rank 1's
     assert "rank 0 did not start the run" in out.stderr and "SIGKILL" not in out.stderr
-    assert sorted(p.name for p in run_dir.iterdir()) == ["best.pt"]
-    assert (run_dir / "best.pt").read_bytes() == b"an earlier run's weights"
+    assert {path.name: path.read_bytes() for path in run_dir.iterdir() if path.is_file()} == before
 
 
 @pytest.mark.parametrize("tile,overlap", [(64, 32), (512, 128), (768, 160), (1024, 0)])

@@ -94,9 +94,10 @@ def capture(
     angle_list = parse_angles(angles) if given(ctx, "angles") else None
     sim = sim_settings(sim_offset, sim_jitter, sim_faults, sim_size, sim_shake, reflection, transmission, seed)
     check_rig(ctx, stage, camera, SIM_STAGE_OPTIONS, VIRTUAL_CAMERA_OPTIONS)
-    note_new_dataset(dataset or default_root())
+    root = dataset or default_root()
+    note_new_dataset(root)
     bar = TerminalProgress()
-    result = run_guarded(capture_scene, dataset or default_root(), stage, camera, angle_list, scene, new_scene,
+    result = run_guarded(capture_scene, root, stage, camera, angle_list, scene, new_scene,
                          tolerance if given(ctx, "tolerance") else None, address, sim,
                          announce=lambda line: (bar.break_line(), typer.echo(line)), progress=bar)
     typer.echo(f"scene complete: {result.path.resolve()}")

@@ -19,7 +19,7 @@ from typing import Optional
 
 import typer
 
-from urd.core.dataset import DATASET_MANIFEST, default_root
+from urd.core.dataset import DATASET_MANIFEST, default_root, enclosing_dataset
 from urd.core.manifest import MAX_ANGLE_DEG
 from urd.core.errors import CaptureInterrupted, UrdError
 from urd.core.processes import Terminated
@@ -146,8 +146,6 @@ def choice(kind: type[enum.Enum], value: str, option: str) -> enum.Enum:
 def existing_dataset(dataset: Optional[Path]) -> Path:
     """The dataset a command reads: ``dataset``, else `urd.core.dataset.default_root`; an error saying
     how to make one when its folder does not exist."""
-    from urd.core.dataset import enclosing_dataset
-
     root = dataset or default_root()
     inside = enclosing_dataset(Path(".")) if dataset is None and not root.exists() else None
     if inside is not None:
@@ -164,14 +162,15 @@ def warn(message: str) -> None:
 
 
 def note_new_dataset(root: Path) -> None:
-    """Warn when ``root`` is an existing folder that holds other files but no dataset: the dataset a
-    command is about to make goes in beside them."""
+    """Warn when ``root`` is an existing folder that holds other files (hidden ones aside) but no
+    dataset, and lies in none: the dataset a command is about to make goes in beside them."""
     root = Path(root)
     with contextlib.suppress(OSError):
-        if root.is_dir() and not (root / DATASET_MANIFEST).exists() and any(root.iterdir()):
+        if root.is_dir() and not (root / DATASET_MANIFEST).exists() and enclosing_dataset(root) is None \
+                and any(not path.name.startswith(".") for path in root.iterdir()):
             warn(f"{root.resolve()} holds other files but no urd dataset: the dataset is made there, beside them "
-                 "(dataset.json, calibration.json, scene_NN folders; nothing of yours is changed); name a new or "
-                 "empty folder to keep it apart")
+                 "(its manifest and scene folders; nothing of yours is changed); name a new or empty folder to keep "
+                 "it apart")
 
 
 def run_guarded(func, *args, **kwargs):

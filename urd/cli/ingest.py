@@ -78,9 +78,10 @@ def ingest(
     if mosaic and given(ctx, "half_size"):
         raise usage(f"--{'' if half_size else 'no-'}half-size: for RAW shots; --mosaic frames are always demosaiced at "
                     "half size (one pixel per 2x2 polarizer cell)")
+    root = dataset or default_root()
     if not recorded:
-        note_new_dataset(dataset or default_root())
-    report = run_guarded(ingest_workflow, source, dataset or default_root(), opts, layout, method, transfer_rule,
+        note_new_dataset(root)
+    report = run_guarded(ingest_workflow, source, root, opts, layout, method, transfer_rule,
                          progress=TerminalProgress(), jobs=jobs)
     for path in report.ignored:
         typer.echo(f"ignored (not a RAW file name): {path.resolve()}", err=True)

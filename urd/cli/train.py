@@ -121,13 +121,14 @@ def check_paths(config: Path, run_dir: Path, init: Optional[Path]) -> None:
 
 
 def resume_point(run_dir: Path, cfg: "TrainConfig", init: Optional[Path]) -> dict:
-    """The checkpoint ``run_dir/last.pt`` a run resumes from, read by rank 0 under the run's lock
-    (`separate.train.run_lock`: TrainingError while another process trains it), and checked to
-    go on with the config ``cfg`` and ``init`` (`separate.train.check_resume`: TrainingError)."""
+    """The checkpoint ``run_dir/last.pt`` a run resumes from, read under the run's lock
+    (`separate.train.run_lock`: TrainingError while another process trains it; under torchrun
+    without it, as `separate.train.train` refuses a busy run on every rank), and checked to go on
+    with the config ``cfg`` and ``init`` (`separate.train.check_resume`: TrainingError)."""
     from separate.train import check_resume, load_checkpoint, run_lock
 
     last = run_dir / "last.pt"
-    if os.environ.get("RANK", "0") != "0":
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
         state = load_checkpoint(last)
     else:
         with run_lock(run_dir):

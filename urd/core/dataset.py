@@ -88,6 +88,7 @@ from urd.core.truth import write_truth_record as write_truth_record
 DATASET_MANIFEST = "dataset.json"
 SCENE_MANIFEST = "scene.json"
 CALIBRATION_FILE = "calibration.json"
+SWEEP_FOLDER = "calibration"       # the calibration sweeps behind calibration.json
 LOCK_FILE = ".urd.lock"
 SCENE_NAME = re.compile(r"^scene_(\d{2,})$")
 
@@ -331,14 +332,15 @@ class Dataset:
         return ds
 
     def remove_if_unused(self, folder_is_new: bool) -> None:
-        """Remove a dataset that holds nothing (no scene, none being staged, no calibration): its
-        manifest, and its folder when this run made it and it is empty. For workflows that made
-        the dataset and then failed on every input, so that a failure leaves nothing behind;
-        a dataset another process is using (its lock held) is left alone."""
+        """Remove a dataset that holds nothing of urd's (no scene, none being staged, no calibration):
+        its manifest and lock, and its folder when this run made it and it is empty (other files in
+        it are left). For workflows that made the dataset and then failed on every input, so that a
+        failure leaves nothing behind; a dataset another process is using (its lock held) is left alone."""
         try:
             with self.lock():
-                if any(p.name != LOCK_FILE for p in self.root.iterdir() if p != self.manifest_path):
-                    return                                    # scenes, staged scenes, calibration, anything
+                if any(SCENE_NAME.match(p.name) or p.name.startswith(STAGING_PREFIX) or p.name in (CALIBRATION_FILE, SWEEP_FOLDER)
+                       for p in self.root.iterdir()):
+                    return
                 self.manifest_path.unlink(missing_ok=True)
                 (self.root / LOCK_FILE).unlink(missing_ok=True)          # still held: no one else has it
                 if folder_is_new:
@@ -389,7 +391,7 @@ class Dataset:
 
     def sweeps(self) -> list[Scene]:
         """The calibration sweeps (``calibration/sweep_NN``), oldest first."""
-        return [Scene(path) for path in sorted((self.root / "calibration").glob("sweep_*")) if path.is_dir()]
+        return [Scene(path) for path in sorted((self.root / SWEEP_FOLDER).glob("sweep_*")) if path.is_dir()]
 
     def scene_names(self) -> list[str]:
         """Names of the scene folders present (readable or not), sorted by number."""
@@ -534,7 +536,7 @@ class Dataset:
 
     def new_sweep(self, capture: dict) -> Scene:
         """A new calibration sweep scene under ``calibration/sweep_NN``."""
-        folder = self.root / "calibration"
+        folder = self.root / SWEEP_FOLDER
         if folder.is_symlink():
             raise link_error(folder)
         folder.mkdir(exist_ok=True)
