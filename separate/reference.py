@@ -558,7 +558,7 @@ def decide_side(images: np.ndarray, angles_deg: Sequence[float], inspection: "In
     read = "the assumed" if assumed else "the more strongly polarized orientation's"
     note = (f"the side of the reference was decided by separating both: {reference:.1f} deg"
             f"{' (the reflection dominates)' if assumed else ''} gave layers sharing less information ({scores[1]:.3f} against {scores[0]:.3f} nats) than {read} "
-            f"{inspection.reference_deg:.1f} deg; pass --reference {inspection.reference_deg:.1f} to keep that "
+            f"{inspection.reference_deg:.1f} deg; pass --reference {inspection.reference_deg:.1f} to use that side instead "
             "(one angle for the whole view)")
     warnings = [w for w in inspection.warnings if "urd assumes the transmission dominates" not in w] + [note]
     turned = inspect_stack(images, angles_deg, reference)                 # the presence map along the new side

@@ -384,3 +384,10 @@ def test_an_ingest_that_fails_in_a_folder_of_other_files_says_so_and_leaves_only
     out = invoke("ingest", raw, folder)
     assert out.exit_code == 1 and "holds other files but no urd dataset" in out.stderr
     assert sorted(p.name for p in folder.iterdir()) == ["notes.txt"]          # no dataset.json, no lock left
+
+
+def test_angles_given_in_radians_are_named_so_with_their_degrees():
+    out = invoke("separate", "--images", "a.png", "--images", "b.png", "--images", "c.png", "--angles", "0,0.785,1.571")
+    assert out.exit_code == 2 and "these look like radians: in degrees they are 0,45,90" in out.stderr
+    out = invoke("separate", "--images", "a.png", "--images", "b.png", "--images", "c.png", "--angles", "0,10,20")
+    assert out.exit_code == 2 and "radians" not in out.stderr

@@ -9,6 +9,7 @@ import sys
 import cv2
 import numpy as np
 import pytest
+import tifffile
 
 from urd.core.dataset import Dataset
 from urd.core.errors import RawFormatError
@@ -18,8 +19,10 @@ from urd.core.images import (
     U16_BLOCK,
     linear_to_u16,
     read_image,
+    read_raw_codes,
     srgb_encode,
     srgb_to_linear,
+    stored_bits,
     to_display,
     to_linear,
     u16_to_linear,
@@ -35,13 +38,14 @@ def srgb_decoded(code: float) -> float:
     return v / 12.92 if v <= 0.04045 else ((v + 0.055) / 1.055) ** 2.4
 
 
-def test_8_bit_codes_follow_the_transfer_and_16_bit_and_float_stay_linear():
+def test_integer_codes_follow_the_transfer_and_float_stays_linear():
     u8 = np.array([0, 10, 128, 255], np.uint8)
     np.testing.assert_allclose(to_linear(u8), u8 / 255, rtol=1e-6)
     np.testing.assert_allclose(to_linear(u8, Transfer.SRGB), [srgb_decoded(c) for c in u8], rtol=1e-5)
     assert to_linear(u8, Transfer.SRGB)[2] == pytest.approx(0.21586, abs=1e-5)      # sRGB mid-grey
     u16 = np.array([0, 32768, 65535], np.uint16)
-    np.testing.assert_array_equal(to_linear(u16, Transfer.SRGB), u16 / np.float32(65535))
+    np.testing.assert_array_equal(to_linear(u16), u16 / np.float32(65535))
+    np.testing.assert_allclose(to_linear(u16, Transfer.SRGB), [0.0, srgb_decoded(127.5), 1.0], rtol=1e-4)   # an editor's 16-bit export
     floats = np.array([0.25] * 39 + [1.5], np.float32)               # a highlight above white stays
     np.testing.assert_array_equal(to_linear(floats, Transfer.SRGB), floats)
     with pytest.raises(RawFormatError, match="int32"):
@@ -52,7 +56,7 @@ def test_interpolated_codes_follow_their_frames_rule_clipped_to_the_codes_range(
     codes = np.array([-3.0, 127.5, 300.0])
     np.testing.assert_allclose(codes_to_linear(codes, np.uint8, Transfer.SRGB),
                                [0.0, srgb_decoded(127.5), 1.0], rtol=1e-5)
-    np.testing.assert_allclose(codes_to_linear(codes, np.uint16, Transfer.SRGB), [0.0, 127.5 / 65535, 300 / 65535], rtol=1e-6)
+    np.testing.assert_allclose(codes_to_linear(codes, np.uint16), [0.0, 127.5 / 65535, 300 / 65535], rtol=1e-6)
     with pytest.raises(RawFormatError, match="float32"):
         codes_to_linear(codes, np.float32)
 
@@ -121,3 +125,24 @@ def test_16_bit_codes_of_linear_tiffs_round_trip_within_half_a_code(full_scale):
     image = np.random.default_rng(1).uniform(-0.1, 1.1 * full_scale, (3, U16_BLOCK + 7, 3)).astype(np.float32)
     expected = np.clip(np.rint(image.astype(np.float64) * (65535.0 / full_scale)), 0, 65535).astype(np.uint16)
     assert np.abs(linear_to_u16(image, full_scale).astype(np.int32) - expected).max() <= 1     # across the blocks
+
+
+def test_tiffs_of_other_colour_models_and_huge_headers_are_refused_in_one_line(tmp_path):
+    rgb = np.zeros((8, 8, 3), np.uint8)
+    tifffile.imwrite(tmp_path / "cmyk.tif", np.zeros((8, 8, 4), np.uint8), photometric="separated")
+    tifffile.imwrite(tmp_path / "palette.tif", np.zeros((8, 8), np.uint8), photometric="palette",
+                     colormap=np.zeros((3, 256), np.uint16))
+    tifffile.imwrite(tmp_path / "two.tif", np.zeros((8, 8, 2), np.uint16), photometric="minisblack", planarconfig="contig")
+    tifffile.imwrite(tmp_path / "rgb.tif", rgb)
+    for name, message in (("cmyk.tif", "a CMYK TIFF"), ("palette.tif", "a palette TIFF"), ("two.tif", "2 samples per pixel")):
+        with pytest.raises(RawFormatError, match=message):
+            read_raw_codes(tmp_path / name)
+    assert read_raw_codes(tmp_path / "rgb.tif").shape == (8, 8, 3)
+    png = bytearray(cv2.imencode(".png", rgb)[1].tobytes())
+    png[16:24] = (100000).to_bytes(4, "big") * 2                       # a header claiming 100000 × 100000 px
+    (tmp_path / "huge.png").write_bytes(bytes(png))
+    with pytest.raises(RawFormatError, match="huge.png: not an image file urd can read"):
+        read_raw_codes(tmp_path / "huge.png")
+    assert stored_bits(tmp_path / "rgb.tif") == 8 and stored_bits(tmp_path / "huge.png") == 8
+    tifffile.imwrite(tmp_path / "deep.tif", np.zeros((8, 8), np.uint16))
+    assert stored_bits(tmp_path / "deep.tif") == 16 and stored_bits(tmp_path / "cmyk.tif") == 8

@@ -15,7 +15,7 @@ from rig import capture_virtual
 from urd.core import raw as rawio
 from urd.core.dataset import Dataset
 from urd.core.errors import RawFormatError
-from urd.ingest import IngestOptions, ingest_folder, ingest_scene
+from urd.ingest import IngestOptions, counter_wraps, group_shots, ingest_folder, ingest_scene
 
 
 def urd(*args):
@@ -230,3 +230,20 @@ def test_a_reference_prepared_once_aligns_every_shot_as_the_reference_itself_and
     for shot in shots[1:]:
         assert align(target, shot).record() == align(shots[0], shot).record()
     assert all(np.array_equal(rep, a) and np.array_equal(mask, b) for (rep, mask), (a, b) in zip(target.pyramid, kept))
+
+
+def test_a_counter_rolling_over_among_shots_of_one_second_is_named(tmp_path):
+    files = []
+    for name in ("IMG_9998.CR2", "IMG_9999.CR2", "IMG_0001.CR2"):         # not RAW: their times are the files'
+        files.append(tmp_path / name)
+        files[-1].write_bytes(b"x")
+        os.utime(files[-1], (1_700_000_000, 1_700_000_000))
+    groups, failures, notes = group_shots(files, 3, 60.0)
+    assert [[f.name for f in g] for g in groups] == [["IMG_0001.CR2", "IMG_9998.CR2", "IMG_9999.CR2"]] and not failures
+    assert len(notes) == 1 and "these file numbers wrap around" in notes[0]
+    os.utime(files[2], (1_700_000_002, 1_700_000_002))                  # the rolled-over shot a second later: no tie with it
+    groups, _, notes = group_shots(files, 3, 60.0)
+    assert [f.name for f in groups[0]] == ["IMG_9998.CR2", "IMG_9999.CR2", "IMG_0001.CR2"] and notes == []
+    assert counter_wraps(["IMG_9998.CR2", "IMG_9999.CR2", "IMG_0001.CR2"])
+    assert not counter_wraps(["IMG_0041.CR2", "IMG_0042.CR2", "IMG_0043.CR2"])
+    assert not counter_wraps(["shot_00_000.0deg.dng", "a.dng"]) and not counter_wraps(["DSC_1.NEF", "DSC_2.NEF"])

@@ -78,7 +78,7 @@ def test_exif_orientation_is_read_from_jpegs_and_named_but_not_applied(tmp_path)
                  "--transfer", "srgb", "--out", tmp_path / "out")
     assert out.exit_code == 0, out.output
     assert "turned_0.jpg, turned_1.jpg, turned_2.jpg: EXIF asks viewers to show them turned 90° clockwise" in out.output
-    assert "JPEG images are read as linear" not in out.output         # --transfer given
+    assert "are read as linear" not in out.output                    # --transfer given
     assert tifffile.imread(tmp_path / "out" / "T.tiff").shape[:2] == (96, 128)
 
     plain = tmp_path / "plain.jpg"
@@ -88,7 +88,7 @@ def test_exif_orientation_is_read_from_jpegs_and_named_but_not_applied(tmp_path)
                  "--out", tmp_path / "mixed")
     assert out.exit_code == 1
     assert "as stored; viewers show turned_0.jpg turned 90° clockwise" in out.output
-    assert "JPEG images are read as linear sensor codes" in out.output
+    assert "8-bit images (turned_0.jpg, turned_1.jpg, plain.jpg) are read as linear sensor codes" in out.output
 
 
 def test_a_float_file_measured_from_another_black_level_is_refused(tmp_path):
@@ -159,3 +159,32 @@ def test_a_scene_whose_aligned_shots_are_gone_says_how_to_make_them_again(tmp_pa
     out = invoke("separate", "scene_01", "--dataset", root, "--method", "schechner")
     assert out.exit_code == 1
     assert "listed in the manifest but missing" in out.output and f"urd ingest {root / 'scene_01'} --redo" in " ".join(out.output.split())
+
+
+def test_shots_mixing_grey_and_colour_are_refused_and_8_bit_pngs_are_named_in_the_transfer_warning(tmp_path):
+    paths = write_shots(tmp_path, polarized_stack())
+    grey = tmp_path / "grey.png"
+    cv2.imwrite(str(grey), np.rint(polarized_stack()[2].mean(-1) * 65535).astype(np.uint16))
+    out = invoke("separate", "--images", paths[0], "--images", paths[1], "--images", grey, "--angles", "0,45,90",
+                 "--method", "schechner", "--out", tmp_path / "mixed")
+    assert out.exit_code == 1 and "all grey or all colour, got grey grey.png and colour shot_0.png, shot_1.png" in out.stderr
+    assert not (tmp_path / "mixed").exists()
+    eight = []
+    for k, shot in enumerate(polarized_stack()):
+        eight.append(tmp_path / f"e{k}.png")
+        cv2.imwrite(str(eight[-1]), np.rint(shot * 255).astype(np.uint8)[..., ::-1])
+    args = [a for p in eight for a in ("--images", p)] + ["--angles", "0,45,90", "--method", "schechner"]
+    out = invoke("separate", *args, "--out", tmp_path / "e")
+    assert out.exit_code == 0 and "8-bit images (e0.png, e1.png, e2.png) are read as linear sensor codes" in out.stderr
+    out = invoke("separate", *args, "--out", tmp_path / "s", "--transfer", "srgb")
+    assert out.exit_code == 0 and "8-bit images" not in out.stderr
+    out = invoke("separate", *[a for p in paths for a in ("--images", p)], "--angles", "0,45,90", "--method", "schechner",
+                 "--out", tmp_path / "sixteen")
+    assert out.exit_code == 0 and "8-bit images" not in out.stderr
+
+
+def test_a_folder_of_jpegs_is_pointed_to_separate_images(tmp_path):
+    (tmp_path / "jpegs").mkdir()
+    cv2.imwrite(str(tmp_path / "jpegs" / "a.jpg"), np.zeros((64, 64, 3), np.uint8))
+    out = invoke("ingest", tmp_path / "jpegs", tmp_path / "ds")
+    assert out.exit_code == 1 and "it holds 1 PNG/TIFF/JPEG images" in out.stderr and "urd separate --images" in out.stderr

@@ -125,9 +125,12 @@ def group_shots(files: list[Path], count: int, gap_s: float) -> tuple[list[list[
 
     Returns the complete groups, for runs whose length is not a multiple of ``count`` a failed
     outcome naming the files, and a note for each run split into several scenes (one capture at
-    more angles than ``count`` looks the same).
+    more angles than ``count`` looks the same) and for each scene whose shots share a capture time
+    (cameras record whole seconds) with file numbers that wrap around (`counter_wraps`): their
+    order, and so their angles, follows the file names, which is not the shooting order then.
     """
     timed = sorted((capture_time(f), f.name, f) for f in files)
+    when = {f: t for t, _, f in timed}
     runs, current, last = [], [], None
     for t, _, f in timed:
         if last is not None and t - last > gap_s:
@@ -150,7 +153,23 @@ def group_shots(files: list[Path], count: int, gap_s: float) -> tuple[list[list[
             notes.append(f"{len(run)} shots taken together ({run[0].name} … {run[-1].name}) became "
                          f"{len(run) // count} scenes of {count} angles; if they are one capture at {len(run)} "
                          "angles, move those scenes away and ingest the files again with --angles")
+    for group in groups:
+        tied = [[f.name for f in group if when[f] == t] for t in {when[f] for f in group}]
+        if any(len(names) > 1 and counter_wraps(names) for names in tied):
+            notes.append(f"{', '.join(p.name for p in group)}: shots with one capture time (cameras record whole "
+                         "seconds) are ordered, and given their angles, by file name, and these file numbers wrap "
+                         "around (a camera's counter rolling over, IMG_9999 → IMG_0001): check each shot's angle")
     return groups, failures, notes
+
+
+def counter_wraps(names: list[str]) -> bool:
+    """Whether the file numbers ending the names (IMG_9998, IMG_9999, IMG_0001) span more than half
+    their digits' range: a camera's counter that rolled over between the shots."""
+    numbers = [re.search(r"(\d+)$", Path(name).stem) for name in names]
+    if not all(numbers):
+        return False
+    values = [int(m.group(1)) for m in numbers]
+    return max(values) - min(values) > 10 ** max(len(m.group(1)) for m in numbers) // 2
 
 
 #: Exposure settings the shots of a scene should share (the separation assumes one exposure):
@@ -476,8 +495,8 @@ def ingest_folder(raw_dir: Path, ds: Dataset, opts: IngestOptions, progress: Pro
     """
     raws, ignored = find_raw_files(raw_dir)
     if not raws:
-        frames = [p for p in ignored if p.suffix.lower() in (".png", ".tif", ".tiff")]
-        hint = (f"; it holds {len(frames)} PNG/TIFF images: polarization-camera frames are ingested with "
+        frames = [p for p in ignored if p.suffix.lower() in IMAGE_SUFFIXES]
+        hint = (f"; it holds {len(frames)} PNG/TIFF/JPEG images: polarization-camera frames are ingested with "
                 f"--mosaic {'|'.join(m.value for m in MosaicLayout)} (the sensor's layout), and one image per "
                 "polarizer angle is separated with 'urd separate --images A --images B --images C --angles ...'") if frames else ""
         raise DatasetError(f"{raw_dir}: no RAW files (looked for {', '.join(rawio.RAW_SUFFIXES)}){hint}")

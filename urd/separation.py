@@ -37,7 +37,7 @@ from separate.reference import Inspection, resolve_reference
 from urd.core.dataset import SCENE_NAME, Scene, enclosing_dataset
 from urd.core.errors import DatasetError
 from urd.core.files import atomic_path
-from urd.core.images import ORIENTATIONS, Transfer, exif_orientation, linear_to_u16, read_image, to_display
+from urd.core.images import ORIENTATIONS, Transfer, exif_orientation, linear_image, linear_to_u16, read_raw_codes, to_display
 
 FULL_SCALE = 2.0
 PREVIEW_SIDE = 2048
@@ -423,7 +423,13 @@ def _separate_into(paths: list[Path], angles_deg: list[float], out: Path, run, t
                    reference: str | float, maps: bool, sees_polarization: bool) -> Separation:
     """The work of `separate_images` once ``out`` is checked: the results written into a
     staging folder inside ``out``, then moved into place."""
-    loaded = [read_image(p, transfer) for p in paths]
+    codes = [read_raw_codes(p) for p in paths]
+    grey = [Path(p).name for p, c in zip(paths, codes) if c.ndim == 2]
+    if 0 < len(grey) < len(paths):
+        colour = [Path(p).name for p, c in zip(paths, codes) if c.ndim == 3]
+        raise ValueError(f"expected shots that are all grey or all colour, got grey {', '.join(grey)} and colour "
+                         f"{', '.join(colour)}")
+    loaded = [linear_image(codes.pop(0), p, transfer) for p in paths]
     turned = {Path(p).name: ORIENTATIONS[o] for p in paths if (o := exif_orientation(p)) in ORIENTATIONS}
     if len({im.shape for im in loaded}) > 1:
         sizes = ", ".join(f"{Path(p).name} {im.shape[1]}×{im.shape[0]}" for p, im in zip(paths, loaded))

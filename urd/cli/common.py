@@ -221,7 +221,10 @@ def parse_angles(text: str, min_distinct: int = 3, option: str = "--angles") -> 
     try:
         check_angles([math.radians(a) for a in angles])
     except ValueError as exc:
-        raise bad(option, str(exc)) from None
+        radians = all(abs(a) <= math.pi + 0.01 for a in angles)
+        hint = (f"; these look like radians: in degrees they are {','.join(f'{round(math.degrees(a), 1):g}' for a in angles)}"
+                if radians else "")
+        raise bad(option, f"{exc}{hint}") from None
     return angles
 
 

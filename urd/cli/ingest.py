@@ -23,7 +23,7 @@ def ingest(
     redo: bool = typer.Option(False, help="Decode and align again scenes that are already ingested (the old aligned stack is replaced only on success)."),
     mosaic: Optional[str] = typer.Option(None, help="SOURCE holds polarization-camera frames (PNG/TIFF) with this layout: imx250mzr, imx250myr or wen2019; one scene per frame, demosaiced at half size (one pixel per 2x2 polarizer cell)."),
     demosaic: str = typer.Option("newton", help="Demosaicing of --mosaic frames: none (sites as they are, unregistered), bilinear, newton (registers the four polarizer sites)."),
-    transfer: str = typer.Option("linear", help="8-bit frames: linear (sensor codes, polarization cameras) or srgb (photos from ordinary cameras). 16-bit frames are always linear."),
+    transfer: str = typer.Option("linear", help="Integer frames (8- or 16-bit): linear (sensor codes, polarization cameras) or srgb (frames encoded for display)."),
     jobs: int = typer.Option(1, callback=within(1), help="Worker processes for the scenes of a dataset (SOURCE a dataset folder): each decodes and aligns one scene at a time."),
 ) -> None:
     """Decode RAW shots to linear images, group them into scenes and align each scene (ECC).

@@ -25,7 +25,7 @@ def separate(
     method: str = typer.Option("network", help="network (the paper's, shipped weights); baselines: schechner, kong, farid (polarization), li-brown, arvanitopoulos, ceilnet (single image: they see S0 only); none (T = S0)."),
     images: Optional[list[Path]] = typer.Option(None, "--images", help="Separate image files instead of a scene (repeat: one file per angle, 3 or more)."),
     angles: str = typer.Option("0,45,90", help="Polarizer angles of --images (deg)."),
-    transfer: str = typer.Option("linear", help="8-bit --images: linear (sensor codes) or srgb (ordinary photos). 16-bit files are always linear."),
+    transfer: str = typer.Option("linear", help="Integer --images (8- or 16-bit): linear (sensor codes, a raw converter's linear output) or srgb (photos and exports encoded for display). Float files are always linear."),
     out: Path = typer.Option(Path("separated"), help="Output folder for --images."),
     reference: str = typer.Option("auto", help="Reference angle (deg): the glass's s-direction, where the reflection is brightest; 'auto' estimates it per pixel from the shots (a smooth field, for wide views and curved panes; one angle where the polarization is weak and of one orientation), 'global' one angle for the whole view."),
     weights: Optional[Path] = typer.Option(None, help="Weights file of the network or ceilnet, or a shipped one by name: urd-anchored (the default: the network anchored to the Fresnel inversion by a learned gate), urd-canonical (the same network without the gate), urd-canonical-transposed (the paper's decoder), urd-direct, ceilnet."),
@@ -53,7 +53,7 @@ def separate(
       urd separate --images a.tif --images b.tif --images c.tif --angles 0,45,90 --transfer srgb
     """
     from separate.methods import METHODS, NETWORKS, get_method
-    from urd.core.images import Transfer
+    from urd.core.images import Transfer, stored_bits
     from urd.core.raw import RAW_SUFFIXES
     from urd.separation import FIELD_KIND, add_maps, check_no_results_in, check_out_folder, describe_incidence, sees_polarization_of, separate_images, separate_scene
 
@@ -127,9 +127,10 @@ def separate(
             raise bad("--out", str(exc)) from None
         if out.exists() and not out.is_dir():
             raise bad("--out", f"{out} is a file, not a folder; name a folder for the results")
-        if not given(ctx, "transfer") and any(Path(p).suffix.lower() in (".jpg", ".jpeg") for p in images):
-            warn("JPEG images are read as linear sensor codes (--transfer linear, the default); a photo from an "
-                 "ordinary camera is sRGB-encoded: pass --transfer srgb for it")
+        eight_bit = [Path(p).name for p in images if stored_bits(p) == 8]
+        if not given(ctx, "transfer") and eight_bit:
+            warn(f"8-bit images ({', '.join(eight_bit)}) are read as linear sensor codes (--transfer linear, the "
+                 "default); a photo from an ordinary camera or an editor's export is sRGB-encoded: pass --transfer srgb for it")
         run_guarded(check_no_results_in, out, force)
     target = None if images or all_scenes else run_guarded(resolve_scene, scene, dataset)
     adding_maps = target is not None and maps and not force and method in target.methods()

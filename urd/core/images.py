@@ -1,9 +1,10 @@
 """Reading image files (not RAW): frames of polarization cameras and ``--images`` inputs.
 
-One transfer rule for every command: 16-bit (and 12-bit data stored in 16 bits) and float
-files are linear; 8-bit files are read with the chosen `Transfer`, by default ``linear``
-(the sensor codes of machine-vision and polarization cameras); ``srgb`` linearizes 8-bit
-PNG/JPEG photos from ordinary cameras with the IEC 61966-2-1 curve. Integer codes are scaled so
+One transfer rule for every command: integer files (8-bit, 16-bit, 12-bit data stored in 16
+bits) are read with the chosen `Transfer`, by default ``linear`` (the sensor codes of
+machine-vision and polarization cameras, a raw converter's linear output); ``srgb`` linearizes
+photos encoded for display (an ordinary camera's PNG/JPEG, an editor's 8- or 16-bit export) with
+the IEC 61966-2-1 curve. Float files are linear. Integer codes are scaled so
 that 1.0 is the largest code of their type (255, 65535: 12-bit data stored in 16 bits reaches
 4095/65535); float files are taken as they are, 1.0 the white level: a file with more than
 `FLOAT_ABOVE_WHITE` of its values above 1.0 is refused (every such pixel would read as clipped),
@@ -104,7 +105,10 @@ def read_raw_codes(path: Path) -> np.ndarray:
         except (OSError, ValueError) as exc:        # e.g. a compression only imagecodecs decodes: OpenCV reads LZW
             problem = f" ({exc})"
     if data is None:
-        data = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        try:
+            data = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        except cv2.error as exc:                         # e.g. a header larger than OpenCV's pixel limit
+            problem = f" ({str(exc).strip().splitlines()[-1]})"
     if data is None:
         raise RawFormatError(f"{path}: not an image file urd can read{problem}")
     if data.ndim == 3 and data.shape[-1] < 3:           # grey with alpha: the grey
@@ -122,6 +126,13 @@ def _read_tiff(path: Path) -> np.ndarray:
         if pages > 1:
             raise RawFormatError(f"{path}: a TIFF of {pages} images (pages); give one image per file")
         page = tif.pages[0]
+        if page.photometric in (tifffile.PHOTOMETRIC.SEPARATED, tifffile.PHOTOMETRIC.PALETTE):
+            raise RawFormatError(f"{path}: a {page.photometric.name.lower().replace('separated', 'CMYK')} TIFF; "
+                                 "save it as RGB or grey")
+        alpha = (tifffile.EXTRASAMPLE.ASSOCALPHA, tifffile.EXTRASAMPLE.UNASSALPHA)
+        if page.samplesperpixel == 2 and not any(extra in alpha for extra in page.extrasamples):
+            raise RawFormatError(f"{path}: a TIFF of 2 samples per pixel, neither grey with alpha nor RGB; save it as "
+                                 "RGB or grey")
         data = page.asarray()
         if page.planarconfig == tifffile.PLANARCONFIG.SEPARATE and page.samplesperpixel > 1:
             data = np.moveaxis(data, 0, -1)
@@ -209,12 +220,35 @@ def codes_to_linear(codes: np.ndarray, dtype: np.dtype, transfer: Transfer = Tra
     if dtype not in (np.uint8, np.uint16):
         raise RawFormatError(f"expected codes of 8- or 16-bit pixels, got {dtype}")
     x = np.clip(np.asarray(codes, np.float32) / float(np.iinfo(dtype).max), 0.0, 1.0)
-    return srgb_to_linear(x) if dtype == np.uint8 and Transfer(transfer) is Transfer.SRGB else x
+    return srgb_to_linear(x) if Transfer(transfer) is Transfer.SRGB else x
+
+
+def stored_bits(path: Path) -> int | None:
+    """Bits per sample of a PNG, TIFF or JPEG file from its header (JPEG: 8); None when unknown."""
+    path = Path(path)
+    try:
+        if path.suffix.lower() in (".jpg", ".jpeg"):
+            return 8
+        if path.suffix.lower() == ".png":
+            with open(path, "rb") as file:
+                head = file.read(25)
+            return head[24] if head[:8] == b"\x89PNG\r\n\x1a\n" and len(head) == 25 else None
+        if path.suffix.lower() in (".tif", ".tiff"):
+            with tifffile.TiffFile(path) as tif:
+                return int(tif.pages[0].bitspersample)
+    except (OSError, ValueError, IndexError, tifffile.TiffFileError):
+        return None
+    return None
 
 
 def read_image(path: Path, transfer: Transfer = Transfer.LINEAR) -> np.ndarray:
     """An image file as linear float32 H×W×3 (grey files repeated into three channels)."""
-    codes = read_raw_codes(path)
+    return linear_image(read_raw_codes(path), path, transfer)
+
+
+def linear_image(codes: np.ndarray, path: Path, transfer: Transfer = Transfer.LINEAR) -> np.ndarray:
+    """The codes of the file ``path`` (`read_raw_codes`) as linear float32 H×W×3 (grey repeated
+    into three channels)."""
     try:
         data = to_linear(codes, transfer)
     except RawFormatError as exc:
