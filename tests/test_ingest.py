@@ -182,6 +182,11 @@ def test_identical_files_are_not_a_scene(tmp_path):
     assert [o.error for o in report.outcomes] == [
         "x0.dng and x1.dng are the same file (identical content): a scene needs one shot per polarizer angle"]
     assert not (tmp_path / "ds").exists()
+    shutil.copyfile(shot, raw_dir / "x3.dng")                            # four shots for three angles: the count fails
+    report = ingest(raw_dir, tmp_path / "ds", IngestOptions())
+    assert [o.state for o in report.outcomes] == ["failed"]
+    assert "is not a multiple of 3 angles" in report.outcomes[0].error
+    assert "; x0.dng and x1.dng are the same file (identical content)" in report.outcomes[0].error
 
 
 def test_shots_taken_together_split_into_several_scenes_are_pointed_out(tmp_path, monkeypatch):

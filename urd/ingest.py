@@ -525,8 +525,11 @@ def ingest_folder(raw_dir: Path, ds: Dataset, opts: IngestOptions, progress: Pro
     groups, failures, notes = group_shots(fresh, len(opts.angles_deg), opts.gap_s)
     for failure in failures:
         bad = [p for p in failure.files if p in unreadable]
+        twins = [(q, p) for k, p in enumerate(failure.files) for q in failure.files[:k] if digests[q] == digests[p]]
         if bad:
             failure.error = "; ".join(f"{p.name} is unreadable ({unreadable[p]})" for p in bad)
+        elif twins:
+            failure.error += "; " + "; ".join(f"{q.name} and {p.name} are the same file (identical content)" for q, p in twins)
     outcomes += failures
     for files in groups:
         bad = [p for p in files if p in unreadable]
