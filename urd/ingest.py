@@ -162,6 +162,11 @@ def group_shots(files: list[Path], count: int, gap_s: float) -> tuple[list[list[
     return groups, failures, notes
 
 
+def identical_pairs(files: list[Path], digests: dict[Path, str]) -> list[tuple[Path, Path]]:
+    """(earlier, later) pairs of ``files`` with the same content (SHA-256 ``digests``), in file order."""
+    return [(q, p) for k, p in enumerate(files) for q in files[:k] if digests[q] == digests[p]]
+
+
 def counter_wraps(names: list[str]) -> bool:
     """Whether the file numbers ending the names (IMG_9998, IMG_9999, IMG_0001) span more than half
     their digits' range: a camera's counter that rolled over between the shots."""
@@ -525,7 +530,7 @@ def ingest_folder(raw_dir: Path, ds: Dataset, opts: IngestOptions, progress: Pro
     groups, failures, notes = group_shots(fresh, len(opts.angles_deg), opts.gap_s)
     for failure in failures:
         bad = [p for p in failure.files if p in unreadable]
-        twins = [(q, p) for k, p in enumerate(failure.files) for q in failure.files[:k] if digests[q] == digests[p]]
+        twins = identical_pairs(failure.files, digests)
         if bad:
             failure.error = "; ".join(f"{p.name} is unreadable ({unreadable[p]})" for p in bad)
         elif twins:
@@ -533,13 +538,13 @@ def ingest_folder(raw_dir: Path, ds: Dataset, opts: IngestOptions, progress: Pro
     outcomes += failures
     for files in groups:
         bad = [p for p in files if p in unreadable]
-        twins = [p for k, p in enumerate(files) if digests[p] in {digests[q] for q in files[:k]}]
+        twins = identical_pairs(files, digests)
         if bad:
             outcomes.append(SceneOutcome(None, files, "; ".join(f"{p.name} is unreadable ({unreadable[p]})" for p in bad),
                                          "failed"))
         elif twins:
-            first = next(q for q in files if digests[q] == digests[twins[0]])
-            outcomes.append(SceneOutcome(None, files, f"{first.name} and {twins[0].name} are the same file (identical "
+            first, twin = twins[0]
+            outcomes.append(SceneOutcome(None, files, f"{first.name} and {twin.name} are the same file (identical "
                                                       "content): a scene needs one shot per polarizer angle", "failed"))
         else:
             outcomes.append(ingest_group(ds, files, opts, progress))
