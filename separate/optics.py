@@ -353,11 +353,13 @@ def stokes_from_polarization(s0: np.ndarray, dolp: np.ndarray | float, aolp: np.
     return np.stack(np.broadcast_arrays(s0, s0 * dolp * np.cos(2 * aolp), s0 * dolp * np.sin(2 * aolp)))
 
 
-def dolp(stokes: Array, eps: float = 1e-8) -> Array:
+def dolp(stokes: Array, eps: float = 1e-8, floor: float | None = None) -> Array:
     """Degree of linear polarization sqrt(S1²+S2²)/S0 for a (3, ...) stack: in [0, 1] for
-    physical Stokes vectors, above 1 where noise makes them unphysical (not clipped)."""
+    physical Stokes vectors, above 1 where noise makes them unphysical (not clipped). S0 + ``eps``
+    is the divisor, or, with ``floor``, S0 read as at least ``floor`` (dark or negative S0)."""
     xp = _xp(stokes)
-    return xp.sqrt(stokes[1] ** 2 + stokes[2] ** 2) / (stokes[0] + eps)
+    s0 = stokes[0] + eps if floor is None else xp.maximum(stokes[0], _like(np.asarray(floor), stokes))
+    return xp.hypot(stokes[1], stokes[2]) / s0
 
 
 def aolp(stokes: Array) -> Array:
@@ -388,6 +390,14 @@ def mixture_coefficients(r_s: Array, r_p: Array) -> tuple[Array, Array]:
     q = (R_s + R_p)/(R_s − R_p) (numpy or torch, broadcasting)."""
     ratio = (r_s + r_p) / (r_s - r_p)
     return ratio * (1 - r_p), -ratio * (1 - r_s)
+
+
+def mixture_coefficient_slopes(r_s: Array, r_p: Array, dr_s: Array, dr_p: Array) -> tuple[Array, Array]:
+    """Derivatives (da, db) of `mixture_coefficients` for reflectance derivatives dR_s, dR_p (e.g.
+    per radian of θ, `fresnel_reflectance_and_slope`)."""
+    ratio = (r_s + r_p) / (r_s - r_p)
+    dratio = 2 * (r_s * dr_p - r_p * dr_s) / (r_s - r_p) ** 2
+    return dratio * (1 - r_p) - ratio * dr_p, ratio * dr_s - dratio * (1 - r_s)
 
 
 def mixture_inverse(i_perp: Array, i_par: Array, r_s: Array, r_p: Array) -> tuple[Array, Array]:

@@ -107,6 +107,8 @@ TAILS_TURN_MI_RATIO = 0.5
 #: The angles of incidence (deg) searched by `separate.incidence` and its step.
 INCIDENCE_RANGE_DEG = (10.0, 80.0)
 INCIDENCE_STEP_DEG = 2.0
+#: The least S0 (linear) a DoLP divides by here: dark pixels give a finite ratio.
+DARK = 1e-12
 
 
 class Basis(enum.Enum):
@@ -189,7 +191,7 @@ def _statistics(images: np.ndarray, phi: np.ndarray, white: float) -> tuple[np.n
     clipped = clipped_mask(images, white)
     lum, saturated = _reduce_stack(images, clipped)
     stokes = optics.stokes_from_images(lum, phi)
-    edge = np.hypot(*np.gradient(stokes[0])) / np.maximum(stokes[0], 1e-12)
+    edge = np.hypot(*np.gradient(stokes[0])) / np.maximum(stokes[0], DARK)
     stokes = np.stack([cv2.blur(s, (BLUR, BLUR)) for s in stokes])
     usable = (cv2.blur(saturated.astype(np.float32), (BLUR, BLUR)) == 0) & (stokes[0] > 0)
     if usable.any():
@@ -201,8 +203,7 @@ def _statistics(images: np.ndarray, phi: np.ndarray, white: float) -> tuple[np.n
 
 def _signed_dolp(stokes: np.ndarray, phi_perp: float) -> np.ndarray:
     """Signed DoLP along ``phi_perp`` (rad): (S1 cos 2φ⊥ + S2 sin 2φ⊥)/S0."""
-    along = stokes[1] * np.cos(2 * phi_perp) + stokes[2] * np.sin(2 * phi_perp)
-    return along / np.maximum(stokes[0], 1e-12)
+    return optics.rotate_stokes(stokes, phi_perp)[1] / np.maximum(stokes[0], DARK)
 
 
 def estimate_reference(images: np.ndarray, angles_deg: Sequence[float], white: float = 1.0) -> ReferenceEstimate:
@@ -223,17 +224,16 @@ def estimate_reference(images: np.ndarray, angles_deg: Sequence[float], white: f
 
 def _estimate(stokes: np.ndarray, usable: np.ndarray, fallback_deg: float) -> ReferenceEstimate:
     """`estimate_reference` on reduced Stokes images (3, h, w) and their usable pixels."""
-    s0, s1, s2 = (s[usable] for s in stokes)
-    lin = np.hypot(s1, s2)
-    dolp = np.clip(lin / np.maximum(s0, 1e-12), 0.0, 1.0)
+    s0, s1, s2 = picked = stokes[:, usable]
+    dolp = np.clip(optics.dolp(picked, floor=DARK), 0.0, 1.0)
     weight = dolp**2 * s0
     total = weight.sum()
     if s0.size == 0 or total <= 0:
         return ReferenceEstimate(fallback_deg, 0.0, Basis.NONE, (0.0, 0.0))
-    unit4 = ((s1**2 - s2**2) + 2j * s1 * s2) / np.maximum(lin, 1e-30) ** 2       # exp(4i·AoLP)
+    unit4 = ((s1**2 - s2**2) + 2j * s1 * s2) / np.maximum(np.hypot(s1, s2), 1e-30) ** 2       # exp(4i·AoLP)
     resultant = (weight * unit4).sum() / total
     axis = float(np.angle(resultant)) / 4
-    signed = _signed_dolp(np.stack([s0, s1, s2]), axis)
+    signed = _signed_dolp(picked, axis)
     lo, hi = (float(q) for q in np.percentile(signed, [TAIL_PERCENT, 100 - TAIL_PERCENT]))
     mass_pos = float((s0 * np.maximum(signed, 0) ** 2).sum())
     mass_neg = float((s0 * np.maximum(-signed, 0) ** 2).sum())
@@ -324,9 +324,9 @@ def _field(stokes: np.ndarray, usable: np.ndarray, reference_deg: float) -> np.n
     `estimate_reference_field`)."""
     s0, s1, s2 = stokes
     h, w = s0.shape
-    dolp = np.hypot(s1, s2) / np.maximum(s0, 1e-12)
+    dolp = optics.dolp(stokes, floor=DARK)
     weight = np.where(usable, np.clip(dolp, 0.0, 1.0) ** 2 * np.maximum(s0, 0.0), 0.0).ravel()
-    gap = np.mod(np.degrees(0.5 * np.arctan2(s2, s1)) - reference_deg + 45.0, 90.0).ravel() - 45.0
+    gap = np.mod(np.degrees(optics.aolp(stokes)) - reference_deg + 45.0, 90.0).ravel() - 45.0
     ys, xs = np.mgrid[-1.0 : 1.0 : h * 1j, -1.0 : 1.0 : w * 1j]
     terms = np.stack([np.ones(h * w), xs.ravel(), ys.ravel(), xs.ravel() ** 2, (xs * ys).ravel(), ys.ravel() ** 2], axis=1)
     total = weight.sum()
@@ -411,7 +411,7 @@ def _warnings(images: np.ndarray, angles_deg: Sequence[float], lum: np.ndarray, 
         warnings.append(f"the {n} shots are identical within {100 * spread:.2f}% although their angles differ: "
                         "the polarizer is not turning (or not in the light path); nothing can be separated")
         return warnings
-    dolp = np.hypot(stokes[1], stokes[2]) / np.maximum(stokes[0], 1e-12)
+    dolp = optics.dolp(stokes, floor=DARK)
     level = float(np.percentile(dolp[usable], 98)) if usable.any() else 0.0
     if level < WEAK_DOLP:
         warnings.append(f"the shots show too little polarization to separate anything (98% of pixels below DoLP "

@@ -27,6 +27,7 @@ import numpy as np
 
 from separate import synthesis
 from urd.core import samples
+from urd.core.images import linear_to_u16
 
 from toolargs import Formatter, scratch
 
@@ -63,7 +64,7 @@ def copy_captures(out: Path) -> None:
             if max(stack.shape[1:3]) == max(whole.shape[:2]):    # read whole: the same pixels, compressed harder
                 cv2.imwrite(str(target), whole, [cv2.IMWRITE_PNG_COMPRESSION, 9])
                 continue
-            codes = np.round(np.clip(stack[k], 0, 1) * 65535).astype(np.uint16)
+            codes = linear_to_u16(stack[k])
             cv2.imwrite(str(target), codes[..., ::-1], [cv2.IMWRITE_PNG_COMPRESSION, 9])
 
 

@@ -25,6 +25,7 @@ import torch
 
 import urd
 from acquire.virtual_camera import GlassScene, make_glass_scene
+from urd.core.images import linear_to_u16
 
 from toolargs import Formatter, positive, scene_size
 
@@ -54,7 +55,7 @@ def scene_stack(width: int, height: int, strong: bool) -> tuple[np.ndarray, list
     angles = [0.0, 45.0, 90.0]
     shots = np.empty((3, height, width, 3), np.uint16)
     for k, angle in enumerate(angles):
-        shots[k] = np.clip(np.round(scene.render(np.radians(angle)) * 65535), 0, 65535)
+        shots[k] = linear_to_u16(scene.render(np.radians(angle)))
     return shots, angles
 
 

@@ -7,7 +7,7 @@ from typing import NamedTuple
 import numpy as np
 
 from separate import optics
-from separate.optics import Array, mixture_inverse
+from separate.optics import mixture_inverse
 
 
 class Interval(NamedTuple):
@@ -44,14 +44,6 @@ def fresnel_inverse(i_perp: np.ndarray, i_par: np.ndarray, theta: np.ndarray | f
     r_s, r_p = optics.expand_map(r_s, i_perp), optics.expand_map(r_p, i_perp)
     r_obs, t_obs = mixture_inverse(i_perp, i_par, r_s, r_p)
     return r_obs.astype(np.float32), t_obs.astype(np.float32)
-
-
-def mixture_coefficient_slopes(r_s: Array, r_p: Array, dr_s: Array, dr_p: Array) -> tuple[Array, Array]:
-    """Derivatives (da, db) of `separate.optics.mixture_coefficients` for reflectance derivatives dR_s, dR_p
-    (e.g. per radian of θ, `separate.optics.fresnel_reflectance_and_slope`)."""
-    ratio = (r_s + r_p) / (r_s - r_p)
-    dratio = 2 * (r_s * dr_p - r_p * dr_s) / (r_s - r_p) ** 2
-    return dratio * (1 - r_p) - ratio * dr_p, ratio * dr_s - dratio * (1 - r_s)
 
 
 def luminance(image: np.ndarray) -> np.ndarray:

@@ -39,7 +39,7 @@ import numpy as np
 import torch
 
 from separate import optics
-from separate.baselines.common import Interval, canonical, fresnel_inverse, luminance, mixture_coefficient_slopes
+from separate.baselines.common import Interval, canonical, fresnel_inverse, luminance
 
 PENALTY = 1e3
 
@@ -66,7 +66,7 @@ def _energy(theta: np.ndarray, i_perp: np.ndarray, i_par: np.ndarray, smoothness
     angle = torch.from_numpy(theta)                              # torch's float64 cos/sin: ~8× numpy's here
     r_s, r_p, dr_s, dr_p = (r.numpy() for r in optics.fresnel_reflectance_and_slope(angle))
     a, b = optics.mixture_coefficients(r_s, r_p)
-    da, db = mixture_coefficient_slopes(r_s, r_p, dr_s, dr_p)
+    da, db = optics.mixture_coefficient_slopes(r_s, r_p, dr_s, dr_p)
     s0 = i_perp + i_par
     r_hat = a * i_perp + b * i_par
     t_hat = s0 - r_hat

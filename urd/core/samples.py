@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from urd.core.errors import RawFormatError
-from urd.core.images import read_image, read_raw_codes
+from urd.core.images import codes_to_linear, read_image, read_raw_codes
 from urd.core.mosaic import Demosaic, MosaicLayout, demosaic
 
 SHARED = Path(__file__).resolve().parents[3] / "shared" / "data" / "polarization"
@@ -99,7 +99,7 @@ def load(capture: Capture, max_side: int | None = None, method: Demosaic = Demos
     if capture.kind == "mosaic":
         frame = read_raw_codes(capture.files[0])
         codes, angles = demosaic(frame, MosaicLayout.IMX250MZR, method)
-        stack = np.clip(codes.astype(np.float32) / float(np.iinfo(frame.dtype).max), 0.0, 1.0)   # linear sensor codes
+        stack = codes_to_linear(codes, frame.dtype)                      # linear sensor codes
         if stack.shape[-1] == 1:
             stack = np.repeat(stack, 3, axis=-1)
         shots = [_reduce(np.ascontiguousarray(shot), max_side) for shot in stack]
@@ -108,7 +108,7 @@ def load(capture: Capture, max_side: int | None = None, method: Demosaic = Demos
         codes = cv2.imread(str(capture.files[0]), cv2.IMREAD_GRAYSCALE)    # LZW TIFF: OpenCV reads it, tifffile needs imagecodecs
         if codes is None:
             raise RawFormatError(f"{capture.files[0]}: not an image file urd can read")
-        frame = (codes[::-1, :, None] / np.float32(255.0)).astype(np.float32)
+        frame = codes_to_linear(codes[::-1, :, None], codes.dtype)
         cells = [(a, frame[i::2, j::2]) for i, row in enumerate(HAGEN_CELL_DEG) for j, a in enumerate(row)]
         cells.sort(key=lambda cell: cell[0])
         h, w = (min(c.shape[k] for _, c in cells) for k in (0, 1))
