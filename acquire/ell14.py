@@ -59,6 +59,11 @@ STATUS: dict[int, str] = {
 BUSY = 9
 REPLY = re.compile(rb"^([0-9A-F])([A-Z]{2})([0-9A-Za-z]*)\r\n$")
 ELL14_TYPE = 0x0E
+#: The data each reply urd reads must carry, and its description for a message: a reply with
+#: other data is garbled (line noise) and is asked for again, like one that does not parse.
+INFO_DATA = r"[0-9A-F]{2}[0-9A-Za-z]{8}[0-9]{4}[0-9A-F]{4}[0-9A-F]{4}[0-9A-F]{8}"
+REPLY_DATA = {"PO": (r"[0-9A-F]{8}", "8 hex digits (a position)"), "GS": (r"[0-9A-F]{2}", "2 hex digits (a status)"),
+              "IN": (INFO_DATA, "30 characters (type, serial, year, firmware, travel, pulses per turn)")}
 
 
 class DeviceStatusError(DeviceError):
@@ -83,8 +88,8 @@ class Ell14Info:
 
 def parse_info(data: str) -> Ell14Info:
     """Parse the data of an ``IN`` reply (30 characters); ProtocolError if malformed."""
-    if not re.fullmatch(r"[0-9A-F]{2}[0-9A-Za-z]{8}[0-9]{4}[0-9A-F]{4}[0-9A-F]{4}[0-9A-F]{8}", data):
-        raise ProtocolError(f"malformed ELL14 info reply {data!r}")
+    if not re.fullmatch(INFO_DATA, data):
+        raise ProtocolError(f"malformed ELL14 info reply {data!r}: expected {REPLY_DATA['IN'][1]}")
     return Ell14Info(
         device_type=int(data[0:2], 16),
         serial_number=data[2:10],
@@ -203,14 +208,17 @@ class Ell14:
             try:
                 while True:
                     code, data = self._read_reply(deadline)
+                    pattern, meaning = REPLY_DATA.get(code, (r".*", ""))
+                    if not re.fullmatch(pattern, data):
+                        raise ProtocolError(f"garbled reply {code}{data} to command {command!r}: expected {code} with {meaning}")
                     if code == "GS" and "GS" not in expect:
-                        status = int(data, 16) if re.fullmatch(r"[0-9A-F]{2}", data) else -1
+                        status = int(data, 16)
                         if status == BUSY or status == 0:
                             continue
                         raise DeviceStatusError(status, self.address)
                     if code in expect:
                         return code, data
-                    raise ProtocolError(f"unexpected reply {code}{data} to command {command!r}")
+                    raise ProtocolError(f"unexpected reply {code}{data} to command {command!r}: expected {' or '.join(expect)}")
             except (DeviceTimeoutError, ProtocolError) as exc:
                 if attempt >= self.retries:
                     raise

@@ -99,9 +99,9 @@ def run_capture(
         raise ManifestError(f"{scene.manifest_path}: scene was captured with angles {planned}, "
                             f"not {list(angles_deg)}; use a new scene")
     offset_deg, tolerance_deg = scene.capture_settings()
+    scene.remove_stale()                                  # refuses a scene holding a link before anything is made in it
     raw_dir = scene.path / "raw"
     raw_dir.mkdir(exist_ok=True)
-    scene.remove_stale()
     done = {shot.index for shot in scene.shots()}
     measured = pending = meta = None
     for step in plan_capture(angles_deg, done):
@@ -309,6 +309,9 @@ def capture_scene(root: Path, stage: str, camera: str, angles_deg: list[float] |
                 raise capture_stopped(exc, "capture", _stopped(scene, ds.root)) from None
             except (UrdError, OSError) as exc:
                 raise UrdError(f"{exc}\ncapture of {scene.name} stopped; {_stopped(scene, ds.root)}") from exc
+            except Exception as exc:                       # a defect: its traceback, and the scene left tidy
+                exc.add_note(f"capture of {scene.name} stopped; {_stopped(scene, ds.root)}")
+                raise
     return scene
 
 

@@ -62,6 +62,26 @@ def test_garbled_reply_is_retried(scripted_peer):
     peer.check()
 
 
+@pytest.mark.parametrize("reply", [b"0PO0000AKCD\r\n", b"0PO\r\n", b"0PO000046\r\n", b"0GSZZ\r\n"])
+def test_a_reply_whose_data_is_garbled_is_asked_for_again(scripted_peer, reply):
+    """Line noise inside the data (the frame still parses) is a garbled reply, retried like one
+    that does not parse; without retries it is a ProtocolError saying what was expected."""
+    retried = []
+    peer = scripted_peer([(b"0in", INFO), (b"0ma00004600", reply), (b"0ma00004600", b"0PO00004600\r\n")])
+    with open_port(peer.port_name) as port:
+        stage = Ell14(port, retries=1)
+        stage.info()
+        stage.on_retry = retried.append
+        assert stage.move_to(45.0) == pytest.approx(45.0)
+    peer.check()
+    assert len(retried) == 1 and "a garbled reply to 'ma00004600'" in retried[0]
+    peer = scripted_peer([(b"0gp", reply)])
+    with open_port(peer.port_name) as port:
+        with pytest.raises(ProtocolError, match=r"garbled reply .* to command 'gp': expected (PO with 8 hex digits|GS with 2)"):
+            Ell14(port, retries=0).position()
+    peer.check()
+
+
 def test_lost_reply_times_out_after_bounded_retries(scripted_peer):
     peer = scripted_peer([(b"0gs", b""), (b"0gs", b""), (b"0gs", b"")])
     with open_port(peer.port_name) as port:
