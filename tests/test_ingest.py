@@ -208,6 +208,7 @@ def test_shots_taken_together_split_into_several_scenes_are_pointed_out(tmp_path
                             "one capture at 6 angles, move those scenes away and ingest the files again with --angles"]
 
 
+@pytest.mark.slow
 def test_shots_aligned_and_written_two_at_a_time_are_the_bytes_of_one_at_a_time(tmp_path, monkeypatch):
     import urd.ingest as ingest_module
     from urd.core.align import luminance
@@ -252,3 +253,25 @@ def test_a_counter_rolling_over_among_shots_of_one_second_is_named(tmp_path):
     assert counter_wraps(["IMG_9998.CR2", "IMG_9999.CR2", "IMG_0001.CR2"])
     assert not counter_wraps(["IMG_0041.CR2", "IMG_0042.CR2", "IMG_0043.CR2"])
     assert not counter_wraps(["shot_00_000.0deg.dng", "a.dng"]) and not counter_wraps(["DSC_1.NEF", "DSC_2.NEF"])
+
+
+def test_a_scene_failing_with_an_os_error_is_reported_and_the_next_is_ingested(tmp_path, monkeypatch):
+    """One scene's failure outside urd's own errors (EIO of a network share while it is read)
+    fails that scene, named, as with --jobs; the scenes after it are still ingested."""
+    import urd.ingest as ingest_module
+
+    ds = Dataset.open_or_create(tmp_path / "ds")
+    first, _ = capture_virtual(ds, size=(96, 64), shake_px=1.0, shake_deg=0.1, seed=1)
+    second, _ = capture_virtual(ds, size=(96, 64), shake_px=1.0, shake_deg=0.1, seed=2)
+    process = ingest_module.process_scene
+
+    def flaky(scene, *args, **kwargs):
+        if scene.name == first.name:
+            raise OSError(5, "Input/output error", str(scene.path / "raw"))
+        return process(scene, *args, **kwargs)
+
+    monkeypatch.setattr(ingest_module, "process_scene", flaky)
+    report = ingest_module.ingest(ds.root, ds.root, IngestOptions())
+    states = {o.name: (o.state, o.error) for o in report.outcomes}
+    assert states[first.name][0] == "failed" and states[first.name][1].startswith("OSError: [Errno 5] Input/output error")
+    assert states[second.name] == ("ingested", None)

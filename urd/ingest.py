@@ -37,7 +37,8 @@ import tifffile
 from acquire.plan import resume_command
 from urd.core import raw as rawio
 from urd.core.align import Alignment, Motion, align, apply_warp, prepare_target
-from urd.core.dataset import STAGING_PREFIX, Dataset, Scene
+from urd.core.dataset import Dataset, Scene
+from urd.core.swap import STAGING_PREFIX
 from urd.core.errors import AlignmentError, DatasetError, RawFormatError, UrdError
 from urd.core.files import atomic_path, sha256_file
 from urd.core.processes import kept_note, process_pool
@@ -406,9 +407,15 @@ def ingest_scene(scene: Scene, opts: IngestOptions, progress: Progress | None = 
         notes = _exposure_notes(scene)
         scene.check_files([{"file": s.file, "size": s.size, "sha256": s.sha256} for s in scene.shots()])
         process_scene(scene, opts, progress)
-    except UrdError as exc:
-        return SceneOutcome(scene.name, [], str(exc), "failed")
+    except Exception as exc:  # noqa: BLE001 - one scene's failure, whatever it is, must not stop the others
+        return SceneOutcome(scene.name, [], failure_message(exc), "failed")
     return _outcome(scene, notes)
+
+
+def failure_message(exc: Exception) -> str:
+    """What a scene's failed outcome says: urd's own message, else the exception's type and text
+    (an OSError of a network share, a decoder's error)."""
+    return str(exc) if isinstance(exc, UrdError) else f"{type(exc).__name__}: {exc}"
 
 
 def _prepare_worker(path: str, opts: IngestOptions) -> PreparedIngest:
@@ -449,8 +456,7 @@ def ingest_scenes(scenes: list[Scene], opts: IngestOptions, jobs: int, progress:
                     commit_ingest(scene, future.result(), opts)
                     outcomes.append(_outcome(scene, notes[scene.name]))
                 except Exception as exc:  # noqa: BLE001 - one scene's failure, whatever it is, must not stop the others
-                    outcomes.append(SceneOutcome(scene.name, [], str(exc) if isinstance(exc, UrdError)
-                                                 else f"{type(exc).__name__}: {exc}", "failed"))
+                    outcomes.append(SceneOutcome(scene.name, [], failure_message(exc), "failed"))
                 if progress:
                     progress(done, len(todo), label)
     except KeyboardInterrupt as exc:
@@ -480,8 +486,8 @@ def ingest_group(ds: Dataset, files: list[Path], opts: IngestOptions, progress: 
             process_scene(staged, opts, named)          # the staged scene has no name yet: its first file's
             ok, error = staged.ingest_outcome()
             scene = ds.adopt_scene(staged.path)
-    except UrdError as exc:
-        message = re.sub(rf"\S*{re.escape(STAGING_PREFIX)}[^/\s]*/raw/", "", str(exc))    # the staged copies' folder
+    except Exception as exc:  # noqa: BLE001 - one group's failure, whatever it is, must not stop the others
+        message = re.sub(rf"\S*{re.escape(STAGING_PREFIX)}[^/\s]*/raw/", "", failure_message(exc))    # the staged copies' folder
         if isinstance(exc, AlignmentError) and "differs from" in message:
             message += ("; shots of another camera or setting fell into this scene: put them in another folder, or "
                         "split the scenes with a smaller --gap")
