@@ -424,3 +424,16 @@ def test_a_hard_link_in_a_scene_is_replaced_never_written_through(base, tmp_path
     assert invoke("separate", "scene_01", "--dataset", root, "--method", "none", "--force").exit_code == 0
     assert snapshot(outside) == before
     assert invoke("verify", root).exit_code == 0
+
+
+@pytest.mark.parametrize("damage", ["{not json", '{"schema_version": 1, "shots": 7}'])
+def test_maps_asked_of_a_scene_whose_manifest_is_damaged_is_one_error_line(tmp_path, damage):
+    """``urd separate SCENE --maps`` reads the scene's results before anything else: a damaged
+    scene.json is exit 1 with urd's message, not a traceback."""
+    ds = Dataset.open_or_create(tmp_path / "ds")
+    scene = separated_virtual_scene(ds)
+    (scene.path / "scene.json").write_text(damage)
+    result = CliRunner().invoke(app, ["separate", scene.name, "--dataset", str(ds.root), "--maps", "--method", "none"])
+    assert result.exit_code == 1, result.output
+    assert isinstance(result.exception, SystemExit)
+    assert result.output.startswith("Error: ") and "scene.json" in result.output

@@ -136,9 +136,9 @@ def bench_semireal(methods: Optional[str], weights: Optional[Path], out: Optiona
     bar = TerminalProgress()
     tables, records = run_guarded(run_semireal, chosen, weights, progress=bar)
     bar.close()
-    write_bytes_atomic(folder / "tables.md", tables.encode(), overwrite=True)
-    write_bytes_atomic(folder / "scenes.json", json.dumps(records, indent=1).encode(), overwrite=True)
-    typer.echo(tables)
+    typer.echo(tables)                                   # shown first: a folder gone or a disk full loses no result
+    run_guarded(write_bytes_atomic, folder / "tables.md", tables.encode(), overwrite=True)
+    run_guarded(write_bytes_atomic, folder / "scenes.json", json.dumps(records, indent=1).encode(), overwrite=True)
     typer.echo(f"wrote {(folder / 'tables.md').resolve()} and scenes.json")
 
 
@@ -153,8 +153,8 @@ def bench_virtual(methods: Optional[str], out: Optional[Path]) -> None:
     bar = TerminalProgress()
     tables = run_guarded(run_virtual_bench, chosen, progress=bar)
     bar.close()
-    write_bytes_atomic(folder / "tables.md", tables.encode(), overwrite=True)
-    typer.echo(tables)
+    typer.echo(tables)                                   # shown first: a folder gone or a disk full loses no result
+    run_guarded(write_bytes_atomic, folder / "tables.md", tables.encode(), overwrite=True)
     typer.echo(f"wrote {(folder / 'tables.md').resolve()}")
 
 

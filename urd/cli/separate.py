@@ -133,7 +133,7 @@ def separate(
                  "default); a photo from an ordinary camera or an editor's export is sRGB-encoded: pass --transfer srgb for it")
         run_guarded(check_no_results_in, out, force)
     target = None if images or all_scenes else run_guarded(resolve_scene, scene, dataset)
-    adding_maps = target is not None and maps and not force and method in target.methods()
+    adding_maps = target is not None and maps and not force and method in run_guarded(target.methods)
     if adding_maps:
         fixed = ("reference",) if "reference_deg.tiff" in run_guarded(target.result, method).files else ()
         ignored = [f"--{name.replace('_', '-')}" for name in ("weights", "tile", "precision", "device", "colour_match",
@@ -143,7 +143,8 @@ def separate(
             raise usage(f"{', '.join(ignored)}: {target.name} has {method} results, to which --maps adds the maps "
                         "without separating again (at the reference they were separated at); pass --force to "
                         "separate again with these options")
-        if target.status().stale and method in target.status().stale:
+        stale = run_guarded(target.status).stale
+        if stale and method in stale:
             raise usage(f"{target.name}'s {method} results are stale (the scene changed since they were made): maps of "
                         "the new shots would not match them; pass --force to separate again with maps")
     if target is not None and not force and not adding_maps:
