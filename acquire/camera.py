@@ -17,6 +17,8 @@ from typing import Protocol
 
 from urd.core import raw as rawio
 from urd.core.errors import DeviceError, DeviceTimeoutError, RawFormatError
+from urd.core.processes import killed_with_this_process
+from urd.core.swap import DOWNLOAD_PREFIX
 
 
 class CameraKind(enum.Enum):
@@ -62,7 +64,8 @@ class Gphoto2Camera:
     def _run(self, args: list[str], what: str, cwd: Path | None = None) -> str:
         cmd = [self.executable] + (["--port", self.port] if self.port else []) + args
         try:
-            done = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, timeout=self.timeout_s)
+            done = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, timeout=self.timeout_s,
+                                  preexec_fn=killed_with_this_process())
         except subprocess.TimeoutExpired as exc:
             raise DeviceTimeoutError(f"gphoto2 did not {what} within {self.timeout_s:.0f} s") from exc
         if done.returncode != 0:
@@ -80,7 +83,7 @@ class Gphoto2Camera:
         """A real scene has no ground truth: nothing is written."""
 
     def capture(self, folder: Path, index: int) -> tuple[Path, dict]:
-        with tempfile.TemporaryDirectory(dir=folder, prefix=".gphoto2-") as tmp:
+        with tempfile.TemporaryDirectory(dir=folder, prefix=DOWNLOAD_PREFIX) as tmp:     # a kill's leftover: `remove_stale`
             self._run(["--capture-image-and-download", "--keep", "--filename", "shot.%C", "--force-overwrite"],
                       "trigger and download", cwd=Path(tmp))           # --keep: the card keeps every shot too
             files = sorted(Path(tmp).iterdir())

@@ -19,7 +19,8 @@ from urd.core.errors import DeviceError
 @pytest.fixture
 def fake_gphoto2(tmp_path, monkeypatch):
     """A `gphoto2` that answers --summary and writes a DNG for --capture-image-and-download;
-    FAKE_GPHOTO2_MODE=fail makes it fail like a camera that is off, =jpeg saves only a JPEG."""
+    FAKE_GPHOTO2_MODE=fail makes it fail like a camera that is off, =jpeg saves only a JPEG, =hang
+    writes its pid into hung.pid and waits a minute (a camera that never answers)."""
     fixture = tmp_path / "fixture.dng"
     cfa = (np.random.default_rng(0).random((32, 48)) * 3000 + 300).astype(np.uint16)
     write_dng(fixture, cfa, 256, 4095, (0.5, 1.0, 0.7), exposure_s=1 / 250, model="fake")
@@ -39,6 +40,10 @@ def fake_gphoto2(tmp_path, monkeypatch):
         if "--summary" in args:
             print("Camera summary:\\nManufacturer: Fake\\nModel: Alpha 6000\\nSerial Number: 1234")
         elif "--capture-image-and-download" in args:
+            if mode == "hang":
+                import time
+                open({str(tmp_path / 'hung.pid')!r}, "w").write(str(os.getpid()))
+                time.sleep(60)
             name = args[args.index("--filename") + 1]
             if mode == "jpeg":
                 open(name.replace("%C", "jpg"), "wb").write(b"jpeg")
@@ -80,3 +85,57 @@ def test_urd_capture_with_gphoto2_and_the_simulated_stage(fake_gphoto2, tmp_path
     assert out.returncode == 0, out.stderr
     record = Dataset.open(tmp_path / "ds").scene("scene_01").load()
     assert record["capture"]["camera"]["model"] == "Alpha 6000" and len(record["shots"]) == 3
+
+
+def _alive(pid: int) -> bool:
+    """The process exists and is not a zombie (a container's init may not reap it)."""
+    try:
+        with open(f"/proc/{pid}/stat") as stat_file:
+            return stat_file.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the parent-death signal is Linux's")
+def test_gphoto2_dies_with_a_capture_killed_while_it_waits_for_the_camera(fake_gphoto2, tmp_path, monkeypatch):
+    """gphoto2 is started so that Linux kills it when urd dies, even by SIGKILL (it would go on
+    holding the camera's USB claim)."""
+    import signal
+    import time
+
+    monkeypatch.setenv("FAKE_GPHOTO2_MODE", "ok")
+    capture = subprocess.Popen([sys.executable, "-c", textwrap.dedent(f"""\
+        import os
+        from pathlib import Path
+        from acquire.camera import Gphoto2Camera
+        camera = Gphoto2Camera()
+        os.environ["FAKE_GPHOTO2_MODE"] = "hang"
+        camera.capture(Path({str(tmp_path)!r}), 0)
+        """)], env=os.environ)
+    pid_file = tmp_path / "hung.pid"
+    deadline = time.monotonic() + 60
+    while not (pid_file.exists() and pid_file.read_text()) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    hung = int(pid_file.read_text())
+    assert _alive(hung)
+    capture.send_signal(signal.SIGKILL)
+    capture.wait()
+    deadline = time.monotonic() + 10
+    while _alive(hung) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not _alive(hung)
+
+
+def test_a_download_folder_a_killed_capture_left_is_removed_with_the_other_leftovers(tmp_path):
+    from rig import capture_virtual
+    from urd.core.swap import DOWNLOAD_PREFIX
+
+    ds = Dataset.open_or_create(tmp_path / "ds")
+    scene, _ = capture_virtual(ds, size=(96, 64), shake_px=1.0, shake_deg=0.1)
+    left = scene.path / "raw" / f"{DOWNLOAD_PREFIX}k2v9"
+    left.mkdir()
+    (left / "shot.arw").write_bytes(b"a RAW file half downloaded")
+    shots = sorted(p.name for p in (scene.path / "raw").iterdir() if not p.name.startswith("."))
+    removed = scene.remove_stale()
+    assert left in removed and not left.exists()
+    assert sorted(p.name for p in (scene.path / "raw").iterdir() if not p.name.startswith(".")) == shots

@@ -22,7 +22,7 @@ import signal
 import sys
 import threading
 import time
-from typing import Iterator
+from typing import Callable, Iterator
 
 from urd.core.errors import CaptureInterrupted
 from urd.core.progress import plural
@@ -81,6 +81,16 @@ def die_with_parent(parent: int) -> None:
     if os.getppid() != parent:
         os._exit(1)
     threading.Thread(target=_watch, args=(parent,), name="urd-parent-watchdog", daemon=True).start()
+
+
+def killed_with_this_process() -> Callable[[], None] | None:
+    """A ``preexec_fn`` for a child program (`subprocess.run`) asking Linux to SIGKILL it when this
+    process dies, even by SIGKILL (the camera's gphoto2, which would go on holding the camera's
+    USB claim); None on other systems. libc is loaded here, before the fork."""
+    if not sys.platform.startswith("linux"):
+        return None
+    prctl = ctypes.CDLL(None, use_errno=True).prctl
+    return lambda: prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
 
 
 def _watch(parent: int) -> None:

@@ -20,6 +20,8 @@ from urd.core.manifest import confined_path
 from urd.core.truth import TRUTH_FILE
 
 STAGING_PREFIX = ".staging-"
+#: Prefix of the folder a camera downloads one shot into, inside ``raw/`` (`acquire.camera`).
+DOWNLOAD_PREFIX = ".gphoto2-"
 TEMPORARY = re.compile(r"^\..+(\.tmp(\.[^.]+)?|\.\d+\.link)$")   # `urd.core.files.atomic_path` and `_place` leftovers
 
 
@@ -247,14 +249,17 @@ class SceneSwap:
         return removed
 
     def remove_stale(self) -> list[Path]:
-        """Remove what killed runs left (`recover`), and unrecorded hidden files in ``raw/`` and
-        ``aligned/`` (e.g. a shot downloaded but not stored). Returns what was removed. Call
-        with the dataset's lock held."""
+        """Remove what killed runs left (`recover`), unrecorded hidden files in ``raw/`` and
+        ``aligned/`` (e.g. a shot downloaded but not stored) and a camera's download folders
+        (`DOWNLOAD_PREFIX`). Returns what was removed. Call with the dataset's lock held."""
         removed = self.recover()
         named = {rec["file"] for rec in _file_records(self._data())} if self.exists() else set()
         for folder in (self.path / "raw", self.path / "aligned"):
             for path in folder.glob(".*") if folder.is_dir() else []:
                 if path.is_file() and path.relative_to(self.path).as_posix() not in named:
                     path.unlink()
+                    removed.append(path)
+                elif path.name.startswith(DOWNLOAD_PREFIX) and path.is_dir() and not path.is_symlink():
+                    shutil.rmtree(path)
                     removed.append(path)
         return removed
