@@ -180,3 +180,24 @@ def test_an_interrupted_calibration_sweep_says_what_it_kept_and_is_never_fitted(
     out = invoke("calibrate", "offset", root, *SIM, "--step", "30")
     assert out.exit_code == 0, out.output
     assert json.loads((root / "calibration.json").read_text())["sweep"] == "calibration/sweep_02"
+
+
+@pytest.mark.parametrize("existing", [False, True])
+def test_a_sweep_that_took_no_shot_leaves_no_dataset_behind(tmp_path, existing):
+    """A calibration sweep that fails before its first shot (the stage times out) into a folder
+    that was no dataset leaves no manifest, lock or empty sweep folder there; the user's own files
+    stay, and so does a folder the user made."""
+    root = tmp_path / "cal"
+    if existing:
+        root.mkdir()
+        (root / "notes.txt").write_text("polarizer target, lamp at 30 cm")
+    from acquire.rig import SimSettings
+    from urd.calibration import sweep_and_calibrate
+    from urd.core.errors import UrdError
+
+    with pytest.raises(UrdError, match="no shot was taken, nothing was kept"):
+        sweep_and_calibrate(root, "sim", "virtual", 30.0, 0.0, sim=SimSettings(faults={"mech_timeout": 1.0}, width=64, height=48))
+    if existing:
+        assert sorted(p.name for p in root.iterdir()) == ["notes.txt"]
+    else:
+        assert not root.exists()

@@ -39,8 +39,7 @@ def sweep_and_calibrate(root: Path, stage: str, camera: str, step_deg: float, ta
     """The workflow of ``urd calibrate offset``: sweep the polarizer over 180° in front of a
     polarized target, fit Malus's law, store the offset. Returns the calibration record."""
     angles = [float(a) for a in np.arange(0.0, 180.0, step_deg)]
-    with open_rig(stage, camera, address, sim=sim) as rig:
-        ds = Dataset.open_or_create(root)
+    with open_rig(stage, camera, address, sim=sim) as rig, Dataset.made_for(root) as ds:
         with ds.lock():
             try:
                 ds.calibration()                    # a damaged record stops it before the sweep, not after

@@ -75,15 +75,10 @@ from urd.core.manifest import (
     validate_scene,
 )
 from urd.core.progress import plural
-from urd.core.results import Result as Result
 from urd.core.results import SceneResults
 from urd.core.shots import SceneShots
-from urd.core.shots import Shot as Shot
-from urd.core.swap import STAGING_PREFIX as STAGING_PREFIX
-from urd.core.swap import SceneSwap
-from urd.core.truth import TRUTH_FILE as TRUTH_FILE
+from urd.core.swap import STAGING_PREFIX, SceneSwap
 from urd.core.truth import SceneTruth
-from urd.core.truth import write_truth_record as write_truth_record
 
 DATASET_MANIFEST = "dataset.json"
 SCENE_MANIFEST = "scene.json"
@@ -332,17 +327,21 @@ class Dataset:
         return ds
 
     def remove_if_unused(self, folder_is_new: bool) -> None:
-        """Remove a dataset that holds nothing of urd's (no scene, none being staged, no calibration):
-        its manifest and lock, and its folder when this run made it and it is empty (other files in
-        it are left). For workflows that made the dataset and then failed on every input, so that a
-        failure leaves nothing behind; a dataset another process is using (its lock held) is left alone."""
+        """Remove a dataset that holds nothing of urd's (no scene, none being staged, no calibration,
+        no sweep): its manifest, lock and empty sweep folder, and its folder when this run made it and
+        it is empty (other files in it are left). For workflows that made the dataset and then failed
+        on every input, so that a failure leaves nothing behind; a dataset another process is using
+        (its lock held) is left alone."""
+        sweeps = self.root / SWEEP_FOLDER
         try:
             with self.lock():
-                if any(SCENE_NAME.match(p.name) or p.name.startswith(STAGING_PREFIX) or p.name in (CALIBRATION_FILE, SWEEP_FOLDER)
-                       for p in self.root.iterdir()):
+                if any(SCENE_NAME.match(p.name) or p.name.startswith(STAGING_PREFIX) or p.name == CALIBRATION_FILE
+                       for p in self.root.iterdir()) or (sweeps.is_dir() and any(sweeps.iterdir())):
                     return
                 self.manifest_path.unlink(missing_ok=True)
                 (self.root / LOCK_FILE).unlink(missing_ok=True)          # still held: no one else has it
+                with contextlib.suppress(OSError):
+                    sweeps.rmdir()
                 if folder_is_new:
                     with contextlib.suppress(OSError):
                         self.root.rmdir()
