@@ -28,7 +28,7 @@ from acquire.dng import write_dng
 from separate import optics
 from separate.optics import parabola_aoi, photo_to_linear
 from urd.core import raw as rawio
-from urd.core.dataset import TRUTH_FILE, write_truth_record
+from urd.core.truth import TRUTH_FILE, write_truth_record
 from urd.core.files import atomic_path
 
 
@@ -208,7 +208,7 @@ class VirtualCamera:
         """Write the ground truth in decoded units: R_obs.tiff, T_obs.tiff (float32 H×W×3),
         for glass scenes theta_deg.tiff and phi_perp_deg.tiff (float32 H×W), each atomically,
         then truth.json (gain, camera, and each file's size and SHA-256,
-        `urd.core.dataset.write_truth_record`): its presence marks the folder complete, and
+        `urd.core.truth.write_truth_record`): its presence marks the folder complete, and
         ``urd verify`` checks the files against it. Existing files are replaced."""
         folder.mkdir(parents=True, exist_ok=True)
         s = self.scene

@@ -67,13 +67,20 @@ def malus_fit(stage_angles_deg: np.ndarray, intensities: np.ndarray) -> tuple[np
     return stokes, rms, rms**2 * np.linalg.inv(design.T @ design)
 
 
+#: The least degree of linear polarization a sweep's Malus fit must show for an offset.
+MIN_MODULATION = 0.05
+#: The least unsaturated pixels (of the reduced shots) an angle-error estimate needs.
+MIN_PIXELS = 20
+
+
 def fit_offset(stage_angles_deg: np.ndarray, intensities: np.ndarray, target_angle_deg: float = 0.0) -> OffsetFit:
     """Mounting offset from a sweep: mean intensities of the target at each stage angle (deg);
     the target's polarization axis is at ``target_angle_deg``."""
     stokes, rms, cov = malus_fit(stage_angles_deg, intensities)
     modulation = float(optics.dolp(stokes, eps=0.0)) if stokes[0] > 0 else 0.0
-    if modulation < 0.05:
-        raise CalibrationError(f"the sweep shows almost no Malus modulation ({modulation:.3f}); is the target polarized?")
+    if modulation < MIN_MODULATION:
+        raise CalibrationError(f"the sweep shows almost no Malus modulation: expected a DoLP of at least {MIN_MODULATION:g}, "
+                               f"got {modulation:.3f}; is the target polarized?")
     s1, s2 = stokes[1], stokes[2]
     grad = np.array([0.0, -0.5 * s2, 0.5 * s1]) / (s1**2 + s2**2)      # of AoLP = ½·atan2(S2, S1)
     offset = (target_angle_deg - np.degrees(optics.aolp(stokes))) % 180.0
@@ -177,8 +184,9 @@ def estimate_shot_errors(stack: np.ndarray, nominal_deg: list[float], short_side
                      for img in stack.reshape(n, height, width, -1)])
     h, w = flat.shape[1:3]
     chosen = (flat.max(axis=0) < 0.98) & (flat.min(axis=0) > 0.0)  # unsaturated in every shot
-    if chosen.sum() < 20:
-        raise CalibrationError(f"too few unsaturated pixels ({int(chosen.sum())}) to estimate angle errors")
+    if chosen.sum() < MIN_PIXELS:
+        raise CalibrationError(f"too few unsaturated pixels to estimate angle errors: expected at least {MIN_PIXELS}, "
+                               f"got {int(chosen.sum())}")
     data = flat[:, chosen].astype(np.float64)
     phi, iterations, unobservable = _solve_angles(data, nominal)
     errors = np.degrees(phi - nominal)
