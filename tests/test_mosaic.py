@@ -210,6 +210,7 @@ def test_demosaic_names_are_the_cli_values():
     assert Demosaic("newton") is Demosaic.NEWTON
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["camera", "polarizer"])
 def test_registered_demosaicing_of_real_imx250mzr_frames_removes_false_edge_polarization(name):
     raw = cv2.imread(str(shared_data("polarization", "imx250mzr-polanalyser", f"{name}_IMX250MZR.png")), cv2.IMREAD_UNCHANGED)
@@ -231,6 +232,7 @@ def test_registered_demosaicing_of_real_imx250mzr_frames_removes_false_edge_pola
         assert edge[method] < 1.5 * flat_dolp[method] + 0.01, (method, edge, flat_dolp)   # edges now look like the flat areas
 
 
+@pytest.mark.slow
 def test_registered_demosaicing_of_the_real_wen2019_colour_mosaic_against_its_truth():
     folder = shared_data("polarization", "wen2019-rgbpol", "scene61")
     gt = np.stack([cv2.imread(str(folder / f"gt_{a}.png"))[..., ::-1] for a in (0, 45, 90, 135)]).astype(np.float32)

@@ -196,6 +196,7 @@ def test_log_mse_loss_is_the_mean_log_of_each_samples_error_and_weighs_samples_a
         SeparationNet.loss(outputs, r, t, "l1")
 
 
+@pytest.mark.slow
 def test_config_checks_the_loss_and_a_log_mse_run_trains(tmp_path):
     for text, message in (('loss = "l1"\n', "expected loss in"), ('variant = "ceilnet"\nloss = "log-mse"\n', "'l2' for ceilnet")):
         (tmp_path / "bad.toml").write_text(text)
@@ -492,6 +493,7 @@ def test_paired_gain_is_the_mean_per_patch_difference_with_an_interval_around_it
         paired_gain(rows, "a", "c")
 
 
+@pytest.mark.slow
 def test_benchmark_scores_methods_and_weights_given_by_path():
     from separate.bench import format_aoi_table, run_benchmark
 

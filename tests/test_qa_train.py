@@ -128,6 +128,7 @@ def test_files_of_torch_that_are_not_urd_weights_say_what_they_hold(tmp_path):
         load_checkpoint(tmp_path / "obj.pt")
 
 
+@pytest.mark.slow
 def test_a_toml_given_as_init_is_one_error_line_and_leaves_no_run_folder(tmp_path):
     config = tiny_config(tmp_path)
     out = invoke("train", config, tmp_path / "new" / "run", "--init", config)

@@ -62,6 +62,7 @@ def test_registered_demosaicing_removes_false_edge_polarization_of_real_mosaics(
         assert edge_reg < max(0.8 * edge_raw, flat_reg), (capture.name, edge_raw, edge_reg, flat_reg)  # carps: edges truly polarized
 
 
+@pytest.mark.slow
 def test_ingest_and_separate_a_real_mosaic_through_the_dataset(tmp_path):
     frame = next(c for c in CAPTURES if c.name == "imx250mzr-carps").files[0]
     folder = tmp_path / "frames"
@@ -79,6 +80,7 @@ def test_ingest_and_separate_a_real_mosaic_through_the_dataset(tmp_path):
     assert [o.state for o in again.outcomes] == ["skipped"]
 
 
+@pytest.mark.slow
 def test_a_wine_glass_seen_through_keeps_its_light_in_the_transmission():
     """Lapray's wine glass: one orientation of weak polarization (DoLP up to ~0.27, more than one
     interface gives a transmission) is read as transmitted light; the other side would put about

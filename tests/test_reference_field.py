@@ -298,6 +298,7 @@ def model_angles():
     return NOMINAL_ANGLES
 
 
+@pytest.mark.slow
 def test_the_shipped_network_takes_a_field_tile_by_tile_like_the_presented_stack():
     model, _ = load_model("urd-canonical")              # the shipped network's backbone (the gate adds its own θ estimate)
     obs, angles, phi_true, _, _ = wide_view(h=200, w=272)
@@ -342,6 +343,7 @@ def test_synthesis_switches_no_glass_views_and_turning_s_directions():
     np.testing.assert_allclose(np.degrees(turning["angles"]), [[0.0, 45.0, 90.0]] * 6, atol=1e-4)
 
 
+@pytest.mark.slow
 def test_training_only_the_gate_of_a_fresnel_network_from_canonical_weights(tmp_path):
     from separate.train import save_checkpoint
     start = SeparationNet(width=8, upsample="resize")
@@ -431,6 +433,7 @@ def test_a_side_read_from_the_higher_dolp_is_checked_by_separating_both():
     assert decide_side(obs, angles, inspection, trial) is inspection
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["network", "schechner"])
 def test_an_assumed_side_is_settled_by_separating_both(method):
     from separate.reference import Basis, decide_side, inspect_stack

@@ -19,6 +19,7 @@ needs_captures = pytest.mark.skipif(not NO_GLASS, reason=f"the real polarization
                                     f"shared reference data) are not present: {SHARED_DATA / 'polarization'}")
 
 
+@pytest.mark.slow
 def test_photo_and_capture_pools_are_read_once_per_process_and_cannot_be_written():
     """Training runs, benchmarks and semi-real scene sets of one process share one copy of each pool."""
     pools = [default_pool("val")] + ([real_pool("train")] if NO_GLASS else [])

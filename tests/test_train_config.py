@@ -153,6 +153,7 @@ def test_training_without_the_shared_photos_warns_and_its_model_card_says_what_i
     assert card["training"]["data"].startswith("synthesized from scikit-image's bundled photos, pipeline")
 
 
+@pytest.mark.slow
 def test_ctrl_c_during_the_optimizer_update_takes_effect_after_it(tmp_path, monkeypatch):
     """A checkpoint holds whole updates: Ctrl-C arriving inside ``optim.step`` stops the run after
     it, and last.pt's weights are the update of the step it records."""
