@@ -110,6 +110,12 @@ def network(weights: Path | None = None, tile: int | None = None, precision: str
     from separate.tiling import OVERLAP, check_tiling
     from separate.precision import resolve, resolve_device
 
+    for option, value in (("colour_match", colour_match), ("return_copies", return_copies), ("uses_reference", uses_reference)):
+        if not isinstance(value, (bool, np.bool_)):
+            raise TypeError(f"expected {option} True or False, got {value!r}")
+    if incidence_deg is not None and (isinstance(incidence_deg, (bool, np.bool_)) or not isinstance(incidence_deg, numbers.Real)
+                                      or not 0 < incidence_deg < 90):
+        raise ValueError(f"expected an angle of incidence in (0, 90) deg, got {incidence_deg!r}")
     target = resolve_device(device)
     model, weights_info = load_model(weights)
     name = Path(weights_info["file"]).name
@@ -118,8 +124,6 @@ def network(weights: Path | None = None, tile: int | None = None, precision: str
     anchored = getattr(model, "base", "canonical") == "fresnel"
     if incidence_deg is not None and not anchored:
         raise ValueError(f"an angle of incidence is for a physics-anchored network (urd-anchored), not {name}")
-    if incidence_deg is not None and not 0 < incidence_deg < 90:
-        raise ValueError(f"expected an angle of incidence in (0, 90) deg, got {incidence_deg}")
     tile = check_tiling(default_tile(model, target, precision) if tile is None else tile, OVERLAP)[0]
     chosen = resolve(precision, target).value
     choose = chooser(reference)

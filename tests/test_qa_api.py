@@ -41,8 +41,15 @@ def test_angles_and_codes_urd_cannot_use_are_refused():
         urd.separate(stack, [0, 45, float("nan"), 135], method="schechner")
     with pytest.raises(TypeError, match=r"8- or 16-bit codes"):
         urd.separate(np.rint(stack * 65535).astype(np.uint32), ANGLES, method="schechner")
-    with pytest.raises(ValueError, match="read with 1.0 as the sensor's white"):
+    with pytest.raises(ValueError, match="read with 1.0 as white"):
         urd.separate(stack * 65535, ANGLES, method="schechner")
+    with pytest.raises(ValueError, match=r"read with 0.0 as black, and .* lie below -0.05"):
+        urd.separate(stack * 2 - 1, ANGLES, method="schechner")
+    with pytest.raises(ValueError, match="read with 1.0 as white"):            # the maps read the stack alike
+        urd.polarization_maps(stack * 255, ANGLES)
+    for angles in (45, "0,45,90,135", ["0", "45", "ninety", "135"]):
+        with pytest.raises(TypeError, match="expected the polarizer angles as"):
+            urd.separate(stack, angles, method="schechner")
 
 
 def test_polarization_maps_refuse_a_method_that_cannot_settle_the_side_and_bad_arguments():
@@ -80,3 +87,22 @@ def test_the_stacks_warnings_reach_python_and_a_dark_frame_gives_dark_layers():
     with pytest.warns(UserWarning, match="nothing can be separated"):
         layers = urd.separate(np.zeros((3, 16, 16, 3), np.float32), [0, 45, 90], method="kong")
     assert not layers.transmission.any() and not layers.reflection.any()
+
+
+def test_the_networks_switches_and_angle_of_incidence_are_checked_for_their_type():
+    stack = pane_stack()
+    for option, value in (("colour_match", "no"), ("return_copies", 1)):
+        with pytest.raises(TypeError, match=f"expected {option} True or False, got"):
+            urd.separate(stack, ANGLES, **{option: value})
+    for value in (True, "30", float("nan"), 90):
+        with pytest.raises(ValueError, match=r"expected an angle of incidence in \(0, 90\) deg"):
+            urd.separate(stack, ANGLES, incidence_deg=value)
+
+
+def test_angles_spread_too_little_are_named_in_a_warning_by_every_method_the_network_refuses_them():
+    stack = pane_stack()
+    narrow = [0.0, 10.0, 20.0, 30.0]
+    with pytest.warns(UserWarning, match=r"span only 30 deg: their Stokes fit has [0-9.]+x the noise of 0/45/90"):
+        urd.separate(stack, narrow, method="schechner")
+    with pytest.raises(ValueError, match="spanning at least 70 deg"):
+        urd.separate(stack, narrow)

@@ -21,7 +21,7 @@ from typing import NamedTuple, Sequence
 import numpy as np
 
 from urd.core.dataset import Dataset
-from urd.core.images import FLOAT_ABOVE_WHITE
+from urd.core.images import check_float_scale
 
 
 class Layers(NamedTuple):
@@ -55,27 +55,37 @@ def separate(images: np.ndarray, angles_deg: Sequence[float], method: str = "net
 
     Raises:
         TypeError, ValueError: a stack or angles urd cannot separate (`separate.presentation.check_stack`),
-            float values on another scale than 1.0 = white, an unknown method or option.
+            float values on another scale than 0.0 = black and 1.0 = white, an unknown method or option.
 
     The warnings `urd separate` prints about the stack (clipped pixels, identical shots, too
     little polarization, an assumed side of the reference) are issued as ``UserWarning``.
     """
     from separate.methods import get_method, sees_polarization_of, separate_inspected
-    from separate.presentation import check_stack
 
-    angles = [float(a) for a in angles_deg]
-    check_stack(images, angles)
-    if images.dtype.kind == "f":
-        above = float(np.mean(images > 1.0))
-        if above > FLOAT_ABOVE_WHITE:
-            raise ValueError(f"float images are read with 1.0 as the sensor's white, and {above:.1%} of these values "
-                             f"exceed it (up to {float(images.max()):g}): scale the stack so that white is 1.0 "
-                             "(16-bit codes: pass them as uint16, or divide by 65535)")
+    angles = checked_stack(images, angles_deg)
     run, info = get_method(method, reference=reference, **options)
     r_hat, t_hat, inspection, _ = separate_inspected(images, angles, run, reference, sees_polarization_of(info))
     for message in inspection.warnings:
         warnings.warn(message, UserWarning, stacklevel=2)
     return Layers(t_hat, r_hat)
+
+
+def checked_stack(images: np.ndarray, angles_deg: Sequence[float]) -> list[float]:
+    """The angles (deg) as floats, once the stack and its angles are ones urd can separate
+    (`separate.presentation.check_stack`) and float values are on urd's scale, 0.0 black and 1.0
+    white (`urd.core.images.check_float_scale`, as for image files); TypeError or ValueError."""
+    from separate.presentation import check_stack
+
+    if isinstance(angles_deg, (str, bytes)) or np.ndim(angles_deg) != 1:
+        raise TypeError(f"expected the polarizer angles as a sequence of numbers in degrees, one per shot, got {angles_deg!r}")
+    try:
+        angles = [float(a) for a in angles_deg]
+    except (TypeError, ValueError):
+        raise TypeError(f"expected the polarizer angles as numbers in degrees, got {list(angles_deg)!r}") from None
+    check_stack(images, angles)
+    if images.dtype.kind == "f":
+        check_float_scale(images)
+    return angles
 
 
 def polarization_maps(images: np.ndarray, angles_deg: Sequence[float], reference: str | float = "auto",
@@ -92,7 +102,7 @@ def polarization_maps(images: np.ndarray, angles_deg: Sequence[float], reference
     from separate.methods import check_reference, get_method, sees_polarization_of
     from separate.reference import resolve_reference
 
-    angles = [float(a) for a in angles_deg]
+    angles = checked_stack(images, angles_deg)
     reference = check_reference(reference)
     run, info = get_method(method)
     if not sees_polarization_of(info):
