@@ -395,6 +395,12 @@ def _warnings(images: np.ndarray, angles_deg: Sequence[float], lum: np.ndarray, 
     clipped pixels (`clipped_mask`); with a reference ``given``, none about the estimated one."""
     n = images.shape[0]
     warnings = []
+    span = np.degrees(optics.angle_span(np.radians(angles_deg)))
+    if span < optics.MIN_SPAN_DEG:
+        warnings.append(f"the polarizer angles ({', '.join(f'{a:g}' for a in angles_deg)} deg) span only {span:.0f} deg: "
+                        f"their Stokes fit has {optics.stokes_noise_gain(np.radians(angles_deg)):.1f}x the noise of "
+                        f"0/45/90 deg; spread the shots over at least {optics.MIN_SPAN_DEG:g} deg (the network "
+                        "refuses less)")
     share = float(clipped.mean())
     if share > CLIPPED_WARN:
         warnings.append(f"{100 * share:.1f}% of the pixels are clipped in at least one shot: their polarization is "
