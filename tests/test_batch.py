@@ -117,3 +117,38 @@ def test_ingest_jobs_is_for_a_dataset_not_a_raw_folder(tmp_path):
     out = urd("ingest", raw, tmp_path / "ds", "--jobs", "2")
     assert out.returncode == 2 and "--jobs is for a dataset or scene folder" in " ".join(out.stderr.split())
     assert not (tmp_path / "ds").exists()
+
+
+def test_results_deleted_by_hand_fail_their_scene_and_stale_results_get_no_maps(three_scenes):
+    """``--all`` does not take a scene whose result files are gone for one that is done, and
+    ``--all --maps`` adds no maps to results of an earlier alignment (they would not match)."""
+    from typer.testing import CliRunner
+
+    from urd.cli import app
+
+    def run(*args):
+        return CliRunner().invoke(app, ["separate", "--all", "--dataset", str(three_scenes), "--method", "none", *args])
+
+    assert run().exit_code == 0
+    for name in ("R.tiff", "T_preview.png"):
+        (three_scenes / "scene_02" / "results" / "none" / name).unlink()
+    out = run()
+    assert out.exit_code == 1, out.output
+    assert "scene_02: failed: its none results lack R.tiff, T_preview.png: see urd verify" in out.output
+    assert "scene_01: skipped" in out.output and "scene_03: skipped" in out.output
+    scene = Dataset.open(three_scenes).scene("scene_01")
+    assert ingest_scene(scene, IngestOptions(redo=True)).error is None
+    out = run("--maps")
+    assert "scene_01: skipped: has STALE none results, from an earlier alignment: maps of the new shots" in out.output
+    assert not (three_scenes / "scene_01" / "results" / "none" / "maps").exists()
+    assert (three_scenes / "scene_03" / "results" / "none" / "maps").is_dir()
+
+
+def test_separate_all_of_a_dataset_without_scenes_says_so_and_fails(tmp_path):
+    from typer.testing import CliRunner
+
+    from urd.cli import app
+
+    Dataset.open_or_create(tmp_path / "ds")
+    out = CliRunner().invoke(app, ["separate", "--all", "--dataset", str(tmp_path / "ds"), "--method", "none"])
+    assert out.exit_code == 1 and "holds no scene yet" in out.output

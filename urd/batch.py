@@ -44,8 +44,11 @@ def targets(ds: Dataset, method: str, force: bool) -> tuple[list[Scene], list[Ba
         elif not scene.is_ingested() or not scene.ingest_outcome()[0]:
             skipped.append(BatchOutcome(scene.name, "skipped", "not ingested (run urd ingest first)"))
         elif method in scene.methods() and not force:
+            lost = [name for name, path in scene.result(method, verify=False).files.items() if not path.is_file()]
             what = f"STALE {method} results, from an earlier alignment" if method in status.stale else f"{method} results"
-            skipped.append(BatchOutcome(scene.name, "skipped", f"has {what} (--force replaces them)"))
+            skipped.append(BatchOutcome(scene.name, "failed", f"its {method} results lack {', '.join(lost)}: see urd verify; "
+                                        "--force separates it again") if lost else
+                           BatchOutcome(scene.name, "skipped", f"has {what} (--force replaces them)"))
         else:
             chosen.append(scene)
     return chosen, skipped
@@ -89,7 +92,7 @@ def separate_all(root: Path, method: str, options: dict, force: bool = False, re
         chosen, outcomes = targets(ds, method, force)
         if maps and not force:
             outcomes = [_add_maps(ds.scene(o.scene), method, reference)
-                        if o.state == "skipped" and method in ds.scene(o.scene).methods() else o
+                        if o.state == "skipped" and o.detail.startswith("has ") else o
                         for o in outcomes]
         threads = max(1, (os.cpu_count() or 1) // jobs)
         label = f"separate --all ({method}, {plural(jobs, 'job')})"
@@ -117,6 +120,9 @@ def _add_maps(scene: Scene, method: str, reference: str | float) -> BatchOutcome
     (`urd.separation.add_maps`), or why not."""
     from urd.separation import add_maps
 
+    if method in scene.status().stale:
+        return BatchOutcome(scene.name, "skipped", f"has STALE {method} results, from an earlier alignment: maps of the "
+                                                   "new shots would not match them (--force separates again with maps)")
     try:
         add_maps(scene, method, reference)
     except Exception as exc:  # noqa: BLE001 - one scene's failure, whatever it is, must not stop the others
