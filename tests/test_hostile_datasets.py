@@ -397,18 +397,22 @@ def test_verify_during_a_swap_checks_the_new_manifest_again(base, tmp_path, monk
     shutil.copytree(base, root, symlinks=True)
     writer = Dataset.open(root).scene("scene_01")
     entry = {k: v for k, v in writer.load(verify=False)["results"]["none"].items() if k not in ("files", "time", "method")}
-    staged = root / "scene_01" / "new_R.tiff"
-    shutil.copy(root / "scene_01/results/none/T.tiff", staged)          # other bytes than R.tiff
+    layers = {name: (root / "scene_01/results/none" / name).read_bytes() for name in ("R.tiff", "T.tiff")}
+    staged = {}
+    for name, other in (("R.tiff", "T.tiff"), ("T.tiff", "R.tiff")):            # the layers' bytes swapped
+        staged[f"results/none/{name}"] = root / "scene_01" / f"new_{name}"
+        staged[f"results/none/{name}"].write_bytes(layers[other])
     real_hash, swapped = shots_module._hash, []
 
     def hash_while_another_command_swaps(*args, **kwargs):
         if not swapped:
-            swapped.append(writer.add_result("none", {"results/none/R.tiff": staged}, entry, replace=True))
+            swapped.append(writer.add_result("none", staged, entry, replace=True))
         return real_hash(*args, **kwargs)
 
     monkeypatch.setattr(shots_module, "_hash", hash_while_another_command_swaps)
     assert Dataset.open(root).scene("scene_01").verify() == []
-    assert swapped and not (root / "scene_01/results/none/T.tiff").exists()
+    assert swapped and (root / "scene_01/results/none/R.tiff").read_bytes() == layers["T.tiff"]
+    assert not (root / "scene_01/results/none/T_preview.png").exists()
 
 
 def test_a_hard_link_in_a_scene_is_replaced_never_written_through(base, tmp_path):
@@ -437,3 +441,24 @@ def test_maps_asked_of_a_scene_whose_manifest_is_damaged_is_one_error_line(tmp_p
     assert result.exit_code == 1, result.output
     assert isinstance(result.exception, SystemExit)
     assert result.output.startswith("Error: ") and "scene.json" in result.output
+
+
+@pytest.mark.parametrize("edit, named", [
+    (lambda entry: entry.update(files=[f for f in entry["files"] if not f["file"].endswith("/R.tiff")]), "missing R.tiff"),
+    (lambda entry: entry.update(warnings=5), "field 'warnings' has type int"),
+    (lambda entry: entry.update(reference_deg="abc"), "field 'reference_deg' has type str"),
+])
+def test_a_results_record_edited_out_of_shape_is_a_broken_scene_in_reports(tmp_path, edit, named):
+    """Results records are checked as the rest of a manifest: one edited out of shape makes the
+    scene BROKEN, named, in `urd report` (text and HTML) and `urd verify`, not a traceback."""
+    import json
+
+    ds = Dataset.open_or_create(tmp_path / "ds")
+    scene = separated_virtual_scene(ds)
+    record = json.loads((scene.path / "scene.json").read_text())
+    edit(record["results"]["none"])
+    (scene.path / "scene.json").write_text(json.dumps(record))
+    for args in (["report", str(ds.root)], ["report", str(ds.root), "--html", str(tmp_path / "report")], ["verify", str(ds.root)]):
+        result = CliRunner().invoke(app, args)
+        assert result.exception is None or isinstance(result.exception, SystemExit), (args, result.output)
+        assert named in " ".join(result.output.split()), (args, result.output)

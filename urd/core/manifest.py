@@ -126,6 +126,9 @@ def _check_file(record: Any, where: str, base: Path) -> None:
         raise ManifestError(f"{where}: field 'size' is negative")
 
 
+#: The files every method's results hold (`urd.separation.write_results`).
+RESULT_LAYERS = ("R.tiff", "T.tiff")
+
 SHOT_REQUIRED = {"index": int, "angle_commanded_deg": NUMBER, "angle_measured_deg": OPTIONAL_NUMBER,
                  "angle_calibrated_deg": OPTIONAL_NUMBER, "file": str, "size": int, "sha256": str, "time": str}
 SHOT_OPTIONAL = {"stage_position_deg": OPTIONAL_NUMBER, "camera": (dict, type(None))}
@@ -168,11 +171,18 @@ def validate_scene(record: Any, where: str, base: Path) -> dict:
             raise ManifestError(f"{where}: ingest: missing field 'error' of a failed ingest")
     for method, entry in record.get("results", {}).items():
         _check(entry, f"{where}: results.{method}", {"time": str, "method": str, "files": list},
-               {"angles_deg": list, "parameters": dict, "truth_metrics": (dict, type(None)), "stale": str})
+               {"angles_deg": list, "parameters": dict, "truth_metrics": (dict, type(None)), "stale": str,
+                "reference_deg": NUMBER, "full_scale": NUMBER, "warnings": list})
         if "angles_deg" in entry:
             _check_numbers(entry["angles_deg"], f"{where}: results.{method}.angles_deg", MAX_ANGLE_DEG)
+        if not all(isinstance(line, str) for line in entry.get("warnings", [])):
+            raise ManifestError(f"{where}: results.{method}.warnings: expected a list of texts")
         for i, f in enumerate(entry["files"]):
             _check_file(f, f"{where}: results.{method}.files[{i}]", base)
+        missing = [name for name in RESULT_LAYERS if name not in {PurePosixPath(f["file"]).name for f in entry["files"]}]
+        if missing:
+            raise ManifestError(f"{where}: results.{method}.files: expected the layers {' and '.join(RESULT_LAYERS)}, "
+                                f"missing {', '.join(missing)}")
     if "calibration" in record:
         calib = _check(record["calibration"], f"{where}: calibration", {"time": str, "applied": bool, "errors_deg": list,
                                                                         "uncertainty_deg": list})
