@@ -61,8 +61,9 @@ def copy_share(r_hat: np.ndarray, t_hat: np.ndarray, sigma: float = SIGMA,
         raise ValueError(f"expected two H×W×C layers of one shape, C ≤ 4, got {r_hat.shape} and {t_hat.shape}")
     if r_hat.dtype.kind != "f" or t_hat.dtype.kind != "f":
         raise ValueError(f"expected float layers, got {r_hat.dtype} and {t_hat.dtype}")
-    if not 0.0 <= rho[0] < rho[1] <= 1.0 or sigma <= 0:
-        raise ValueError(f"need sigma > 0 and 0 <= rho0 < rho1 <= 1, got sigma {sigma}, rho {rho}")
+    if len(rho) != 2 or not 0.0 <= rho[0] < rho[1] <= 1.0 or not 0 < sigma <= STATS_SIDE:
+        raise ValueError(f"expected 0 < sigma <= {STATS_SIDE} px and rho (rho0, rho1) with 0 <= rho0 < rho1 <= 1, "
+                         f"got sigma {sigma}, rho {rho}")
     h, w = r_hat.shape[:2]
     scale = min(1.0, STATS_SIDE / max(h, w))
     size = (max(1, round(w * scale)), max(1, round(h * scale)))

@@ -188,13 +188,15 @@ def shipped_weights() -> list[str]:
 
 def check_inputs(images: np.ndarray, angles_deg: list[float]) -> None:
     """Validate a stack (N, H, W, C), float or codes (`separate.optics.code_scale`), and its
-    angles (deg) without copying the stack."""
+    angles (deg) without copying the stack: type, then shape, then values."""
+    if not isinstance(images, np.ndarray):
+        raise TypeError(f"expected images as a numpy array, got {type(images).__name__}")
+    optics.code_scale(images)                                           # float or unsigned codes
     if images.ndim != 4 or images.shape[0] < 3 or images.shape[-1] not in (1, 3):
         raise ValueError(f"expected at least 3 shots stacked as (N>=3, H, W, C in 1,3), got {images.shape}")
     if len(angles_deg) != images.shape[0]:
         raise ValueError(f"expected {images.shape[0]} angles (one per image), got {len(angles_deg)}")
     optics.check_angles(np.radians(angles_deg), min_span=np.radians(optics.MIN_SPAN_DEG))
-    optics.code_scale(images)                                           # float or unsigned codes
     if images.dtype.kind == "f" and not np.isfinite(images.sum(dtype=np.float64)):   # NaN and inf propagate
         bad = sum(int((~np.isfinite(shot)).sum()) for shot in images)
         raise ValueError(f"expected finite pixel values, got {bad} NaN or infinite values")

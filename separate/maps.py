@@ -20,7 +20,7 @@ import numpy as np
 
 from separate import optics
 from separate.incidence import estimate_incidence_field
-from separate.presentation import check_stack, field_at
+from separate.presentation import check_rows, check_stack, field_at
 
 #: S0 of the luminance (linear, 1.0 = a shot's white level) below which a pixel is dark: its
 #: polarization is within the noise (1 % of white: at the 1-2 codes of noise of an 8-bit reading a
@@ -56,6 +56,7 @@ def polarization_maps(images: np.ndarray, angles_deg: Sequence[float], reference
         [0, 180), both NaN where the luminance's S0 < `DARK_S0`.
     """
     phi = check_stack(images, angles_deg)
+    check_rows(rows)
     n, h, w, c = images.shape
     pinv = np.linalg.pinv(optics.stokes_matrix(phi)).astype(np.float32)
     stokes = np.empty((3, h, w, c), np.float32)

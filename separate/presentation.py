@@ -44,6 +44,12 @@ def check_stack(images: np.ndarray, angles_deg: Sequence[float]) -> np.ndarray:
     return phi
 
 
+def check_rows(rows: int) -> None:
+    """ValueError unless ``rows`` (the image rows processed at a time) is a whole number ≥ 1."""
+    if isinstance(rows, bool) or not isinstance(rows, (int, np.integer)) or rows < 1:
+        raise ValueError(f"expected rows a whole number of at least 1, got {rows!r}")
+
+
 def presented_angles_deg(reference_deg: float) -> list[float]:
     """The angles (deg) `present` renders at: reference + 0/45/90°, reference taken mod 180."""
     ref = float(np.mod(reference_deg, 180.0))
@@ -80,6 +86,7 @@ def present(images: np.ndarray, angles_deg: Sequence[float], reference_deg: floa
         180°) + 0/45/90°. Noisy input can give slightly negative values.
     """
     phi = check_stack(images, angles_deg)
+    check_rows(rows)
     if not np.isfinite(reference_deg):
         raise ValueError(f"expected a finite reference angle (deg), got {reference_deg}")
     angles3 = presented_angles_deg(reference_deg)
@@ -116,6 +123,7 @@ def present_field(images: np.ndarray, angles_deg: Sequence[float], field_deg: np
         (images3, [0, 45, 90]): (3, H, W, C) float32.
     """
     phi = check_stack(images, angles_deg)
+    check_rows(rows)
     field_deg = np.asarray(field_deg, np.float32)
     if field_deg.shape != images.shape[1:3]:
         raise ValueError(f"expected a reference field of shape {images.shape[1:3]}, got {field_deg.shape}")

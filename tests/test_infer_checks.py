@@ -248,3 +248,27 @@ def test_a_tiles_freed_blocks_are_kept_inside_the_block_and_handed_back_after_it
         kept = resident_mb() - before
     handed_back = resident_mb() - before
     assert kept > 150 and handed_back < 50, (kept, handed_back)
+
+
+def test_internal_arguments_are_checked_type_first_and_bad_sizes_are_refused():
+    """The stack's type before its shape and angles; rows processed at a time and the copies
+    test's window are checked, not left to a numpy or OpenCV error (or to uninitialised memory)."""
+    from separate.copies import copy_share
+    from separate.maps import polarization_maps
+    from separate.presentation import present, present_field
+
+    stack = np.full((3, 16, 16, 3), 0.3, np.float32)
+    with pytest.raises(TypeError, match="expected images as a numpy array, got list"):
+        infer.check_inputs(stack.tolist(), [0, 45, 90])
+    with pytest.raises(TypeError, match="8- or 16-bit codes"):
+        infer.check_inputs(stack.astype(np.int32), [0, 45])
+    for rows in (0, -1, 2.5, True):
+        for call in (lambda: present(stack, [0, 45, 90], 10.0, rows=rows),
+                     lambda: present_field(stack, [0, 45, 90], np.zeros((16, 16), np.float32), rows=rows),
+                     lambda: polarization_maps(stack, [0, 45, 90], 10.0, rows=rows)):
+            with pytest.raises(ValueError, match="expected rows a whole number of at least 1"):
+                call()
+    layer = stack[0]
+    for sigma, rho in ((float("nan"), (0.4, 0.8)), (float("inf"), (0.4, 0.8)), (0.0, (0.4, 0.8)), (8.0, (0.4,))):
+        with pytest.raises(ValueError, match="expected 0 < sigma"):
+            copy_share(layer, layer, sigma=sigma, rho=rho)

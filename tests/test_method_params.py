@@ -106,3 +106,16 @@ def test_the_cli_says_a_bad_parameter_in_one_line_and_exits_1(tmp_path_factory):
     assert result.exit_code == 1
     assert "kong parameter smoothness to be a finite number ≥ 0, got 'abc'" in result.output
     assert "Traceback" not in result.output
+
+
+@pytest.mark.parametrize("params, said", [
+    (["smoothness=NaN"], "Invalid value for '--param': expected a finite number for smoothness, got NaN"),
+    (["smoothness=-Infinity"], "Invalid value for '--param': expected a finite number for smoothness, got -Infinity"),
+    (["smoothness=0.5", "smoothness=0.7"], "smoothness is given twice (smoothness=0.5 and smoothness=0.7); give it once"),
+])
+def test_a_parameter_given_twice_or_not_finite_is_a_usage_error_naming_param(tmp_path, params, said):
+    args = ["separate", "scene_01", "--dataset", str(tmp_path), "--method", "kong"]
+    for item in params:
+        args += ["--param", item]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 2 and said in " ".join(result.output.split()), result.output

@@ -235,10 +235,14 @@ def parse_params(items: list[str], option: str = "--param") -> dict:
         name, sep, value = item.partition("=")
         if not sep or not name:
             raise bad(option, f"expected NAME=VALUE, got {item!r}")
+        if name in params:
+            raise bad(option, f"{name} is given twice ({name}={json.dumps(params[name])} and {item}); give it once")
         try:
             params[name] = json.loads(value)
         except json.JSONDecodeError:
             params[name] = value
+        if isinstance(params[name], float) and not math.isfinite(params[name]):
+            raise bad(option, f"expected a finite number for {name}, got {value}")
     return params
 
 
