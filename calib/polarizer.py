@@ -111,8 +111,7 @@ class ShotErrors:
 
 def _residual(phi: np.ndarray, data: np.ndarray) -> np.ndarray:
     """What a Stokes fit at angles ``phi`` (rad) leaves unexplained of ``data`` (N, P), flattened."""
-    design = optics.stokes_matrix(phi)
-    return (data - design @ (np.linalg.pinv(design) @ data)).ravel()
+    return (data - optics.stokes_matrix(phi) @ (optics.stokes_fit(phi) @ data)).ravel()
 
 
 def _solve_angles(data: np.ndarray, nominal: np.ndarray, iterations: int = 100,

@@ -493,11 +493,11 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
     angles = [float(a) for a in np.radians(angles_deg)]
     unit = optics.code_scale(images)
     shot_means = np.array([_clipped_mean(shot) for shot in images]) * unit   # mean(S0) is linear in them
-    s0_mean = float(np.linalg.pinv(optics.stokes_matrix(angles))[0] @ shot_means)
+    s0_mean = float(optics.stokes_fit(angles)[0] @ shot_means)
     scale = torch.tensor([max(s0_mean, 1e-6)], dtype=torch.float32)
     mixing = np.eye(n, dtype=np.float32)
     if field:
-        mixing = np.linalg.pinv(optics.stokes_matrix(angles)).astype(np.float32)           # shots → Stokes
+        mixing = optics.stokes_fit(angles).astype(np.float32)           # shots → Stokes
         reference_field = np.asarray(reference_deg, np.float32)         # to radians a strip at a time (no full-size copy)
         angles = [float(a) for a in np.radians(optics.PAPER_ANGLES_DEG)]
     elif reference_deg is not None:

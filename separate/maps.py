@@ -58,7 +58,7 @@ def polarization_maps(images: np.ndarray, angles_deg: Sequence[float], reference
     phi = check_stack(images, angles_deg)
     check_rows(rows)
     n, h, w, c = images.shape
-    pinv = np.linalg.pinv(optics.stokes_matrix(phi)).astype(np.float32)
+    pinv = optics.stokes_fit(phi).astype(np.float32)
     stokes = np.empty((3, h, w, c), np.float32)
     for y in range(0, h, rows):
         stokes[:, y : y + rows] = np.tensordot(pinv, optics.to_float(images[:, y : y + rows]), axes=1)

@@ -63,7 +63,7 @@ def presenting_matrix(angles_deg: Sequence[float], reference_deg: float) -> np.n
     at a time, by `separate.infer.separate_stack`."""
     phi = np.radians(np.asarray(angles_deg, np.float64))
     phi3 = np.radians(presented_angles_deg(reference_deg))
-    return (optics.stokes_matrix(phi3) @ np.linalg.pinv(optics.stokes_matrix(phi))).astype(np.float32)
+    return (optics.stokes_matrix(phi3) @ optics.stokes_fit(phi)).astype(np.float32)
 
 
 def present(images: np.ndarray, angles_deg: Sequence[float], reference_deg: float,
@@ -129,7 +129,7 @@ def present_field(images: np.ndarray, angles_deg: Sequence[float], field_deg: np
         raise ValueError(f"expected a reference field of shape {images.shape[1:3]}, got {field_deg.shape}")
     if not np.isfinite(field_deg).all():
         raise ValueError(f"expected a finite reference field, got {int((~np.isfinite(field_deg)).sum())} non-finite values")
-    pinv = np.linalg.pinv(optics.stokes_matrix(phi)).astype(np.float32)
+    pinv = optics.stokes_fit(phi).astype(np.float32)
     out = np.empty((3,) + images.shape[1:], np.float32)
     for y in range(0, images.shape[1], rows):
         stokes = np.tensordot(pinv, optics.to_float(images[:, y : y + rows]), axes=1)

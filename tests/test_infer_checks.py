@@ -263,9 +263,9 @@ def test_internal_arguments_are_checked_type_first_and_bad_sizes_are_refused():
     with pytest.raises(TypeError, match="8- or 16-bit codes"):
         infer.check_inputs(stack.astype(np.int32), [0, 45])
     for rows in (0, -1, 2.5, True):
-        for call in (lambda: present(stack, [0, 45, 90], 10.0, rows=rows),
-                     lambda: present_field(stack, [0, 45, 90], np.zeros((16, 16), np.float32), rows=rows),
-                     lambda: polarization_maps(stack, [0, 45, 90], 10.0, rows=rows)):
+        for call in (lambda rows=rows: present(stack, [0, 45, 90], 10.0, rows=rows),
+                     lambda rows=rows: present_field(stack, [0, 45, 90], np.zeros((16, 16), np.float32), rows=rows),
+                     lambda rows=rows: polarization_maps(stack, [0, 45, 90], 10.0, rows=rows)):
             with pytest.raises(ValueError, match="expected rows a whole number of at least 1"):
                 call()
     layer = stack[0]

@@ -103,7 +103,7 @@ def truth_metrics(scene: Scene, r_hat: np.ndarray, t_hat: np.ndarray, images: np
                       for name in ("R_obs.tiff", "T_obs.tiff"))
     h, w = t_true.shape[:2]
     top, bottom, cols = h // 20, h - h // 20, slice(w // 20, w - w // 20)
-    weights = np.linalg.pinv(optics.stokes_matrix(np.radians(angles_deg)))[0] * optics.code_scale(images)
+    weights = optics.stokes_fit(np.radians(angles_deg))[0] * optics.code_scale(images)
 
     def s0(region: tuple[slice, slice]) -> np.ndarray:
         return np.tensordot(weights.astype(np.float32), images[(slice(None), *region)], axes=1).astype(np.float32)
