@@ -12,7 +12,6 @@ methods get the nominal angles 0/45/90 and pick their reference themselves (`cro
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -20,7 +19,7 @@ import cv2
 import numpy as np
 
 from separate import optics
-from separate.bench import SEED
+from separate.bench import SEED, Timed
 from separate.scoring import SCORES, attempt, finite_mean
 from separate.synthesis import SHARED_NATURAL, AngleMode, SynthesisConfig, Synthesizer, load_image_pool
 from urd.core.progress import Progress
@@ -130,9 +129,9 @@ def cross_validate(data: dict[str, np.ndarray], methods: dict[str, Callable], an
     for name, run in methods.items():
         scores: dict[str, list[float]] = {k: [] for k in SCORES}
         failures = []
-        started = time.perf_counter()
+        timed = Timed(run)
         for obs, r, t in zip(data["obs"], data["r"], data["t"]):
-            figures, failure = attempt(run, obs, angles_deg, (r, t))
+            figures, failure = attempt(timed, obs, angles_deg, (r, t))
             for key, value in figures.items():
                 scores[key].append(value)
             failures += [failure] if failure else []
@@ -140,7 +139,7 @@ def cross_validate(data: dict[str, np.ndarray], methods: dict[str, Callable], an
             if progress:
                 progress(done, total, label)
         rows.append({"method": name, **{k: finite_mean(v) for k, v in scores.items()},
-                     "seconds_per_patch": (time.perf_counter() - started) / count,
+                     "seconds_per_patch": timed.per_call(),
                      "psnr_t_per_patch": scores["psnr_t"], "psnr_r_per_patch": scores["psnr_r"],
                      "failed": len(failures), "failure": failures[0] if failures else None})
     return rows

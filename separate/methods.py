@@ -216,7 +216,9 @@ def baseline(module_name: str, s0_only: bool) -> Callable[..., tuple[Run, dict]]
     keyword parameters (paper defaults when omitted; each checked when the method is made,
     `check_param`), ``reference`` and ``progress`` (called with
     (done, total) where the baseline reports progress; not a recorded parameter). Polarization baselines
-    get the shots presented at the reference; S0-only ones get them as they are."""
+    get the shots presented at the reference; S0-only ones get them as they are. Their layers come
+    back clipped at 0, as the network's do and as the result files hold them (the side trial's
+    separations, ``trial=True``, keep the inversion's negative values: the side decision reads them)."""
 
     def make(reference: Reference = "auto", progress: Callable[[int, int], None] | None = None,
              **params) -> tuple[Run, dict]:
@@ -237,10 +239,12 @@ def baseline(module_name: str, s0_only: bool) -> Callable[..., tuple[Run, dict]]
                 trial: bool = False) -> tuple[np.ndarray, np.ndarray]:
             said = {} if trial else reports                           # trial separations report no progress
             if s0_only:
-                return module.separate(optics.to_float(images), list(angles_deg), **params, **said)
-            chosen = choose(images, angles_deg, reference_deg, partial(run, trial=True))
-            shots, angles = present_at(images, angles_deg, chosen)
-            return module.separate(shots, angles, **params, **said)
+                layers = module.separate(optics.to_float(images), list(angles_deg), **params, **said)
+            else:
+                chosen = choose(images, angles_deg, reference_deg, partial(run, trial=True))
+                shots, angles = present_at(images, angles_deg, chosen)
+                layers = module.separate(shots, angles, **params, **said)
+            return layers if trial else tuple(np.maximum(layer, 0.0) for layer in layers)   # no negative light, as the network
 
         policy = "not used: S0 only" if s0_only else reference_policy(check_reference(reference))
         return run, {"parameters": params, "paper": citation(module), "reference_policy": policy}

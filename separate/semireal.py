@@ -198,9 +198,11 @@ def format_tables(records: list[dict], methods: Sequence[str]) -> str:
                 break
             best = max(classical, key=lambda m: np.mean([r["psnr_t"] for r in rows[m]]))
             paired = [{"method": m, "psnr_t_per_patch": [r["psnr_t"] for r in rows[m]]} for m in (learned, best)]
-            gains.append((condition, learned, best, paired_gain(paired, learned, best)))
+            captures = [r["capture"] for r in rows[learned]]
+            gains.append((condition, learned, best, paired_gain(paired, learned, best, groups=captures)))
     if gains:
-        lines += ["", "T̂ PSNR of the network minus the best classical method's (paired over scenes, 95% bootstrap interval):", "",
+        lines += ["", "T̂ PSNR of the network minus the best classical method's (paired over scenes, 95% bootstrap interval "
+                  "resampling captures):", "",
                   "| condition | network | best classical | difference (dB) | network higher on |", "|---|---|---|---|---|"]
         lines += [f"| {c} | {n} | {b} | {g['mean']:+.2f} ({g['ci95'][0]:+.2f} to {g['ci95'][1]:+.2f}) | {g['wins']} of {g['count']} |"
                   for c, n, b, g in gains]

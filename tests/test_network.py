@@ -493,6 +493,25 @@ def test_paired_gain_is_the_mean_per_patch_difference_with_an_interval_around_it
         paired_gain(rows, "a", "c")
 
 
+def test_a_paired_gain_over_patches_cut_from_one_capture_resamples_whole_captures():
+    """Two patches of each capture that score alike are one observation, not two: resampling
+    captures gives the interval of the captures' own differences, wider than patch resampling."""
+    from separate.bench import paired_gain
+
+    per_capture = np.random.default_rng(1).normal(1.0, 1.0, 10)
+    twice = np.repeat(per_capture, 2)
+    rows = [{"method": "a", "psnr_t_per_patch": twice}, {"method": "b", "psnr_t_per_patch": np.zeros(20)}]
+    grouped = paired_gain(rows, "a", "b", groups=[f"capture-{k // 2}" for k in range(20)])
+    once = paired_gain([{"method": "a", "psnr_t_per_patch": per_capture}, {"method": "b", "psnr_t_per_patch": np.zeros(10)}],
+                       "a", "b")
+    naive = paired_gain(rows, "a", "b")
+    assert grouped["mean"] == pytest.approx(once["mean"]) and grouped["count"] == 20
+    assert grouped["ci95"] == pytest.approx(once["ci95"], abs=0.05)
+    assert naive["ci95"][1] - naive["ci95"][0] < 0.8 * (grouped["ci95"][1] - grouped["ci95"][0])
+    with pytest.raises(ValueError, match="one group label per patch"):
+        paired_gain(rows, "a", "b", groups=["x"] * 3)
+
+
 @pytest.mark.slow
 def test_benchmark_scores_methods_and_weights_given_by_path():
     from separate.bench import format_aoi_table, run_benchmark

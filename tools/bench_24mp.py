@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import statistics
 import subprocess
 import sys
 import time
@@ -83,7 +84,9 @@ def main() -> None:
     separate_args = ["separate", "scene_01", "--dataset", str(folder), "--precision", args.precision]
     separations = [run(separate_args + (["--tile", str(args.tile)] if args.tile else []) + (["--force"] if k else []))
                    for k in range(args.runs)]
-    separate_s, separate_gb, log = sorted(separations)[len(separations) // 2]          # the median run (upper for even N)
+    middle = sorted(separations)
+    separate_s = statistics.median(seconds for seconds, _, _ in separations)          # even N: the mean of the middle two
+    separate_gb, log = max(gb for _, gb, _ in separations), middle[len(middle) // 2][2]
     precision = next((line.split(":", 1)[1].strip() for line in log.splitlines() if line.startswith("precision:")),
                      args.precision)
     capped = [f"{k}={os.environ[k]}" for k in ("ONEDNN_MAX_CPU_ISA", "ATEN_CPU_CAPABILITY", "MKL_ENABLE_INSTRUCTIONS")
@@ -92,7 +95,8 @@ def main() -> None:
     print(f"scene {size}, 3 shots; network precision {precision}" + (f", tile {args.tile} px" if args.tile else ""))
     print(f"urd ingest   (decode + align + write):  {ingest_s:6.1f} s, peak memory {ingest_gb:.2f} GiB")
     if args.runs > 1:
-        print("urd separate runs: " + ", ".join(f"{seconds:.1f} s" for seconds, _, _ in separations) + "; the median below")
+        print("urd separate runs: " + ", ".join(f"{seconds:.1f} s" for seconds, _, _ in separations) +
+              "; their median below, and the highest peak memory")
     print(f"urd separate (load + network + write):  {separate_s:6.1f} s, peak memory {separate_gb:.2f} GiB")
     rate_after = fp32_rate()
     from bench_speed import flops_per_mp          # after the timed commands: this process stays out of their way
@@ -100,8 +104,8 @@ def main() -> None:
 
     network_gflop = flops_per_mp(load_model()[0]) * width * height / 1e15
     rate = max(rate_before, rate_after)
-    end_to_end = (f"network {network_gflop:.0f} GFLOP in urd separate's {separate_s:.1f} s: "
-                  f"{network_gflop / separate_s:.0f} GFLOP/s end to end")
+    end_to_end = (f"network {network_gflop:.0f} GFLOP (the image's pixels; the tiles' overlap is not counted) in urd "
+                  f"separate's {separate_s:.1f} s: {network_gflop / separate_s:.0f} GFLOP/s end to end")
     if precision.endswith("on cuda"):                   # the CLI's "precision: bf16 (native) on cuda": no CPU ratio
         print(f"{end_to_end}, the network on the GPU (this CPU's fp32 matmul rate, {rate:.0f} GFLOP/s, does not bound it)")
     else:

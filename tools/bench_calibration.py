@@ -59,8 +59,10 @@ def calibrate_seed(seed: int, width: int, height: int, shake: float, jitter: flo
         true = np.array([shot_truth(scene.path / shot["file"])["true_angle_deg"] for shot in scene.load()["shots"]])
     error = np.array(result.errors_deg) - (true - ANGLES_DEG - np.mean(true - ANGLES_DEG))
     worst = float(np.abs(error).max())
-    print(f"seed {seed}: largest error {worst:.2f} deg, {np.abs(error / np.array(result.uncertainty_deg)).max():.1f} "
-          f"of its reported 1 sigma (reported {min(result.uncertainty_deg):.2f}-{max(result.uncertainty_deg):.2f} deg)")
+    sigma = np.array(result.uncertainty_deg)
+    print(f"seed {seed}: largest error {worst:.2f} deg, {abs(error[np.argmax(np.abs(error))]) / sigma[np.argmax(np.abs(error))]:.1f} "
+          f"of that shot's reported 1 sigma; worst error/sigma of any shot {np.abs(error / sigma).max():.1f} "
+          f"(reported {sigma.min():.2f}-{sigma.max():.2f} deg)")
     return worst
 
 

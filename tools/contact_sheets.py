@@ -72,7 +72,7 @@ def sheet(capture: samples.Capture, runs: dict, size: int) -> np.ndarray:
         low, high = float(np.min(used)), float(np.max(used))
         reference = f"{low:.0f}-{high:.0f}" if high - low >= 0.5 else f"{low:.0f}"
         share = float(r_hat.sum() / max(s0.sum(), 1e-9))
-        rows.append(np.hstack([tile(s0, f"{name}: S0", white), tile(t_hat, f"T ({1 - share:.0%} of S0)", white),
+        rows.append(np.hstack([tile(s0, f"{name}: S0", white), tile(t_hat, f"T ({float(t_hat.sum() / max(s0.sum(), 1e-9)):.0%} of S0)", white),
                                tile(r_hat, f"R ({share:.0%}), ref {reference} deg", white),
                                tile(dolp, "DoLP (0..1)", 1.0), tile(aolp_tile(stokes), "AoLP (hue)", 1.0),
                                tile(presence, "presence", 1.0)]))
