@@ -113,8 +113,9 @@ def network(weights: Path | None = None, tile: int | None = None, precision: str
     for option, value in (("colour_match", colour_match), ("return_copies", return_copies), ("uses_reference", uses_reference)):
         if not isinstance(value, (bool, np.bool_)):
             raise TypeError(f"expected {option} True or False, got {value!r}")
-    if incidence_deg is not None and (isinstance(incidence_deg, (bool, np.bool_)) or not isinstance(incidence_deg, numbers.Real)
-                                      or not 0 < incidence_deg < 90):
+    if incidence_deg is not None and (isinstance(incidence_deg, (bool, np.bool_)) or not isinstance(incidence_deg, numbers.Real)):
+        raise TypeError(f"expected an angle of incidence in (0, 90) deg as a number, got {incidence_deg!r}")
+    if incidence_deg is not None and not 0 < incidence_deg < 90:
         raise ValueError(f"expected an angle of incidence in (0, 90) deg, got {incidence_deg!r}")
     target = resolve_device(device)
     model, weights_info = load_model(weights)

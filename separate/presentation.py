@@ -45,8 +45,11 @@ def check_stack(images: np.ndarray, angles_deg: Sequence[float]) -> np.ndarray:
 
 
 def check_rows(rows: int) -> None:
-    """ValueError unless ``rows`` (the image rows processed at a time) is a whole number ≥ 1."""
-    if isinstance(rows, bool) or not isinstance(rows, (int, np.integer)) or rows < 1:
+    """TypeError unless ``rows`` (the image rows processed at a time) is a whole number, ValueError
+    unless it is at least 1."""
+    if isinstance(rows, bool) or not isinstance(rows, (int, np.integer)):
+        raise TypeError(f"expected rows a whole number of at least 1, got {rows!r}")
+    if rows < 1:
         raise ValueError(f"expected rows a whole number of at least 1, got {rows!r}")
 
 

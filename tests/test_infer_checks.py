@@ -262,11 +262,11 @@ def test_internal_arguments_are_checked_type_first_and_bad_sizes_are_refused():
         infer.check_inputs(stack.tolist(), [0, 45, 90])
     with pytest.raises(TypeError, match="8- or 16-bit codes"):
         infer.check_inputs(stack.astype(np.int32), [0, 45])
-    for rows in (0, -1, 2.5, True):
+    for rows, error in ((0, ValueError), (-1, ValueError), (2.5, TypeError), (True, TypeError)):
         for call in (lambda rows=rows: present(stack, [0, 45, 90], 10.0, rows=rows),
                      lambda rows=rows: present_field(stack, [0, 45, 90], np.zeros((16, 16), np.float32), rows=rows),
                      lambda rows=rows: polarization_maps(stack, [0, 45, 90], 10.0, rows=rows)):
-            with pytest.raises(ValueError, match="expected rows a whole number of at least 1"):
+            with pytest.raises(error, match="expected rows a whole number of at least 1"):
                 call()
     layer = stack[0]
     for sigma, rho in ((float("nan"), (0.4, 0.8)), (float("inf"), (0.4, 0.8)), (0.0, (0.4, 0.8)), (8.0, (0.4,))):

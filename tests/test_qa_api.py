@@ -47,7 +47,7 @@ def test_angles_and_codes_urd_cannot_use_are_refused():
         urd.separate(stack * 2 - 1, ANGLES, method="schechner")
     with pytest.raises(ValueError, match="read with 1.0 as white"):            # the maps read the stack alike
         urd.polarization_maps(stack * 255, ANGLES)
-    for angles in (45, "0,45,90,135", ["0", "45", "ninety", "135"]):
+    for angles in (45, "0,45,90,135", ["0", "45", "90", "135"], [True, 45, 90, 135], [0, [45], 90, 135], []):
         with pytest.raises(TypeError, match="expected the polarizer angles as"):
             urd.separate(stack, angles, method="schechner")
 
@@ -94,8 +94,11 @@ def test_the_networks_switches_and_angle_of_incidence_are_checked_for_their_type
     for option, value in (("colour_match", "no"), ("return_copies", 1)):
         with pytest.raises(TypeError, match=f"expected {option} True or False, got"):
             urd.separate(stack, ANGLES, **{option: value})
-    for value in (True, "30", float("nan"), 90):
-        with pytest.raises(ValueError, match=r"expected an angle of incidence in \(0, 90\) deg"):
+    for value in (True, "30"):
+        with pytest.raises(TypeError, match=r"expected an angle of incidence in \(0, 90\) deg as a number"):
+            urd.separate(stack, ANGLES, incidence_deg=value)
+    for value in (float("nan"), 90):
+        with pytest.raises(ValueError, match=r"expected an angle of incidence in \(0, 90\) deg, got"):
             urd.separate(stack, ANGLES, incidence_deg=value)
 
 

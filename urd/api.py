@@ -13,6 +13,7 @@ whole script (``docs/examples/separate_scene.py``).
 
 from __future__ import annotations
 
+import numbers
 import warnings
 from functools import partial
 from pathlib import Path
@@ -76,15 +77,16 @@ def checked_stack(images: np.ndarray, angles_deg: Sequence[float]) -> list[float
     white (`urd.core.images.check_float_scale`, as for image files); TypeError or ValueError."""
     from separate.presentation import check_stack
 
-    if isinstance(angles_deg, (str, bytes)) or np.ndim(angles_deg) != 1:
-        raise TypeError(f"expected the polarizer angles as a sequence of numbers in degrees, one per shot, got {angles_deg!r}")
     try:
-        angles = [float(a) for a in angles_deg]
-    except (TypeError, ValueError):
-        raise TypeError(f"expected the polarizer angles as numbers in degrees, got {list(angles_deg)!r}") from None
+        given = [] if isinstance(angles_deg, (str, bytes)) else list(angles_deg)
+    except TypeError:
+        given = []
+    if not given or not all(isinstance(a, numbers.Real) and not isinstance(a, (bool, np.bool_)) for a in given):
+        raise TypeError(f"expected the polarizer angles as a sequence of numbers in degrees, one per shot, got {angles_deg!r}")
+    angles = [float(a) for a in given]
     check_stack(images, angles)
     if images.dtype.kind == "f":
-        check_float_scale(images)
+        check_float_scale(images, "16-bit codes: pass them as uint16, or divide by 65535")
     return angles
 
 

@@ -92,7 +92,7 @@ def separate_all(root: Path, method: str, options: dict, force: bool = False, re
         chosen, outcomes = targets(ds, method, force)
         if maps and not force:
             outcomes = [_add_maps(ds.scene(o.scene), method, reference)
-                        if o.state == "skipped" and o.detail.startswith("has ") else o
+                        if o.state == "skipped" and method in ds.scene(o.scene).methods() else o
                         for o in outcomes]
         threads = max(1, (os.cpu_count() or 1) // jobs)
         label = f"separate --all ({method}, {plural(jobs, 'job')})"

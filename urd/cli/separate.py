@@ -233,5 +233,5 @@ def separate_dataset(dataset: Optional[Path], method: str, weights: Optional[Pat
     if not outcomes:
         fail(f"nothing was separated: {root} holds no scene yet; capture one (urd capture) or ingest RAW shots "
              "(urd ingest FOLDER) first")
-    if outcomes and all(o.state == "skipped" and o.detail.startswith("not ingested") for o in outcomes):
+    if all(o.state == "skipped" and o.detail.startswith("not ingested") for o in outcomes):
         fail(f"nothing was separated: no scene is ingested yet; run urd ingest {root} first")

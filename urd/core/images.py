@@ -203,16 +203,17 @@ def to_linear(data: np.ndarray, transfer: Transfer = Transfer.LINEAR) -> np.ndar
     raise RawFormatError(f"expected 8-bit, 16-bit or float pixels, got {data.dtype}")
 
 
-def check_float_scale(data: np.ndarray) -> None:
+def check_float_scale(data: np.ndarray, advice: str = "") -> None:
     """RawFormatError unless float pixels are finite and on urd's scale, 0.0 black and 1.0 white:
-    at most `FLOAT_ABOVE_WHITE` of them above 1.0 or below `FLOAT_BELOW_BLACK`."""
+    at most `FLOAT_ABOVE_WHITE` of them above 1.0 or below `FLOAT_BELOW_BLACK`; ``advice`` is
+    added to the message about white."""
     if not np.isfinite(data).all():
         raise RawFormatError(f"{int((~np.isfinite(data)).sum())} NaN or infinite pixel values")
     above = float(np.mean(data > 1.0))
     if above > FLOAT_ABOVE_WHITE:
         raise RawFormatError(f"float pixels are read with 1.0 as white, and {above:.1%} of these exceed it (up to "
-                             f"{float(data.max()):g}): scale every shot by one factor so that white is 1.0 "
-                             "(16-bit codes: pass them as uint16, or divide by 65535)")
+                             f"{float(data.max()):g}): scale every shot by one factor so that white is 1.0"
+                             + (f" ({advice})" if advice else ""))
     below = float(np.mean(data < FLOAT_BELOW_BLACK))
     if below > FLOAT_ABOVE_WHITE:
         raise RawFormatError(f"float pixels are read with 0.0 as black, and {below:.1%} of these lie below "

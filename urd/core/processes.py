@@ -89,8 +89,14 @@ def killed_with_this_process() -> Callable[[], None] | None:
     USB claim); None on other systems. libc is loaded here, before the fork."""
     if not sys.platform.startswith("linux"):
         return None
-    prctl = ctypes.CDLL(None, use_errno=True).prctl
-    return lambda: prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+    prctl, parent = ctypes.CDLL(None, use_errno=True).prctl, os.getpid()
+
+    def request() -> None:
+        prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+        if os.getppid() != parent:                   # this process died before the request took effect
+            os._exit(1)
+
+    return request
 
 
 def _watch(parent: int) -> None:
