@@ -59,8 +59,8 @@ def calibrate_seed(seed: int, width: int, height: int, shake: float, jitter: flo
         true = np.array([shot_truth(scene.path / shot["file"])["true_angle_deg"] for shot in scene.load()["shots"]])
     error = np.array(result.errors_deg) - (true - ANGLES_DEG - np.mean(true - ANGLES_DEG))
     worst = float(np.abs(error).max())
-    sigma = np.array(result.uncertainty_deg)
-    print(f"seed {seed}: largest error {worst:.2f} deg, {abs(error[np.argmax(np.abs(error))]) / sigma[np.argmax(np.abs(error))]:.1f} "
+    sigma, shot = np.array(result.uncertainty_deg), int(np.argmax(np.abs(error)))
+    print(f"seed {seed}: largest error {worst:.2f} deg, {worst / sigma[shot]:.1f} "
           f"of that shot's reported 1 sigma; worst error/sigma of any shot {np.abs(error / sigma).max():.1f} "
           f"(reported {sigma.min():.2f}-{sigma.max():.2f} deg)")
     return worst
