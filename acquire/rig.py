@@ -27,6 +27,10 @@ from urd.core.errors import CalibrationError, DeviceError
 
 SIM = "sim"
 
+#: Deadline for writing a command to the stage's port (s). A command is at most 11 bytes, 11 ms
+#: at 9600 baud; the line has no flow control, so a write that cannot finish means a hung adapter.
+WRITE_TIMEOUT_S = 1.0
+
 
 @dataclasses.dataclass
 class SimSettings:
@@ -108,9 +112,12 @@ def check_port(port: str) -> None:
 def open_serial(port: str, timeout_s: float = 0.1) -> serial.Serial:
     """Open a serial port at the ELL14's settings (9600 8N1), exclusively: a second capture on
     the same stage would turn it under the first one's shots. DeviceError, with what to check, if
-    it cannot (also for a device that takes no serial settings, like /dev/null)."""
+    it cannot (also for a device that takes no serial settings, like /dev/null). A write that does
+    not finish within `WRITE_TIMEOUT_S` raises serial's time-out, which the driver reports as a
+    lost connection."""
     try:
-        return serial.Serial(port, 9600, bytesize=8, parity="N", stopbits=1, timeout=timeout_s, exclusive=True)
+        return serial.Serial(port, 9600, bytesize=8, parity="N", stopbits=1, timeout=timeout_s,
+                             write_timeout=WRITE_TIMEOUT_S, exclusive=True)
     except (serial.SerialException, OSError, ValueError) as exc:
         cause = exc.__cause__ or exc.__context__
         if cause is not None and cause.args[:1] == (errno.ENOTTY,):

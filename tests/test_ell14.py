@@ -155,6 +155,27 @@ def test_a_stage_port_is_opened_by_one_capture_at_a_time(tmp_path):
         open_serial(str(tmp_path / "ttyUSB9"))
 
 
+def test_a_port_that_takes_no_more_bytes_is_a_lost_connection_not_a_hang():
+    import os
+    from acquire.rig import WRITE_TIMEOUT_S, open_serial
+    from urd.core.errors import DeviceError
+
+    controller, line = os.openpty()                 # nothing reads the far end: a hung adapter
+    try:
+        with open_serial(os.ttyname(line)) as port:
+            assert port.write_timeout == WRITE_TIMEOUT_S
+            port.write_timeout = 0.05
+            for chunk in (b"x" * 1024, b"x"):            # fill the line's buffer to its last byte
+                with pytest.raises(serial.SerialTimeoutException):
+                    while True:
+                        port.write(chunk)
+            with pytest.raises(DeviceError, match="lost the connection to the ELL14 .*Write timeout"):
+                Ell14(port, timeout_s=0.2).move_to(45.0)
+    finally:
+        os.close(controller)
+        os.close(line)
+
+
 def test_a_stage_that_goes_away_mid_capture_is_a_device_error():
     from urd.core.errors import DeviceError
 
