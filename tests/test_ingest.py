@@ -96,7 +96,7 @@ def test_ingest_folder_groups_by_time_and_reports_bad_files(tmp_path, monkeypatc
         os.utime(path, (t0 + 1000 * k + i, t0 + 1000 * k + i))
     opts = IngestOptions(gap_s=100)
     from urd import ingest as ingest_mod
-    monkeypatch.setattr(ingest_mod, "capture_time", lambda p: p.stat().st_mtime)  # the staged times
+    monkeypatch.setattr(ingest_mod, "capture_time", lambda p, meta: p.stat().st_mtime)  # the staged times
     report = ingest_folder(raw_dir, Dataset.open_or_create(tmp_path / "ds"), opts)
     outcomes, ignored = report.outcomes, report.ignored
     assert ignored == [raw_dir / "notes.txt"]
@@ -201,7 +201,7 @@ def test_shots_taken_together_split_into_several_scenes_are_pointed_out(tmp_path
             path = raw_dir / f"IMG_{3 * k + i}.dng"
             shutil.copyfile(scene.path / shot["file"], path)
             os.utime(path, (1e9 + 3 * k + i, 1e9 + 3 * k + i))           # six shots within seconds
-    monkeypatch.setattr(ingest_mod, "capture_time", lambda p: p.stat().st_mtime)
+    monkeypatch.setattr(ingest_mod, "capture_time", lambda p, meta: p.stat().st_mtime)
     report = ingest_mod.ingest(raw_dir, tmp_path / "ds", IngestOptions())
     assert [o.state for o in report.outcomes] == ["ingested", "ingested"]
     assert report.notes == ["6 shots taken together (IMG_0.dng … IMG_5.dng) became 2 scenes of 3 angles; if they are "
@@ -244,11 +244,11 @@ def test_a_counter_rolling_over_among_shots_of_one_second_is_named(tmp_path):
         files.append(tmp_path / name)
         files[-1].write_bytes(b"x")
         os.utime(files[-1], (1_700_000_000, 1_700_000_000))
-    groups, failures, notes = group_shots(files, 3, 60.0)
+    groups, failures, notes = group_shots(files, {}, 3, 60.0)
     assert [[f.name for f in g] for g in groups] == [["IMG_0001.CR2", "IMG_9998.CR2", "IMG_9999.CR2"]] and not failures
     assert len(notes) == 1 and "these file numbers wrap around" in notes[0]
     os.utime(files[2], (1_700_000_002, 1_700_000_002))                  # the rolled-over shot a second later: no tie with it
-    groups, _, notes = group_shots(files, 3, 60.0)
+    groups, _, notes = group_shots(files, {}, 3, 60.0)
     assert [f.name for f in groups[0]] == ["IMG_9998.CR2", "IMG_9999.CR2", "IMG_0001.CR2"] and notes == []
     assert counter_wraps(["IMG_9998.CR2", "IMG_9999.CR2", "IMG_0001.CR2"])
     assert not counter_wraps(["IMG_0041.CR2", "IMG_0042.CR2", "IMG_0043.CR2"])

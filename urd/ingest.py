@@ -99,30 +99,34 @@ def find_raw_files(folder: Path) -> tuple[list[Path], list[Path]]:
     return raws, [p for p in files if p not in raws]
 
 
-def capture_time(path: Path) -> float:
-    """Capture time (POSIX s) from the RAW metadata, else the file's modification time."""
-    try:
-        stamp = rawio.metadata(path)["time"]
-        if stamp:
-            return _dt.datetime.fromisoformat(stamp).timestamp()
-    except RawFormatError:
-        pass
+def read_shots(paths: list[Path], progress: Progress | None = None) -> tuple[dict[Path, dict], dict[Path, str]]:
+    """Each file's RAW metadata (`urd.core.raw.metadata`), read once, and for each file that
+    cannot be ingested (empty, corrupt, not RAW) why."""
+    metas, unreadable = {}, {}
+    for done, path in enumerate(paths, 1):
+        if path.stat().st_size == 0:
+            unreadable[path] = "empty file"
+        else:
+            try:
+                metas[path] = rawio.metadata(path)
+            except RawFormatError as exc:
+                unreadable[path] = str(exc).removeprefix(f"{path}: ")
+        if progress:
+            progress(done, len(paths), "read RAW files")
+    return metas, unreadable
+
+
+def capture_time(path: Path, meta: dict | None) -> float:
+    """Capture time (POSIX s) from the RAW metadata ``meta``, else the file's modification time."""
+    if meta and meta["time"]:
+        return _dt.datetime.fromisoformat(meta["time"]).timestamp()
     return path.stat().st_mtime
 
 
-def unreadable_reason(path: Path) -> str | None:
-    """Why a RAW-named file cannot be ingested (empty, corrupt, not RAW), or None if it can."""
-    if path.stat().st_size == 0:
-        return "empty file"
-    try:
-        rawio.metadata(path)
-    except RawFormatError as exc:
-        return str(exc).removeprefix(f"{path}: ")
-    return None
-
-
-def group_shots(files: list[Path], count: int, gap_s: float) -> tuple[list[list[Path]], list[SceneOutcome], list[str]]:
-    """Group files into scenes of ``count`` shots: by capture time, split at gaps > ``gap_s``.
+def group_shots(files: list[Path], metas: dict[Path, dict], count: int,
+                gap_s: float) -> tuple[list[list[Path]], list[SceneOutcome], list[str]]:
+    """Group files into scenes of ``count`` shots: by capture time (`capture_time` of their
+    ``metas``), split at gaps > ``gap_s``.
 
     Returns the complete groups, for runs whose length is not a multiple of ``count`` a failed
     outcome naming the files, and a note for each run split into several scenes (one capture at
@@ -130,7 +134,7 @@ def group_shots(files: list[Path], count: int, gap_s: float) -> tuple[list[list[
     (cameras record whole seconds) with file numbers that wrap around (`counter_wraps`): their
     order, and so their angles, follows the file names, which is not the shooting order then.
     """
-    timed = sorted((capture_time(f), f.name, f) for f in files)
+    timed = sorted((capture_time(f, metas.get(f)), f.name, f) for f in files)
     when = {f: t for t, _, f in timed}
     runs, current, last = [], [], None
     for t, _, f in timed:
@@ -467,10 +471,11 @@ def ingest_scenes(scenes: list[Scene], opts: IngestOptions, jobs: int, progress:
     return sorted(outcomes, key=lambda o: order.get(o.name, len(order)))
 
 
-def ingest_group(ds: Dataset, files: list[Path], opts: IngestOptions, progress: Progress | None = None) -> SceneOutcome:
-    """Make a new scene from RAW files taken at ``opts.angles_deg``; nothing is left on failure."""
+def ingest_group(ds: Dataset, files: list[Path], metas: list[dict], opts: IngestOptions,
+                 progress: Progress | None = None) -> SceneOutcome:
+    """Make a new scene from RAW files taken at ``opts.angles_deg`` (``metas``: their
+    `urd.core.raw.metadata`); nothing is left on failure."""
     try:
-        metas = [rawio.metadata(src) for src in files]
         warning = exposure_warning(metas)
         with ds.staged_scene("ingest", {"source_files": [str(f) for f in files], "angles_deg": list(opts.angles_deg),
                                         "complete": True}) as staged:
@@ -512,7 +517,11 @@ def ingest_folder(raw_dir: Path, ds: Dataset, opts: IngestOptions, progress: Pro
                 "polarizer angle is separated with 'urd separate --images A --images B --images C --angles ...'") if frames else ""
         raise DatasetError(f"{raw_dir}: no RAW files (looked for {', '.join(rawio.RAW_SUFFIXES)}){hint}")
     known = ds.shot_index()
-    digests = {path: sha256_file(path) for path in raws}
+    digests = {}
+    for done, path in enumerate(raws, 1):
+        digests[path] = sha256_file(path)
+        if progress:
+            progress(done, len(raws), "hash RAW files")
     outcomes, fresh, already = [], [], {}
     for path in raws:
         scene = known.get(digests[path])
@@ -532,8 +541,8 @@ def ingest_folder(raw_dir: Path, ds: Dataset, opts: IngestOptions, progress: Pro
         outcomes.append(SceneOutcome(scene, paths, f"already ingested as {scene}{other}", "skipped"))
     if not fresh:
         return IngestReport(outcomes, ignored)
-    unreadable = {path: reason for path in fresh if (reason := unreadable_reason(path))}
-    groups, failures, notes = group_shots(fresh, len(opts.angles_deg), opts.gap_s)
+    metas, unreadable = read_shots(fresh, progress)
+    groups, failures, notes = group_shots(fresh, metas, len(opts.angles_deg), opts.gap_s)
     for failure in failures:
         bad = [p for p in failure.files if p in unreadable]
         twins = identical_pairs(failure.files, digests)
@@ -553,7 +562,7 @@ def ingest_folder(raw_dir: Path, ds: Dataset, opts: IngestOptions, progress: Pro
             outcomes.append(SceneOutcome(None, files, f"{first.name} and {twin.name} are the same file (identical "
                                                       "content): a scene needs one shot per polarizer angle", "failed"))
         else:
-            outcomes.append(ingest_group(ds, files, opts, progress))
+            outcomes.append(ingest_group(ds, files, [metas[p] for p in files], opts, progress))
     return IngestReport(outcomes, ignored, notes)
 
 
