@@ -82,12 +82,27 @@ def test_bad_parameters_exit_2_with_the_reason(tmp_path, monkeypatch):
         assert out.exit_code == 2 and reason in out.stderr, (args, out.output)
 
 
-def test_the_installed_urd_command_is_main_with_its_sigterm_handling_and_quick_exit():
+def test_the_installed_urd_command_is_main_with_its_sigterm_handling_and_quick_exit(monkeypatch):
+    import signal
     import tomllib
     from pathlib import Path
 
+    import urd.cli
+
     project = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())["project"]
     assert project["scripts"]["urd"] == "urd.cli:main"
+    server = subprocess.Popen([sys.executable, "-c", "import sys; sys.argv = ['urd', 'sim-stage']; from urd.cli import main; main()"],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert "simulated ELL14 on" in server.stdout.readline()
+    server.send_signal(signal.SIGTERM)
+    assert server.wait(timeout=60) == 0                      # stopped as by Ctrl-C, not killed by the signal (-15)
+    server.stdout.close()
+    server.stderr.close()
+    ended = []
+    monkeypatch.setattr(sys, "argv", ["urd", "--version"])
+    monkeypatch.setattr(urd.cli, "exit_now", ended.append)
+    urd.cli.main()
+    assert ended == [0]
 
 
 @pytest.mark.parametrize("code,status,stderr", [(3, 3, ""), (None, 0, ""), ("Error: gone", 1, "Error: gone\n")])

@@ -132,7 +132,7 @@ def test_the_tile_help_states_the_minimum_the_code_enforces():
 
 
 def test_argument_checks_come_before_the_existing_results_check(dataset):
-    assert invoke("separate", "scene_01", "--dataset", dataset, "--method", "network").exit_code == 0
+    assert invoke("separate", "scene_01", "--dataset", dataset, "--method", "network", "--force").exit_code == 0
     minimum = max(MIN_TILE, 2 * OVERLAP)
     out = invoke("separate", "scene_01", "--dataset", dataset, "--method", "network", "--tile", minimum - 8)
     assert out.exit_code == 2 and f"at least {minimum} px" in out.stderr and "already has" not in out.stderr

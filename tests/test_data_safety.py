@@ -152,6 +152,7 @@ def test_a_kill_at_any_step_of_a_rerun_leaves_a_consistent_dataset_the_next_run_
                                                                                           operation):
     run = OPERATIONS[operation]
     steps = count_steps(monkeypatch, shutil.copytree(base, tmp_path / "count"), run)
+    assert steps >= 2                                        # the file steps are seen: the kills below happen
     for k in range(steps):
         work, killed = shutil.copytree(base, tmp_path / f"work{k}"), tmp_path / f"killed{k}"
 
@@ -167,6 +168,7 @@ def test_a_kill_at_any_step_of_a_rerun_leaves_a_consistent_dataset_the_next_run_
 @pytest.mark.slow
 def test_remove_stale_keeps_the_staged_files_a_killed_swap_left_named(tmp_path, monkeypatch, base):
     steps = count_steps(monkeypatch, shutil.copytree(base, tmp_path / "count"), force)
+    assert steps >= 2
     pending = 0
     for k in range(steps):
         work, killed = shutil.copytree(base, tmp_path / f"work{k}"), tmp_path / f"killed{k}"

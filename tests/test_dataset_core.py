@@ -9,7 +9,6 @@ import subprocess
 import sys
 import time
 
-import numpy as np
 import pytest
 import tifffile
 
@@ -240,7 +239,7 @@ def test_no_dataset_error_for_a_scene_without_manifest_names_the_problem(tmp_pat
     (ds.root / "scene_01").mkdir()
     with pytest.raises(DatasetError, match="has no scene.json"):
         ds.scene("scene_01")
-    assert np.all([s.status().state == "broken" for s in ds.scenes()])
+    assert [s.status().state for s in ds.scenes()] == ["broken"]
 
 
 def test_datasets_written_under_either_schema_name_open(tmp_path):

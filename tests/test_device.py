@@ -6,7 +6,7 @@ import torch
 from typer.testing import CliRunner
 
 from separate import precision
-from separate.infer import FP32_TILE, FusedNet, default_tile, load_model, runner
+from separate.infer import FP32_TILE, MODULE_TILE, FusedNet, default_tile, load_model, runner
 from separate.tiling import TILE
 from separate.precision import Device, gpu_tile, resolve_device
 from urd.cli import app
@@ -15,7 +15,7 @@ from urd.cli import app
 @pytest.mark.parametrize("cuda,choice,expected", [
     (False, "auto", "cpu"), (True, "auto", "cuda"), (True, "cpu", "cpu"), (False, "cpu", "cpu"), (True, "cuda", "cuda"),
     (True, Device.AUTO, "cuda"),
-])
+], ids=["no-cuda-auto", "cuda-auto", "cuda-cpu", "no-cuda-cpu", "cuda-cuda", "cuda-Device.AUTO"])
 def test_auto_takes_cuda_only_where_torch_sees_it(monkeypatch, cuda, choice, expected):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: cuda)
     assert resolve_device(choice) == torch.device(expected)
@@ -37,15 +37,26 @@ def test_gpu_tile_grows_with_free_memory_and_precision():
     assert gpu_tile(10**15, bf16=True) == precision.MAX_GPU_TILE
 
 
-def test_the_cpu_path_is_unchanged():
+@pytest.mark.parametrize("fused", [True, False], ids=["oneDNN", "without-oneDNN"])
+def test_the_cpu_path_is_unchanged(monkeypatch, fused):
+    if fused and not FusedNet.available():
+        pytest.skip("this torch has no oneDNN fused convolutions")
+    monkeypatch.setattr(FusedNet, "available", staticmethod(lambda: fused))
     model, _ = load_model()
-    if FusedNet.available():
-        assert isinstance(runner(model, "fp32", torch.device("cpu")), FusedNet)
+    run = runner(model, "fp32", torch.device("cpu"))
+    if fused:
+        assert isinstance(run, FusedNet)
         assert default_tile(model, "cpu", "bf16") == TILE and default_tile(model, "cpu", "fp32") == FP32_TILE < TILE
+    else:
+        assert not isinstance(run, FusedNet)
+        assert default_tile(model, "cpu", "bf16") == default_tile(model, "cpu", "fp32") == MODULE_TILE
+        obs = torch.rand(1, 3, 3, 32, 32)
+        r_hat, t_hat = run(obs, [0.0, 45.0, 90.0], torch.ones(1), torch.full((1,), 0.87))
+        assert r_hat.shape == t_hat.shape == (1, 3, 32, 32) and r_hat.dtype == torch.float32
 
 
-@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on a machine without CUDA")
-def test_cli_device_cuda_without_cuda_exits_2_naming_the_way_out(tmp_path):
+def test_cli_device_cuda_without_cuda_exits_2_naming_the_way_out(tmp_path, monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     shots = [arg for k in range(3) for arg in ("--images", str(tmp_path / f"shot_{k}.tiff"))]   # refused before they are read
     out = CliRunner().invoke(app, ["separate", *shots, "--out", str(tmp_path / "out"), "--device", "cuda"])
     assert out.exit_code == 2 and not (tmp_path / "out").exists()

@@ -127,7 +127,7 @@ def test_condition_checks_its_arguments():
         Condition(angles_deg=(0, 90))
     with pytest.raises(ValueError, match="≥ 0"):
         Condition(misalign_px=-1)
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="'deafening' is not a valid Noise"):
         Condition(noise="deafening")
 
 

@@ -186,6 +186,16 @@ def test_demosaic_none_is_the_split_and_keeps_integer_codes_in_their_units():
     assert newton.min() >= raw.min() and newton.max() <= raw.max()      # cubic overshoot clipped to the frame's range
 
 
+def test_the_colour_sensor_puts_each_polarizer_block_under_one_colour_block():
+    """IMX250MYR's 4×4 tile: polarizers [[90, 45], [135, 0]] within colour blocks [[R, G], [G, B]]."""
+    for (r, c), angle, colour in (((0, 0), 90, 0), ((3, 3), 0, 2), ((1, 2), 135, 1), ((0, 1), 45, 0)):
+        raw = np.zeros((16, 16), np.uint16)
+        raw[r::4, c::4] = 1000
+        stack, angles = split_mosaic(raw, MosaicLayout.IMX250MYR)
+        lit = [(angles[k], channel) for k in range(4) for channel in range(3) if stack[k, ..., channel].any()]
+        assert lit == [(angle, colour)]
+
+
 @pytest.mark.parametrize("frame, layout, method, kwargs, error, match", [
     ([[1, 2], [3, 4]], MosaicLayout.IMX250MZR, Demosaic.NEWTON, {}, TypeError, "expected frame as a numpy array"),
     (np.zeros((4, 4), bool), MosaicLayout.IMX250MZR, Demosaic.NEWTON, {}, TypeError, "got a bool array"),

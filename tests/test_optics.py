@@ -103,6 +103,11 @@ def test_rendering_sums_to_the_unpolarized_image():
     r_obs, t_obs = optics.observable_layers(i_r, i_t, theta)
     s0 = optics.render(i_r, i_t, theta, phi_perp, 0.3) + optics.render(i_r, i_t, theta, phi_perp, 0.3 + np.pi / 2)
     np.testing.assert_allclose(s0, r_obs + t_obs, atol=1e-12)
+    # per pixel, Eq. 1 with the s- and p-reflectances weighted by the polarizer's cos² and sin² of (φ − φ⊥)
+    r_s, r_p = optics.fresnel_reflectance(theta, optics.N_GLASS)
+    alpha = (r_s * np.cos(0.3 - phi_perp) ** 2 + r_p * np.sin(0.3 - phi_perp) ** 2)[..., None]
+    np.testing.assert_allclose(optics.render(i_r, i_t, theta, phi_perp, 0.3), alpha * i_r / 2 + (1 - alpha) * i_t / 2,
+                               atol=1e-12)
 
 
 @pytest.mark.parametrize("angles_deg", [(0, 45, 90), (0, 45, 90, 135)])

@@ -57,7 +57,7 @@ def test_polarization_maps_refuse_a_method_that_cannot_settle_the_side_and_bad_a
     assert abs(float(np.median(urd.polarization_maps(stack, ANGLES)["phi_perp"])) - 20.0) < 1.0
     with pytest.raises(ValueError, match="sees only S0"):
         urd.polarization_maps(stack, ANGLES, method="li-brown")
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="unknown method 'bogus'"):
         urd.polarization_maps(stack, ANGLES, reference=30, method="bogus")
     with pytest.raises(ValueError, match="expected reference 'auto', 'global' or a finite angle"):
         urd.polarization_maps(stack, ANGLES, reference=None)

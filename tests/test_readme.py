@@ -134,7 +134,8 @@ def test_the_readme_shows_urd_commands():
     assert {c[0] for c in commands} >= {"capture", "ingest", "separate", "report", "demo"}
 
 
-@pytest.mark.parametrize("args", [args for page in PAGES for args in urd_commands(page)], ids=lambda a: "urd " + " ".join(a))
+@pytest.mark.parametrize("args", sorted({tuple(args) for page in PAGES for args in urd_commands(page)}),
+                         ids=lambda a: "urd " + " ".join(a))
 def test_urd_command_lines_parse(args):
     parse(args)
 

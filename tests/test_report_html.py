@@ -2,8 +2,8 @@
 files and links it writes, escaping, atomic folder handling, and the page in a real browser.
 
 The browser test drives the system Chromium through Selenium and the system chromedriver
-(Debian packages ``chromium`` and ``chromium-driver``, pip package ``selenium``); it skips with
-the reason when one is missing. It saves screenshots into the folder named by the environment
+(Debian packages ``chromium`` and ``chromium-driver``, pip package ``selenium`` of the ``test``
+extra); it skips with the reason when the system packages are missing. It saves screenshots into the folder named by the environment
 variable ``URD_SCREENSHOT_DIR`` when set, else into the test's temporary folder.
 """
 
@@ -282,11 +282,9 @@ def test_bad_views_are_refused_with_expected_and_got(tmp_path):
 
 def _chrome(tmp_path: Path):
     """A headless system Chromium under Selenium, or a skip naming what is missing."""
-    try:
-        from selenium import webdriver
-        from selenium.webdriver.chrome.service import Service
-    except ImportError:
-        pytest.skip("selenium is not installed (pip install selenium)")
+    from selenium import webdriver                          # a declared test dependency: missing is a failure
+    from selenium.webdriver.chrome.service import Service
+
     browser = next((shutil.which(n) for n in ("chromium", "chromium-browser") if shutil.which(n)), None)
     driver = shutil.which("chromedriver")
     if browser is None or driver is None:

@@ -234,17 +234,16 @@ def test_old_parser_bug_relative_move_gets_one_reply(port):
     converse(port, [(b"0mr00001000", b"0PO00001000\r\n")])
 
 
-def test_urd_driver_against_the_separate_process(stage):
-    with serial.Serial(stage.path, baudrate=9600, timeout=0.1) as port:
-        with Ell14(port, timeout_s=1.0, move_timeout_s=3.0) as driver:
-            info = driver.info()
-            assert (info.device_type, info.pulses_per_rev, info.travel) == (0x0E, TURN, 360)
-            assert driver.home() == 0.0
-            assert driver.move_to(90.0) == pytest.approx(90.0, abs=360 / TURN)
-            assert driver.position() == pytest.approx(90.0, abs=360 / TURN)
-            assert driver.move_to(359.9) == pytest.approx(359.9, abs=360 / TURN)
-            assert driver.status() == 0
-            assert driver.home() == 0.0
+def test_urd_driver_against_the_separate_process(port):
+    with Ell14(port, timeout_s=1.0, move_timeout_s=3.0) as driver:
+        info = driver.info()
+        assert (info.device_type, info.pulses_per_rev, info.travel) == (0x0E, TURN, 360)
+        assert driver.home() == 0.0
+        assert driver.move_to(90.0) == pytest.approx(90.0, abs=360 / TURN)
+        assert driver.position() == pytest.approx(90.0, abs=360 / TURN)
+        assert driver.move_to(359.9) == pytest.approx(359.9, abs=360 / TURN)
+        assert driver.status() == 0
+        assert driver.home() == 0.0
 
 
 def test_options_and_sigint_stop_cleanly():

@@ -15,6 +15,8 @@ from separate.model import SeparationNet
 from separate.train import TrainConfig, load_checkpoint, rank_batches, run_lock
 from urd.cli import app
 
+ROOT = Path(__file__).resolve().parents[1]
+
 
 TINY = ('width = 4\npatch = 32\nbatch = 2\nmicro_batch = 2\nsteps = 2\nval_samples = 2\nval_every = 100\n'
         'ckpt_every = 100\nprecision = "fp32"\nthreads = 1\n')
@@ -72,7 +74,9 @@ def test_a_toml_syntax_error_names_the_file(tmp_path):
 
 
 def test_the_shipped_configs_pass_the_checks_and_floats_read_as_floats(tmp_path):
-    for config in sorted(Path("configs").glob("*.toml")):
+    configs = sorted((ROOT / "configs").glob("*.toml"))
+    assert len(configs) >= 3
+    for config in configs:
         TrainConfig.from_toml(config)
     cfg = TrainConfig.from_toml(tiny_config(tmp_path, lr="1", strength="[1, 2]"))
     assert cfg.lr == 1.0 and isinstance(cfg.lr, float) and cfg.strength == (1.0, 2.0)
@@ -131,10 +135,10 @@ def test_a_locked_run_is_refused_before_it_says_it_resumes(tmp_path):
 
 def test_the_help_example_names_the_weights_of_the_paper_config():
     out = invoke("train", "--help")
-    paper = TrainConfig.from_toml(Path("configs/paper.toml"))
+    paper = TrainConfig.from_toml(ROOT / "configs/paper.toml")
     weights = Path("separate/weights/urd-canonical-transposed.pt")
     assert f"--init {weights}" in out.output
-    assert load_checkpoint(weights)["model_config"].get("upsample", "transposed") == paper.upsample
+    assert load_checkpoint(ROOT / weights)["model_config"].get("upsample", "transposed") == paper.upsample
 
 
 def test_training_without_the_shared_photos_warns_and_its_model_card_says_what_it_used(tmp_path, monkeypatch, request):

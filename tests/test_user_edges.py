@@ -370,5 +370,10 @@ def test_a_capture_without_shake_is_a_tripod_neither_shifted_nor_turned(tmp_path
     out = CliRunner().invoke(app, ["capture", str(tmp_path / "ds"), "--stage", "sim", "--camera", "virtual",
                                    "--sim-size", "96x64", "--sim-shake", "0"])
     assert out.exit_code == 0, out.output
-    camera = Dataset.open(tmp_path / "ds").scene("scene_01").load()["capture"]["camera"]
+    scene = Dataset.open(tmp_path / "ds").scene("scene_01")
+    camera = scene.load()["capture"]["camera"]
     assert camera["shake_px"] == 0 and camera["shake_deg"] == 0
+    from acquire.virtual_camera import shot_truth
+
+    warps = [shot_truth(path)["shake_matrix"] for path in scene.raw_paths()]
+    assert len(warps) == 3 and all(np.array_equal(m, np.eye(3)[:2]) for m in warps)

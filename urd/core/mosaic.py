@@ -5,12 +5,13 @@ convention: counter-clockwise from the image x axis) and, for colour sensors, th
 Colour sensors put a 2×2 block of polarizer pixels under each colour-filter cell, so the tile
 is 4×4: colour blocks ``colours`` (2×2) of polarizer blocks ``angles`` (2×2).
 
-Layouts, verified on the real captures in ../shared/data/polarization:
+Layouts (the mono and CPDNet ones verified on the real captures in ../shared/data/polarization):
 
 * ``imx250mzr`` — Sony IMX250MZR (mono): ``[[90, 45], [135, 0]]``. On the polanalyser
   polarizer-target capture the four filters (labelled 0, 45, 90, 135 left to right) come out
   with AoLP 90, 45, 0, 135: 45° apart, each dark in the channel 90° from its AoLP.
-* ``imx250myr`` — Sony IMX250MYR (colour): the same polarizer block under RGGB colour blocks.
+* ``imx250myr`` — Sony IMX250MYR (colour): the same polarizer block under RGGB colour blocks,
+  as the sensor's makers document it; ../shared/data holds no IMX250MYR capture to check it on.
 * ``wen2019`` — the CPDNet colour mosaic (Wen et al. 2019): ``[[0, 45], [135, 90]]`` under
   ``[R G; G B]`` colour blocks; reproduces net_input.png from gt_*.png exactly.
 
