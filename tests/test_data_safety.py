@@ -362,7 +362,34 @@ def test_a_malformed_model_card_is_named(tmp_path, card):
         load_model(weights)
 
 
-# 6. ingest --redo supersedes what was computed from the old alignment
+# 6. ingest --redo supersedes what was computed from the old alignment, and only on success
+
+def test_a_redo_whose_alignment_fails_keeps_the_aligned_shots_results_and_calibration(tmp_path, base, monkeypatch):
+    import dataclasses
+
+    import urd.ingest
+
+    root = shutil.copytree(base, tmp_path / "ds")
+    scene = Dataset.open(root).scene(SCENE)
+    calibrated = [a + e for a, e in zip(scene.uncalibrated_angles_deg(), (0.4, -0.3, 0.2))]
+    scene.set_shot_calibration({"errors_deg": [0.4, -0.3, 0.2], "uncertainty_deg": [0.05] * 3}, calibrated)
+    before = {p.name: p.read_bytes() for p in (root / SCENE / "aligned").iterdir()}
+    manifest = json.loads(scene.manifest_path.read_text())
+    real_align = urd.ingest.align
+    monkeypatch.setattr(urd.ingest, "align", lambda *args: dataclasses.replace(real_align(*args), ok=False,
+                                                                               reason="ECC correlation 0.2 below 0.6"))
+    report = ingest(root / SCENE, root, IngestOptions(redo=True))
+    [outcome] = report.outcomes
+    assert outcome.state == "failed" and "ECC correlation 0.2" in outcome.error
+    assert "the earlier aligned shots and results are kept" in outcome.error
+    scene = Dataset.open(root).scene(SCENE)
+    assert {p.name: p.read_bytes() for p in (root / SCENE / "aligned").iterdir()} == before
+    after = json.loads(scene.manifest_path.read_text())
+    failed = after["provenance"].pop()
+    assert after == manifest and scene.status().calibrated                 # the attempt is all that was added
+    assert failed["step"] == "ingest failed, the earlier alignment kept" and "ECC correlation 0.2" in failed["parameters"]["error"]
+    assert_clean(root)
+
 
 def test_ingest_redo_marks_results_stale_and_removes_the_shot_calibration(tmp_path, base):
     root = shutil.copytree(base, tmp_path / "ds")

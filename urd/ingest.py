@@ -356,21 +356,25 @@ def _write_stack(staging: Path, shots: Iterable[np.ndarray]) -> dict[str, Path]:
     return files
 
 
-def commit_ingest(scene: Scene, prepared: PreparedIngest, opts: IngestOptions) -> None:
+def commit_ingest(scene: Scene, prepared: PreparedIngest, opts: IngestOptions) -> str | None:
     """Record a prepared ingest in the scene's manifest (`Scene.set_ingest`; the caller holds the
-    dataset's lock); the staging folder is removed either way."""
+    dataset's lock); the staging folder is removed either way. Returns the error of an ingest
+    that failed, None for one that aligned; a failed redo keeps the scene's earlier aligned shots."""
     try:
-        scene.set_ingest(prepared.ok, prepared.options or opts.record(), prepared.alignment, prepared.staged,
-                         error=prepared.error)
+        recorded = scene.set_ingest(prepared.ok, prepared.options or opts.record(), prepared.alignment,
+                                    prepared.staged, error=prepared.error)
     finally:
         if prepared.staging is not None:
             shutil.rmtree(prepared.staging, ignore_errors=True)
+    if prepared.ok:
+        return None
+    return prepared.error if recorded else f"{prepared.error}; the earlier aligned shots and results are kept"
 
 
-def process_scene(scene: Scene, opts: IngestOptions, progress: Progress | None = None) -> None:
+def process_scene(scene: Scene, opts: IngestOptions, progress: Progress | None = None) -> str | None:
     """Decode and align the shots of ``scene``, stage ``aligned/`` and record the ingest
-    (`prepare_ingest`, then `commit_ingest`)."""
-    commit_ingest(scene, prepare_ingest(scene, opts, progress), opts)
+    (`prepare_ingest`, then `commit_ingest`); the error of a failed one, else None."""
+    return commit_ingest(scene, prepare_ingest(scene, opts, progress), opts)
 
 
 def _not_to_ingest(scene: Scene, opts: IngestOptions) -> SceneOutcome | None:
@@ -396,10 +400,10 @@ def _not_to_ingest(scene: Scene, opts: IngestOptions) -> SceneOutcome | None:
     return None
 
 
-def _outcome(scene: Scene, notes: list[str]) -> SceneOutcome:
-    """The outcome of a scene whose ingest was recorded, with ``notes`` for the user."""
-    ok, error = scene.reload().ingest_outcome()
-    return SceneOutcome(scene.name, scene.raw_paths(), error, "ingested" if ok else "failed", notes)
+def _outcome(scene: Scene, error: str | None, notes: list[str]) -> SceneOutcome:
+    """The outcome of a scene whose ingest was committed (`commit_ingest`'s ``error``), with
+    ``notes`` for the user."""
+    return SceneOutcome(scene.name, scene.raw_paths(), error, "failed" if error else "ingested", notes)
 
 
 def ingest_scene(scene: Scene, opts: IngestOptions, progress: Progress | None = None) -> SceneOutcome:
@@ -410,10 +414,10 @@ def ingest_scene(scene: Scene, opts: IngestOptions, progress: Progress | None = 
     try:
         notes = _exposure_notes(scene)
         scene.check_files([{"file": s.file, "size": s.size, "sha256": s.sha256} for s in scene.shots()])
-        process_scene(scene, opts, progress)
+        error = process_scene(scene, opts, progress)
     except Exception as exc:  # noqa: BLE001 - one scene's failure, whatever it is, must not stop the others
         return SceneOutcome(scene.name, [], failure_message(exc), "failed")
-    return _outcome(scene, notes)
+    return _outcome(scene, error, notes)
 
 
 def failure_message(exc: Exception) -> str:
@@ -457,8 +461,8 @@ def ingest_scenes(scenes: list[Scene], opts: IngestOptions, jobs: int, progress:
             for done, future in enumerate(concurrent.futures.as_completed(futures), 1):
                 scene = futures[future]
                 try:
-                    commit_ingest(scene, future.result(), opts)
-                    outcomes.append(_outcome(scene, notes[scene.name]))
+                    error = commit_ingest(scene, future.result(), opts)
+                    outcomes.append(_outcome(scene, error, notes[scene.name]))
                 except Exception as exc:  # noqa: BLE001 - one scene's failure, whatever it is, must not stop the others
                     outcomes.append(SceneOutcome(scene.name, [], failure_message(exc), "failed"))
                 if progress:
@@ -488,8 +492,7 @@ def ingest_group(ds: Dataset, files: list[Path], metas: list[dict], opts: Ingest
                     raise DatasetError(f"{src}: copy does not match the source")
                 staged.add_shot(i, dst, angle, time=meta["time"], camera=meta)
             named = progress and (lambda done, total, _: progress(done, total, f"ingest {files[0].name}"))
-            process_scene(staged, opts, named)          # the staged scene has no name yet: its first file's
-            ok, error = staged.ingest_outcome()
+            error = process_scene(staged, opts, named)  # the staged scene has no name yet: its first file's
             scene = ds.adopt_scene(staged.path)
     except Exception as exc:  # noqa: BLE001 - one group's failure, whatever it is, must not stop the others
         message = re.sub(rf"\S*{re.escape(STAGING_PREFIX)}[^/\s]*/raw/", "", failure_message(exc))    # the staged copies' folder
@@ -500,7 +503,7 @@ def ingest_group(ds: Dataset, files: list[Path], metas: list[dict], opts: Ingest
             message = message.replace(f"shot_{i:02d}_{opts.angles_deg[i]:05.1f}deg{src.suffix.lower()}", src.name)
         return SceneOutcome(None, files, message, "failed")
     notes = [] if warning is None else [f"{scene.name}: {warning}"]
-    return SceneOutcome(scene.name, files, error, "ingested" if ok else "failed", notes)
+    return SceneOutcome(scene.name, files, error, "failed" if error else "ingested", notes)
 
 
 def ingest_folder(raw_dir: Path, ds: Dataset, opts: IngestOptions, progress: Progress | None = None) -> IngestReport:

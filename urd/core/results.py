@@ -121,12 +121,24 @@ class SceneResults:
         return images, self.angles_deg()
 
     def set_ingest(self, ok: bool, options: dict, alignment: list | str, staged: dict[str, Path],
-                   error: str | None = None, shot_hashes: list[str] | None = None) -> None:
+                   error: str | None = None, shot_hashes: list[str] | None = None) -> bool:
         """Record an ingest: staged aligned files (final name → staged path) are swapped in;
         aligned files of an earlier ingest that are no longer named are removed. What was
         computed from an earlier alignment is superseded: results are marked stale (kept, with
         the command that renews them), a per-shot angle calibration is removed (its record and
-        the calibrated angles are kept in the provenance)."""
+        the calibrated angles are kept in the provenance).
+
+        A failed ingest (``ok`` false) of a scene whose earlier ingest aligned changes nothing but
+        the provenance, where the attempt and its error are recorded: the earlier aligned shots,
+        results and calibration stay. Returns whether the ingest was recorded as the scene's."""
+        earlier = self._data().get("ingest")
+        if not ok and earlier is not None and earlier["ok"]:
+            def note(_: list[dict]) -> None:
+                self._data()["provenance"].append(provenance("ingest failed, the earlier alignment kept",
+                                                              {**options, "error": error}))
+
+            self._commit({}, note)
+            return False
         record = {"time": now_iso(), "ok": ok, "options": options, "alignment": alignment, "aligned": []}
         if error is not None:
             record["error"] = error
@@ -142,6 +154,7 @@ class SceneResults:
             data["provenance"].append(provenance("ingest", options))
 
         self._commit(staged if ok else {}, change)
+        return True
 
     def _supersede(self, data: dict) -> dict:
         """Mark results stale and remove the per-shot calibration of ``data`` (before a new
