@@ -255,6 +255,17 @@ def test_a_counter_rolling_over_among_shots_of_one_second_is_named(tmp_path):
     assert not counter_wraps(["shot_00_000.0deg.dng", "a.dng"]) and not counter_wraps(["DSC_1.NEF", "DSC_2.NEF"])
 
 
+def test_shots_of_one_second_are_ordered_by_their_file_numbers_as_numbers(tmp_path):
+    files = []
+    for name in ("frame_10.raw", "frame_11.raw", "frame_8.raw", "frame_9.raw"):   # not RAW: their times are the files'
+        files.append(tmp_path / name.replace(".raw", ".dng"))
+        files[-1].write_bytes(b"x")
+        os.utime(files[-1], (1_700_000_000, 1_700_000_000))
+    groups, failures, notes = group_shots(files, {}, 4, 60.0)
+    assert [[f.name for f in g] for g in groups] == [["frame_8.dng", "frame_9.dng", "frame_10.dng", "frame_11.dng"]]
+    assert not failures and not notes
+
+
 def test_a_scene_failing_with_an_os_error_is_reported_and_the_next_is_ingested(tmp_path, monkeypatch):
     """One scene's failure outside urd's own errors (EIO of a network share while it is read)
     fails that scene, named, as with --jobs; the scenes after it are still ingested."""

@@ -132,9 +132,10 @@ def group_shots(files: list[Path], metas: dict[Path, dict], count: int,
     outcome naming the files, and a note for each run split into several scenes (one capture at
     more angles than ``count`` looks the same) and for each scene whose shots share a capture time
     (cameras record whole seconds) with file numbers that wrap around (`counter_wraps`): their
-    order, and so their angles, follows the file names, which is not the shooting order then.
+    order, and so their angles, follows the file names (`name_order`), which is not the shooting
+    order then.
     """
-    timed = sorted((capture_time(f, metas.get(f)), f.name, f) for f in files)
+    timed = sorted((capture_time(f, metas.get(f)), name_order(f.name), f) for f in files)
     when = {f: t for t, _, f in timed}
     runs, current, last = [], [], None
     for t, _, f in timed:
@@ -165,6 +166,11 @@ def group_shots(files: list[Path], metas: dict[Path, dict], count: int,
                          "seconds) are ordered, and given their angles, by file name, and these file numbers wrap "
                          "around (a camera's counter rolling over, IMG_9999 → IMG_0001): check each shot's angle")
     return groups, failures, notes
+
+
+def name_order(name: str) -> tuple:
+    """Sort key of a file name with its numbers compared as numbers (frame_8 before frame_10)."""
+    return tuple((0, int(part), part) if part.isdigit() else (1, 0, part) for part in re.split(r"(\d+)", name))
 
 
 def identical_pairs(files: list[Path], digests: dict[Path, str]) -> list[tuple[Path, Path]]:

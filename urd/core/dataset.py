@@ -425,8 +425,9 @@ class Dataset:
         return scene
 
     def next_scene_name(self) -> str:
-        """The first unused name after the highest existing scene number."""
-        numbers = [int(SCENE_NAME.match(n).group(1)) for n in self.scene_names()]
+        """The first unused name after the highest scene number of any entry of the dataset's
+        folder (a stray file named like a scene included: a scene cannot take its name)."""
+        numbers = [int(match.group(1)) for path in self.root.iterdir() if (match := SCENE_NAME.match(path.name))]
         return f"scene_{(max(numbers, default=0) + 1):02d}"
 
     def new_scene(self, source: str, capture: dict, name: str | None = None) -> Scene:
