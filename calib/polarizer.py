@@ -178,11 +178,17 @@ def estimate_shot_errors(stack: np.ndarray, nominal_deg: list[float], short_side
     scale = min(1.0, short_side / min(height, width))
     size = (max(4, round(width * scale)), max(4, round(height * scale)))
     margin = (height // 20, width // 20)                           # aligned shots are padded at the border
-    flat = np.stack([cv2.resize(np.ascontiguousarray(img[margin[0]:height - margin[0], margin[1]:width - margin[1]]),
-                                size, interpolation=cv2.INTER_AREA).reshape(size[1], size[0], -1)
-                     for img in stack.reshape(n, height, width, -1)])
+    inner = stack.reshape(n, height, width, -1)[:, margin[0]:height - margin[0], margin[1]:width - margin[1]]
+
+    def reduce(image: np.ndarray) -> np.ndarray:
+        return cv2.resize(np.ascontiguousarray(image), size, interpolation=cv2.INTER_AREA).reshape(size[1], size[0], -1)
+
+    flat = np.stack([reduce(img) for img in inner])
     h, w = flat.shape[1:3]
-    chosen = (flat.max(axis=0) < 0.98) & (flat.min(axis=0) > 0.0)  # unsaturated in every shot
+    clipped = np.zeros(inner.shape[1:], bool)                      # a pixel clipped in any shot, at full resolution:
+    for img in inner:                                              # a block holding one is off the model
+        clipped |= (img >= 0.98) | (img <= 0.0)
+    chosen = reduce(clipped.astype(np.float32)) == 0.0
     if chosen.sum() < MIN_PIXELS:
         raise CalibrationError(f"too few unsaturated pixels to estimate angle errors: expected at least {MIN_PIXELS}, "
                                f"got {int(chosen.sum())}")
