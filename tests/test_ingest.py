@@ -52,6 +52,20 @@ def test_alignment_recovers_known_shake_within_a_tenth_of_a_pixel(tmp_path, seed
         assert err < 0.02, (i, err)
 
 
+def test_glints_clipped_in_the_shot_alone_are_masked_and_the_shot_still_aligns(tmp_path):
+    from urd.core.align import align, prepare_target
+
+    ds = Dataset.open_or_create(tmp_path / "ds")
+    scene, cam = capture_virtual(ds, angles=(0, 45, 90), size=(640, 480), shake_px=4, shake_deg=0.5, seed=7)
+    reference, shot = (rawio.decode(path) for path in scene.raw_paths()[:2])
+    rng = np.random.default_rng(0)
+    for y, x in zip(rng.integers(20, 440, 60), rng.integers(20, 600, 60)):   # glare the polarizer let through here only
+        shot[y:y + 18, x:x + 18] = 1.0
+    result = align(prepare_target(reference), shot)
+    assert result.ok and result.correlation > 0.8, result
+    assert warp_rms(result.warp, cam.shake(1), 480, 640) < 0.15
+
+
 @pytest.mark.slow
 def test_unalignable_scene_is_flagged_and_no_stack_is_written(tmp_path):
     ds = Dataset.open_or_create(tmp_path / "ds")

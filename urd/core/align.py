@@ -6,7 +6,9 @@ zero-mean normalized correlation, which is invariant to one global gain and offs
 such local, multiplicative changes. urd therefore aligns band-passed log-luminance: the log
 turns a layer's gain change into an additive offset, and subtracting a wide Gaussian blur
 removes that offset locally, leaving the edges of both layers, which move together with the
-camera. Saturated pixels are masked.
+camera. Pixels clipped in any colour channel, in the reference or in the shot, are masked in
+each (`findTransformECCWithMask`): a glint that saturates one shot and not the other is no edge
+the two share.
 
 Coarse-to-fine: phase correlation gives a starting translation on the coarsest level (about
 256 px on the short side); ECC then refines on each pyramid level up to ``finest_level`` (0 is
@@ -51,17 +53,30 @@ class Alignment:
                 "ok": self.ok, "reason": self.reason}
 
 
-def representation(image: np.ndarray, saturation: float = 0.98) -> tuple[np.ndarray, np.ndarray]:
-    """Band-passed log-luminance (float32 H×W) and a mask (uint8) of the unsaturated pixels away
-    from the border (2% of the long side), where a shaken shot has no valid content."""
-    lum = image.mean(axis=2) if image.ndim == 3 else image
+def representation(lum: np.ndarray, clipped: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Band-passed log-luminance (float32 H×W) of ``lum`` (H×W luminance) and a mask (uint8) of
+    the pixels neither ``clipped`` (H×W bool, `clipped_pixels`) nor next to one, away from the
+    border (2% of the long side), where a shaken shot has no valid content."""
     log = np.log(np.maximum(lum, 1e-4)).astype(np.float32)
     band = log - cv2.GaussianBlur(log, (0, 0), max(4.0, min(lum.shape) / 64))
-    mask = (image.max(axis=2) if image.ndim == 3 else image) < saturation
-    mask = cv2.erode(mask.astype(np.uint8), np.ones((3, 3), np.uint8))
+    mask = cv2.erode((~clipped).astype(np.uint8), np.ones((3, 3), np.uint8))
     margin = max(2, int(0.02 * max(lum.shape)))
     mask[:margin], mask[-margin:], mask[:, :margin], mask[:, -margin:] = 0, 0, 0, 0
     return band, mask
+
+
+def clipped_pixels(image: np.ndarray, level: int, saturation: float = 0.98) -> np.ndarray:
+    """Where ``image`` (H×W×C or H×W, linear, full resolution) reaches ``saturation`` in any
+    channel, on the grid of its pyramid ``level`` (`_reduce`): a cell is clipped when any pixel
+    under it is. Bool, ⌈H/2^level⌉×⌈W/2^level⌉."""
+    h, w = image.shape[:2]
+    brightest = cv2.reduce(image.reshape(h * w, -1), 1, cv2.REDUCE_MAX).reshape(h, w) if image.ndim == 3 else image
+    clipped = brightest >= saturation
+    for _ in range(level):
+        rows, cols = clipped.shape
+        clipped = np.pad(clipped, ((0, rows % 2), (0, cols % 2)), mode="edge")
+        clipped = clipped[0::2, 0::2] | clipped[1::2, 0::2] | clipped[0::2, 1::2] | clipped[1::2, 1::2]
+    return clipped
 
 
 def _scale_warp(warp: np.ndarray, factor: float) -> np.ndarray:
@@ -120,7 +135,7 @@ def prepare_target(reference: np.ndarray, finest_level: int | None = None) -> Ta
     """The `Target` of ``reference`` (H×W×C linear float32); ``finest_level`` as in `align`."""
     if finest_level is None:
         finest_level = finest_level_for(reference.shape)
-    pyramid = [representation(_reduce(reference, finest_level))]
+    pyramid = [representation(_reduce(reference, finest_level), clipped_pixels(reference, finest_level))]
     levels = max(finest_level, int(np.floor(np.log2(min(reference.shape[:2]) / 256))))
     for _ in range(levels - finest_level):
         rep, mask = pyramid[-1]
@@ -148,22 +163,24 @@ def align(reference: np.ndarray | Target, shot: np.ndarray, motion: Motion = Mot
     if finest_level is not None and finest_level != target.finest_level:
         raise ValueError(f"expected finest_level {target.finest_level} (the prepared reference's), got {finest_level}")
     finest_level, levels = target.finest_level, target.finest_level + len(target.pyramid) - 1
-    shots = [representation(_reduce(shot, finest_level))[0]]
+    shots = [representation(_reduce(shot, finest_level), clipped_pixels(shot, finest_level))]
     for _ in range(levels - finest_level):
-        shots.append(cv2.pyrDown(shots[-1]))
+        rep, mask = shots[-1]
+        size = ((rep.shape[1] + 1) // 2, (rep.shape[0] + 1) // 2)
+        shots.append((cv2.pyrDown(rep), cv2.resize(mask, size, interpolation=cv2.INTER_NEAREST)))
     warp = np.eye(3, dtype=np.float32) if motion is Motion.HOMOGRAPHY else np.eye(2, 3, dtype=np.float32)
-    coarse_ref, coarse_shot = target.pyramid[-1][0], shots[-1]
+    coarse_ref, coarse_shot = target.pyramid[-1][0], shots[-1][0]
     window = cv2.createHanningWindow(coarse_ref.shape[::-1], cv2.CV_32F)
     (dx, dy), _ = cv2.phaseCorrelate(coarse_ref.copy(), coarse_shot.copy(), window)    # it windows its inputs in place
     warp[0, 2], warp[1, 2] = dx, dy
     correlation = 0.0
     for level in range(levels, finest_level - 1, -1):
-        (r, m), s = target.pyramid[level - finest_level], shots[level - finest_level]
+        (r, m), (s, n) = target.pyramid[level - finest_level], shots[level - finest_level]
         criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, *((300, 1e-8) if level == finest_level else (100, 1e-5)))
         if level < levels:
             warp = _scale_warp(warp, 2.0)
         try:
-            correlation, warp = cv2.findTransformECC(r, s, warp, motion.cv_type, criteria, m, 3)
+            correlation, warp = cv2.findTransformECCWithMask(r, s, m, n, warp, motion.cv_type, criteria, 3)
         except cv2.error as exc:
             return Alignment(_scale_warp(warp, 2.0**finest_level), 0.0, False, f"ECC did not converge at level {level}: {str(exc).splitlines()[-1]}")
     warp = _scale_warp(warp, 2.0**finest_level)
