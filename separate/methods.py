@@ -149,7 +149,7 @@ def network(weights: Path | None = None, tile: int | None = None, precision: str
             r_hat, t_hat = returned(r_hat, t_hat)
         if colour_match:
             darkest = int(np.argmin([shot.mean(dtype=np.float64) for shot in images]))
-            t_hat = match_histograms(t_hat, optics.to_float(images[darkest]))
+            t_hat = match_histograms(t_hat, 2.0 * optics.to_float(images[darkest]))    # the shot in S0's units
         return r_hat, t_hat
 
     info = {"weights": {"file": name, "sha256": weights_info["sha256"],

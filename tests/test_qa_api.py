@@ -89,6 +89,17 @@ def test_the_stacks_warnings_reach_python_and_a_dark_frame_gives_dark_layers():
     assert not layers.transmission.any() and not layers.reflection.any()
 
 
+def test_colour_matching_keeps_the_transmission_in_the_units_of_s0():
+    """The paper's colour correction matches T̂ to a shot through the polarizer, which carries
+    about half of S0: matched as it is, T̂ came out at half its brightness."""
+    stack = pane_stack(96, 96)
+    s0_mean = float(optics.stokes_from_images(stack, np.radians(ANGLES))[0].mean())
+    plain = urd.separate(stack, ANGLES)
+    matched = urd.separate(stack, ANGLES, colour_match=True)
+    assert 0.9 < matched.transmission.mean() / plain.transmission.mean() < 1.25     # the darkest shot's reflection added
+    assert matched.transmission.mean() < s0_mean
+
+
 def test_the_networks_switches_and_angle_of_incidence_are_checked_for_their_type():
     stack = pane_stack()
     for option, value in (("colour_match", "no"), ("return_copies", 1)):
