@@ -139,7 +139,8 @@ def test_results_deleted_by_hand_fail_their_scene_and_stale_results_get_no_maps(
     scene = Dataset.open(three_scenes).scene("scene_01")
     assert ingest_scene(scene, IngestOptions(redo=True)).error is None
     out = run("--maps")
-    assert "scene_01: skipped: has STALE none results, from an earlier alignment: maps of the new shots" in out.output
+    assert ("scene_01: skipped: has STALE none results: computed from an earlier alignment (the scene was ingested "
+            "again); maps would not match them") in out.output
     assert not (three_scenes / "scene_01" / "results" / "none" / "maps").exists()
     assert (three_scenes / "scene_03" / "results" / "none" / "maps").is_dir()
 

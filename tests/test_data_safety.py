@@ -407,7 +407,7 @@ def test_ingest_redo_marks_results_stale_and_removes_the_shot_calibration(tmp_pa
     from urd.batch import targets
 
     assert targets(Dataset.open(root), "none", force=False)[1][0].detail == \
-        "has STALE none results, from an earlier alignment (--force replaces them)"
+        "has STALE none results: separated at other angles than the shots' calibrated ones; --force replaces them"
     superseded = [p for p in scene.provenance() if p["step"] == "supersede"]
     assert superseded and superseded[-1]["parameters"]["calibration"]["errors_deg"] == [0.4, -0.3, 0.2]
     assert_clean(root)

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Iterator
 
 from urd.core.dataset import Dataset, Scene
+from urd.core.manifest import stale_reason
 from urd.core.processes import kept_note, process_pool
 from urd.core.progress import Progress, plural
 
@@ -33,6 +34,12 @@ class BatchOutcome:
     detail: str = ""
 
 
+def stale_results(scene: Scene, method: str) -> str:
+    """"STALE <method> results: <why>" for results the manifest marks stale."""
+    note = next(w.removeprefix("STALE: ") for w in scene.result(method, verify=False).warnings if w.startswith("STALE: "))
+    return f"STALE {method} results: {stale_reason(note)}"
+
+
 def targets(ds: Dataset, method: str, force: bool) -> tuple[list[Scene], list[BatchOutcome]]:
     """The scenes to separate and the outcomes of those left out (not ingested, failed ingest,
     already separated without ``force``, broken)."""
@@ -45,10 +52,10 @@ def targets(ds: Dataset, method: str, force: bool) -> tuple[list[Scene], list[Ba
             skipped.append(BatchOutcome(scene.name, "skipped", "not ingested (run urd ingest first)"))
         elif method in scene.methods() and not force:
             lost = [name for name, path in scene.result(method, verify=False).files.items() if not path.is_file()]
-            what = f"STALE {method} results, from an earlier alignment" if method in status.stale else f"{method} results"
+            what = stale_results(scene, method) if method in status.stale else f"{method} results"
             skipped.append(BatchOutcome(scene.name, "failed", f"its {method} results lack {', '.join(lost)}: see urd verify; "
                                         "--force separates it again") if lost else
-                           BatchOutcome(scene.name, "skipped", f"has {what} (--force replaces them)"))
+                           BatchOutcome(scene.name, "skipped", f"has {what}; --force replaces them"))
         else:
             chosen.append(scene)
     return chosen, skipped
@@ -121,8 +128,8 @@ def _add_maps(scene: Scene, method: str, reference: str | float) -> BatchOutcome
     from urd.separation import add_maps
 
     if method in scene.status().stale:
-        return BatchOutcome(scene.name, "skipped", f"has STALE {method} results, from an earlier alignment: maps of the "
-                                                   "new shots would not match them (--force separates again with maps)")
+        return BatchOutcome(scene.name, "skipped", f"has {stale_results(scene, method)}; maps would not match "
+                                                   "them (--force separates again with maps)")
     try:
         add_maps(scene, method, reference)
     except Exception as exc:  # noqa: BLE001 - one scene's failure, whatever it is, must not stop the others

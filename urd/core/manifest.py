@@ -35,6 +35,11 @@ def stale_note(scene: Path, method: str, why: str) -> str:
             f"--method {method} --force")
 
 
+def stale_reason(note: str) -> str:
+    """The ``why`` of a `stale_note` (the text itself for a note of another form)."""
+    return re.sub(r" \([^()]*\)$", "", note.split("; renew with:")[0])
+
+
 # ---------------------------------------------------------------- validation
 
 NUMBER = (int, float)
