@@ -141,7 +141,8 @@ def test_urd_command_lines_parse(args):
 
 
 @pytest.mark.parametrize("args", [["capture", "DATASET", "--stage", "sim", "--bogus"], ["separat", "scene_01"],
-                                  ["calibrate", "offsets"], ["separate", "--jobs", "0", "--all"], ["ingest"]],
+                                  ["calibrate", "offsets"], ["separate", "--jobs", "0", "--all"],
+                                  ["ingest", "raw/", "dataset", "more"]],
                          ids=lambda a: "urd " + " ".join(a))
 def test_the_check_catches_wrong_lines(args):
     with pytest.raises((UsageError, AssertionError)):

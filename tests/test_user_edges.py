@@ -366,6 +366,17 @@ def test_the_ablation_outside_a_source_checkout_says_it_needs_one(tmp_path):
         ablation_runs([0, 1], tmp_path / "runs", configs=tmp_path / "configs")
 
 
+def test_ingest_without_a_source_takes_the_dataset_here_as_capture_made_it(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    out = CliRunner().invoke(app, ["ingest"])
+    assert out.exit_code == 2 and "none given, and dataset holds no dataset" in out.output
+    out = CliRunner().invoke(app, ["capture", "--stage", "sim", "--camera", "virtual", "--sim-size", "96x64"])
+    assert out.exit_code == 0, out.output
+    out = CliRunner().invoke(app, ["ingest"])
+    assert out.exit_code == 0 and "ingested scene_01" in out.output
+    assert Dataset.open(tmp_path / "dataset").scene("scene_01").ingest_outcome() == (True, None)
+
+
 def test_a_capture_without_shake_is_a_tripod_neither_shifted_nor_turned(tmp_path):
     out = CliRunner().invoke(app, ["capture", str(tmp_path / "ds"), "--stage", "sim", "--camera", "virtual",
                                    "--sim-size", "96x64", "--sim-shake", "0"])

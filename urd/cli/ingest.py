@@ -14,7 +14,7 @@ from urd.core.progress import TerminalProgress, plural
 
 def ingest(
     ctx: typer.Context,
-    source: Path = typer.Argument(..., help="A folder of RAW shots, a captured scene folder, a dataset folder, or (with --mosaic) polarization-camera frames."),
+    source: Optional[Path] = typer.Argument(None, help="A folder of RAW shots, a captured scene folder, a dataset folder, or (with --mosaic) polarization-camera frames (default: the dataset here, as for DATASET, e.g. after 'urd capture').", show_default=False),
     dataset: Optional[Path] = typer.Argument(None, help="Dataset to add scenes to when SOURCE is a RAW folder or mosaics (default: the current folder if it holds dataset.json, else ./dataset).", show_default=False),
     angles: str = typer.Option("0,45,90", help="Polarizer angles of consecutive shots (deg), for RAW folders without a capture manifest."),
     motion: str = typer.Option("euclidean", help="Alignment model: translation, euclidean or homography."),
@@ -32,6 +32,7 @@ def ingest(
 
     \b
     Example:
+      urd ingest                       (the dataset here, e.g. after urd capture)
       urd ingest raw/
       urd ingest raw/ dataset --angles 0,45,90,135
       urd ingest dataset --jobs 2
@@ -46,6 +47,11 @@ def ingest(
     layout = choice(MosaicLayout, mosaic, "--mosaic") if mosaic else None
     method = choice(Demosaic, demosaic, "--demosaic")
     transfer_rule = choice(Transfer, transfer, "--transfer")
+    if source is None:
+        source = default_root()
+        if not (source / "dataset.json").is_file():
+            raise bad("SOURCE", f"none given, and {source} holds no dataset: name the folder of RAW shots, the "
+                                "scene or the dataset to ingest")
     if not source.exists():
         raise bad("SOURCE", f"{source}: no such folder or file")
     if source.is_file() and not mosaic:
