@@ -119,6 +119,21 @@ def write_frame(folder: Path, name: str, frame: np.ndarray, *params: int) -> Pat
     return folder
 
 
+def test_a_tiff_image_saved_under_a_raw_name_is_refused_not_demosaiced(tmp_path):
+    """LibRaw reads any 16-bit TIFF as a Bayer frame with an invented white balance: a grey image
+    (a polarization camera's frame, say) renamed .dng would be ingested as a colour photo."""
+    import tifffile
+
+    folder = tmp_path / "raw"
+    folder.mkdir()
+    for k in range(3):
+        tifffile.imwrite(folder / f"IMG_{k}.dng", (np.random.default_rng(k).random((64, 96)) * 65535).astype(np.uint16))
+    out = CliRunner().invoke(app, ["ingest", str(folder), str(tmp_path / "ds")])
+    assert out.exit_code == 1 and "IMG_0.dng is unreadable (not a camera RAW file: no camera, white balance" in out.output
+    assert "ingested with --mosaic" in out.output and not (tmp_path / "ds" / "scene_01").exists()
+    rawio.decode(capture_virtual(Dataset.open_or_create(tmp_path / "cap"), size=(96, 64))[0].raw_paths()[0])
+
+
 def test_a_mosaic_frame_too_small_to_separate_is_refused(tmp_path):
     frames = write_frame(tmp_path / "tiny", "t.png", np.full((2, 2), 30000, np.uint16))
     out = invoke("ingest", frames, tmp_path / "ds", "--mosaic", "imx250mzr")

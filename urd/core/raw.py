@@ -40,6 +40,11 @@ def _open(path: Path) -> rawpy.RawPy:
     if raw.raw_type != rawpy.RawType.Flat or raw.raw_pattern is None:
         raw.close()
         raise RawFormatError(f"{path}: not a colour-filter-array camera image (LibRaw reports a {raw.raw_type.name} raw)")
+    wb = raw.camera_whitebalance
+    if (wb[0] == 0 or wb[2] == 0) and not np.abs(np.asarray(raw.color_matrix)).any() and "make" not in _tiff_tags(path):
+        raw.close()                                  # LibRaw reads any TIFF as a Bayer frame, and invents these
+        raise RawFormatError(f"{path}: not a camera RAW file: no camera, white balance or colour matrix (an image "
+                             "saved under a RAW name?); polarization-camera frames are ingested with --mosaic")
     return raw
 
 
