@@ -231,7 +231,7 @@ def write_aligned(path: Path, image: np.ndarray) -> None:
 
 #: Shots decoded, aligned and written at a time by one ingest (threads: rawpy, OpenCV, NumPy and
 #: file writes run outside Python's lock): on two cores each step takes about half the wall time,
-#: for the memory of one more shot.
+#: for the memory of one more shot (each shot is written once aligned; the reference's pyramid stays).
 INGEST_THREADS = 2
 
 
@@ -269,37 +269,49 @@ def prepare_ingest(scene: Scene, opts: IngestOptions, progress: Progress | None 
     label = f"ingest {scene.name}"
     if progress:
         progress(0, len(paths), label)
-
-    def aligned(i: int) -> tuple[Alignment, np.ndarray | None]:
-        image, decoding[i] = decoding[i].result(), None           # the decoded shot goes once warped
-        if image.shape != reference.shape:
-            raise AlignmentError(f"{paths[i]}: size {image.shape[1]}×{image.shape[0]} differs from "
-                                 f"{paths[0].name} ({reference.shape[1]}×{reference.shape[0]})")
-        result = align(target, image, opts.motion)
-        return result, apply_warp(image, result.warp) if result.ok else None
-
-    with ThreadPoolExecutor(INGEST_THREADS) as pool:             # the reference decoded beside the next shot
-        decoding: list[Future | None] = [pool.submit(rawio.decode, path, opts.half_size) for path in paths]
-        reference, decoding[0] = decoding[0].result(), None
-        target = prepare_target(reference)                        # once for every shot
-        results, images = [], {0: reference}
-        for i, (result, image) in enumerate(pool.map(aligned, range(1, len(paths))), start=1):
-            if progress:
-                progress(i, len(paths), label)
-            results.append(result)
-            if image is not None:
-                images[i] = image
-    alignment = [{"shot": 0, "reference": True}] + [{"shot": i, **r.record()} for i, r in enumerate(results, 1)]
-    if not all(r.ok for r in results):
-        bad = [f"shot {i}: {r.reason}" for i, r in enumerate(results, 1) if not r.ok]
-        return PreparedIngest(scene.path, False, alignment, None, {},
-                              "alignment failed, no aligned stack written (" + "; ".join(bad) + ")")
     staging = scene.new_staging()
+    staged = {f"aligned/shot_{i:02d}.tiff": staging / f"shot_{i:02d}.tiff" for i in range(len(paths))}
+    written = list(staged.values())
+    prepared: Future = Future()                                   # (reference shape, Target) once shot 0 is decoded
+
+    def aligned(i: int) -> Alignment:                             # decoded, aligned, written: one shot in memory
+        image = rawio.decode(paths[i], opts.half_size)
+        shape, target = prepared.result()
+        if image.shape != shape:
+            raise AlignmentError(f"{paths[i]}: size {image.shape[1]}×{image.shape[0]} differs from "
+                                 f"{paths[0].name} ({shape[1]}×{shape[0]})")
+        result = align(target, image, opts.motion)
+        if result.ok:
+            image = apply_warp(image, result.warp)               # the decoded shot goes once warped
+            write_aligned(written[i], image)
+        return result
+
     try:
-        staged = _write_stack(staging, (images.pop(i) for i in range(len(paths))))    # each freed once written
+        with ThreadPoolExecutor(INGEST_THREADS) as pool:
+            decoding = pool.submit(rawio.decode, paths[0], opts.half_size)
+            runs = pool.map(aligned, range(1, len(paths)))        # the first shot decoded beside the reference
+            try:
+                reference = decoding.result()
+                prepared.set_result((reference.shape, prepare_target(reference)))    # once for every shot
+            finally:
+                if not prepared.done():
+                    prepared.set_exception(AlignmentError(f"{paths[0]}: the reference shot was not decoded"))
+            write_aligned(written[0], reference)
+            del reference
+            results = []
+            for i, result in enumerate(runs, start=1):
+                if progress:
+                    progress(i, len(paths), label)
+                results.append(result)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
+    alignment = [{"shot": 0, "reference": True}] + [{"shot": i, **r.record()} for i, r in enumerate(results, 1)]
+    if not all(r.ok for r in results):
+        shutil.rmtree(staging, ignore_errors=True)
+        bad = [f"shot {i}: {r.reason}" for i, r in enumerate(results, 1) if not r.ok]
+        return PreparedIngest(scene.path, False, alignment, None, {},
+                              "alignment failed, no aligned stack written (" + "; ".join(bad) + ")")
     if progress:
         progress(len(paths), len(paths), label)
     return PreparedIngest(scene.path, True, alignment, staging, staged)
