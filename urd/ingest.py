@@ -58,8 +58,9 @@ class IngestOptions:
     redo: bool = False
 
     def record(self) -> dict:
-        return {"angles_deg": list(self.angles_deg), "motion": self.motion.value, "half_size": self.half_size,
-                "gap_s": self.gap_s}
+        """What a scene's ingest record keeps: how it was decoded and aligned (the angles are its
+        shots', the grouping of a RAW folder its capture record's)."""
+        return {"motion": self.motion.value, "half_size": self.half_size}
 
 
 @dataclasses.dataclass
@@ -500,7 +501,7 @@ def ingest_group(ds: Dataset, files: list[Path], metas: list[dict], opts: Ingest
     try:
         warning = exposure_warning(metas)
         with ds.staged_scene("ingest", {"source_files": [str(f) for f in files], "angles_deg": list(opts.angles_deg),
-                                        "complete": True}) as staged:
+                                        "gap_s": opts.gap_s, "complete": True}) as staged:
             (staged.path / "raw").mkdir()
             for i, (src, angle, meta) in enumerate(zip(files, opts.angles_deg, metas)):
                 dst = staged.path / "raw" / f"shot_{i:02d}_{angle:05.1f}deg{src.suffix.lower()}"
