@@ -155,6 +155,7 @@ def test_real_camera_raws_decode_linear_and_the_scanner_is_rejected():
     assert abs(half.mean() - img.mean()) < 0.01          # same linear scale at half size
     meta = rawio.metadata(shared_data("raw", "kodak_dc50.kdc"))
     assert meta["model"].startswith("Kodak") and meta["exposure_s"] == pytest.approx(0.00435, rel=1e-3)
+    assert meta["colour"].startswith("camera RGB") and rawio.metadata(canon)["colour"] == "linear sRGB"
     with pytest.raises(RawFormatError, match="not a colour-filter-array camera image"):
         rawio.decode(shared_data("raw", "nikon_coolscan_iv_scanner.nef"))
 

@@ -49,7 +49,8 @@ def _open(path: Path) -> rawpy.RawPy:
 
 
 def decode(path: Path, half_size: bool = False) -> np.ndarray:
-    """Decode a RAW file to a linear float32 H×W×3 image (camera white balance, sRGB primaries).
+    """Decode a RAW file to a linear float32 H×W×3 image (camera white balance; sRGB primaries
+    where LibRaw has the camera's colour matrix, else the camera's own RGB: `metadata`'s ``colour``).
 
     ``half_size`` averages each 2×2 CFA tile into one pixel instead of demosaicing (half the
     width and height, several times faster).
@@ -117,6 +118,8 @@ def metadata(path: Path) -> dict:
             "white_level": int(raw.white_level),
             "camera_whitebalance": [float(v) for v in raw.camera_whitebalance],
             "cfa": raw.color_desc.decode(),
+            "colour": "linear sRGB" if np.abs(np.asarray(raw.color_matrix)[:, :3]).any() else
+                      "camera RGB (LibRaw has no colour matrix for this camera)",
         }
     record.update(_tiff_tags(path))
     return record
