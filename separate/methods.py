@@ -301,5 +301,5 @@ def get_method(name: str, reference: Reference = "auto", **options) -> tuple[Run
     if not any(p.kind is p.VAR_KEYWORD for p in taken.values()):
         unknown = sorted(set(options) - set(taken))
         if unknown:
-            raise ValueError(f"unknown options {unknown} for {name}; expected some of {sorted(set(taken) - {'reference'})}")
+            raise ValueError(f"unknown options {unknown} for {name}; expected some of {sorted(set(taken) - {'reference', 'uses_reference'})}")
     return factory(reference=check_reference(reference), **options)

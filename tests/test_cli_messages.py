@@ -92,6 +92,14 @@ def test_a_baseline_shows_progress_on_the_terminal_and_records_no_callback(datas
     assert "progress" not in result["parameters"]
 
 
+def test_images_that_do_not_exist_are_a_usage_error_before_the_network_is_set_up(tmp_path):
+    (tmp_path / "b.tiff").write_bytes(b"")
+    out = invoke("separate", "--images", tmp_path / "a.tiff", "--images", tmp_path / "b.tiff", "--images",
+                 tmp_path / "c.tiff", "--angles", "0,45,90", "--out", tmp_path / "out")
+    assert out.exit_code == 2 and "--images" in out.stderr and "a.tiff" in out.stderr and "c.tiff" in out.stderr
+    assert "b.tiff" not in out.stderr and "precision" not in out.stderr and not (tmp_path / "out").exists()
+
+
 def test_a_missing_dataset_is_said_to_be_missing_with_how_to_make_one(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     for args in (("report",), ("verify",), ("separate", "scene_01"), ("calibrate", "shots", "scene_01")):

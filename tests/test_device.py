@@ -57,7 +57,9 @@ def test_the_cpu_path_is_unchanged(monkeypatch, fused):
 
 def test_cli_device_cuda_without_cuda_exits_2_naming_the_way_out(tmp_path, monkeypatch):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    shots = [arg for k in range(3) for arg in ("--images", str(tmp_path / f"shot_{k}.tiff"))]   # refused before they are read
+    for k in range(3):
+        (tmp_path / f"shot_{k}.tiff").write_bytes(b"")                   # refused before they are read
+    shots = [arg for k in range(3) for arg in ("--images", str(tmp_path / f"shot_{k}.tiff"))]
     out = CliRunner().invoke(app, ["separate", *shots, "--out", str(tmp_path / "out"), "--device", "cuda"])
     assert out.exit_code == 2 and not (tmp_path / "out").exists()
     assert "Invalid value for '--device'" in out.output and "sees no CUDA device" in out.output and "use device 'cpu'" in out.output

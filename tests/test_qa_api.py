@@ -63,6 +63,7 @@ def test_polarization_maps_refuse_a_method_that_cannot_settle_the_side_and_bad_a
         urd.polarization_maps(stack, ANGLES, reference=None)
 
 
+@pytest.mark.filterwarnings("ignore:the side of the reference was decided")
 def test_the_network_leaves_the_callers_torch_state_alone():
     stack = pane_stack()
     torch.manual_seed(0)
@@ -82,13 +83,16 @@ def test_the_network_leaves_the_callers_torch_state_alone():
 
 def test_the_stacks_warnings_reach_python_and_a_dark_frame_gives_dark_layers():
     stack = pane_stack()
-    with pytest.warns(UserWarning, match="the polarizer is not turning"):
+    with pytest.warns(UserWarning) as caught:                 # with them: "shots 0 and 1 are identical", ...
         urd.separate(np.stack([stack[0]] * 3), [0, 45, 90], method="schechner")
-    with pytest.warns(UserWarning, match="nothing can be separated"):
+    assert any("the polarizer is not turning" in str(w.message) for w in caught)
+    with pytest.warns(UserWarning) as caught:
         layers = urd.separate(np.zeros((3, 16, 16, 3), np.float32), [0, 45, 90], method="kong")
+    assert any("nothing can be separated" in str(w.message) for w in caught)
     assert not layers.transmission.any() and not layers.reflection.any()
 
 
+@pytest.mark.filterwarnings("ignore:the side of the reference was decided")
 def test_colour_matching_keeps_the_transmission_in_the_units_of_s0():
     """The paper's colour correction matches T̂ to a shot through the polarizer, which carries
     about half of S0: matched as it is, T̂ came out at half its brightness."""
@@ -113,6 +117,7 @@ def test_the_networks_switches_and_angle_of_incidence_are_checked_for_their_type
             urd.separate(stack, ANGLES, incidence_deg=value)
 
 
+@pytest.mark.filterwarnings("ignore:the side of the reference was decided")
 def test_angles_spread_too_little_are_named_in_a_warning_by_every_method_the_network_refuses_them():
     stack = pane_stack()
     narrow = [0.0, 10.0, 20.0, 30.0]

@@ -103,6 +103,8 @@ def ingest(
             names = ", ".join(p.name for p in outcome.files)
             origin = f"from {len(outcome.files)} files" if len(outcome.files) > 3 else f"from {names}"
             typer.echo(f"ingested {outcome.name} ({origin})")
+        elif outcome.state == "skipped" and outcome.files:            # files of a folder that a scene already holds
+            typer.echo(f"skipped {', '.join(p.name for p in outcome.files)}: {outcome.error}")
         else:
             typer.echo(f"{outcome.state} {where}: {outcome.error}")
     if not report.outcomes:

@@ -121,6 +121,9 @@ def separate(
     if images and len(images) != len(angle_list):
         raise usage(f"expected one --images file per angle of --angles {angles}, got {len(images)} files")
     if images:
+        missing = [str(p) for p in images if not Path(p).is_file()]
+        if missing:
+            raise bad("--images", f"{', '.join(missing)}: no such file")
         try:
             check_out_folder(out, method)
         except DatasetError as exc:
