@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from urd.core.errors import DatasetError, ManifestError
-from urd.core.manifest import confined_path, now_iso, provenance, stale_note
+from urd.core.manifest import confined_path, now_iso, provenance, stale_note, stale_reason
 from urd.core.swap import _final_name
 
 
@@ -177,8 +177,9 @@ class SceneResults:
         """DatasetError if the manifest already records results of ``method``, or its results folder
         holds files the manifest does not list (replacing them takes --force)."""
         if method in self.methods():
-            raise DatasetError(f"{self.name} already has {method} results ({self.results_dir(method)}); "
-                               "pass --force to replace them")
+            stale = self._data()["results"][method].get("stale")
+            what = f"STALE {method} results ({stale_reason(stale)})" if stale else f"{method} results"
+            raise DatasetError(f"{self.name} already has {what} ({self.results_dir(method)}); pass --force to replace them")
         folder = self.results_dir(method)
         unlisted = sorted(p.name for p in folder.iterdir() if not p.name.startswith(".")) if folder.is_dir() else []
         if unlisted:
