@@ -80,6 +80,10 @@ def test_maps_of_a_separated_scene_come_without_the_network(separated, monkeypat
     records = json.loads(scene.manifest_path.read_text())["results"]["network"]["files"]
     assert {"results/network/maps/DoLP.tiff", "results/network/R.tiff"} <= {r["file"] for r in records}
     assert all(len(r["sha256"]) == 64 for r in records)
+    with tifffile.TiffFile(after.files["confidence.tiff"]) as tif:
+        described = json.loads(tif.pages[0].description)
+        assert described["quantity"].startswith("reflection presence") and described["unit"] == "1 (a fraction)"
+        assert 0 <= tif.asarray().min() and tif.asarray().max() <= 1
     with tifffile.TiffFile(after.files["DoLP.tiff"]) as tif:
         assert "NaN" in json.loads(tif.pages[0].description)["quantity"]
         dolp = tif.asarray()

@@ -128,14 +128,17 @@ def truth_metrics(scene: Scene, r_hat: np.ndarray, t_hat: np.ndarray, images: np
     return out
 
 
-def write_confidence(path: Path, confidence: np.ndarray, overwrite: bool = False) -> None:
-    """The reflection-presence map as a float32 TIFF, atomically."""
-    with atomic_path(path, overwrite) as tmp:
-        tifffile.imwrite(tmp, np.asarray(confidence, np.float32), photometric="minisblack")
-
-
 #: The angle convention written into every angle map's metadata.
 ANGLE_CONVENTION = "degrees in the image plane from the +x axis (towards increasing column), counter-clockwise as seen (towards row 0)"
+
+#: What ``confidence.tiff`` holds (`separate.reference.presence_map`), written into its metadata.
+PRESENCE_QUANTITY = ("reflection presence: the share of reflected light R/S0 read from the polarization alone "
+                     "(0 no reflection, 1 all reflection; a smooth hint, not a separation)")
+
+
+def write_confidence(path: Path, confidence: np.ndarray, overwrite: bool = False) -> None:
+    """The reflection-presence map as a float32 TIFF with its quantity (`write_float_map`), atomically."""
+    write_float_map(path, confidence, PRESENCE_QUANTITY, "1 (a fraction)", overwrite)
 
 
 def write_float_map(path: Path, values: np.ndarray, quantity: str, unit: str, overwrite: bool = False) -> None:
