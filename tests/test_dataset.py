@@ -28,6 +28,7 @@ def test_manifest_round_trip(tmp_path):
     assert ds.scene_names() == ["scene_01"]
     assert ds.scene("scene_01").load() == record
     assert ds.next_scene_name() == "scene_02"
+    assert repr(ds) == f"Dataset({str(ds.root)!r})" and repr(scene) == f"Scene({str(scene.path)!r})"
     (ds.root / "scene_02").write_text("a stray file with a scene's name")
     assert ds.scene_names() == ["scene_01"] and ds.next_scene_name() == "scene_03"
     assert ds.new_scene("test", {}).path.name == "scene_03"

@@ -150,6 +150,9 @@ class Scene(SceneShots, SceneResults, SceneTruth, SceneSwap):
         self.name = self.path.name
         self._record: dict | None = None
 
+    def __repr__(self) -> str:
+        return f"Scene({str(self.path)!r})"
+
     # -- reading
 
     @property
@@ -284,6 +287,9 @@ class Dataset:
 
     def __init__(self, root: Path):
         self.root = Path(root)
+
+    def __repr__(self) -> str:
+        return f"Dataset({str(self.root)!r})"
 
     @property
     def manifest_path(self) -> Path:
