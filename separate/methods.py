@@ -178,7 +178,11 @@ def ceilnet(weights: Path | None = None, reference: Reference = "auto", tile: in
     if info["weights"]["config"].get("variant") != "ceilnet":
         raise ValueError(f"weights {weights} hold a {info['weights']['config'].get('variant')} network, not CEILNet: "
                          "use --method network for them")
-    return run, {**info, "paper": citation(module)}
+
+    def clipped(*args, **kwargs) -> tuple[np.ndarray, np.ndarray]:    # R̂ = S0 − T̂ goes below 0: no light is
+        return tuple(np.maximum(layer, 0.0, out=layer) for layer in run(*args, **kwargs))
+
+    return clipped, {**info, "paper": citation(module)}
 
 
 def no_separation(reference: Reference = "auto") -> tuple[Run, dict]:

@@ -49,7 +49,8 @@ they were), on in training the physics-anchored network's gate (``configs/cpu-ga
   cell's mean), its layers and θ averaged over the same cells;
 * ``strength``: (lo, hi) > 0: the reflection scaled so that the observed layers' mean ratio
   R_obs/T_obs is log-uniform in [lo, hi] (as `separate.semireal` draws it), instead of what the
-  photos, DR and the pane's reflectance give (a median near 0.18, rarely above 0.5);
+  photos, DR and the pane's reflectance give (a median near 0.2, a quarter of samples above 0.5,
+  up to about 5);
 * ``reference_field``: the ANY modes present the shots at the estimated per-pixel reference
   field (`separate.reference.estimate_reference_field`, turned to φ⊥'s side in
   ANY_TRUE_SIDE), as `urd separate` does, instead of at one global reference; ``angles`` are
@@ -320,11 +321,13 @@ def true_side_deg(reference_deg: float, phi_perp_deg: float) -> float:
 
 def capture_stokes(capture: samples.Capture, max_side: int = POOL_MAX_SIDE) -> tuple[np.ndarray, np.ndarray]:
     """A real capture's Stokes stack (3, H, W, 3) from the least-squares fit of its shots, scaled
-    to a mean S0 of 1, and its clipped pixels (H×W bool: ≥ `CLIPPED` in any shot), at most
-    ``max_side`` px long."""
-    stack, angles = samples.load(capture, max_side=max_side)
+    to a mean S0 of 1, and its clipped pixels (H×W bool: ≥ `CLIPPED` in any shot, where any
+    pixel of the full-resolution capture under it is), at most ``max_side`` px long."""
+    full, angles = samples.load(capture)
+    stack = np.stack([samples.area_reduce(shot, max_side) for shot in full])     # as load(capture, max_side)
+    clipped = samples.area_reduce((full >= CLIPPED).any(axis=(0, 3)).astype(np.float32), max_side) > 0
     stokes = optics.stokes_from_images(stack, np.radians(angles)).astype(np.float32)
-    return stokes / max(float(stokes[0].mean()), 1e-6), (stack >= CLIPPED).any(axis=(0, 3))
+    return stokes / max(float(stokes[0].mean()), 1e-6), clipped
 
 
 #: A real capture's pixel counts as clipped from this linear value in any of its shots.

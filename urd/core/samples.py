@@ -86,7 +86,8 @@ def no_glass_captures(root: Path = SHARED, split: str | None = None) -> list[Cap
     return [c for c in out if (c.name in NO_GLASS_TEST) == (split == "test")]
 
 
-def _reduce(image: np.ndarray, max_side: int | None) -> np.ndarray:
+def area_reduce(image: np.ndarray, max_side: int | None) -> np.ndarray:
+    """``image`` (H×W or H×W×C) area-averaged to at most ``max_side`` px long (as it is when shorter or None)."""
     scale = 1.0 if max_side is None else max_side / max(image.shape[:2])
     if scale >= 1:
         return image
@@ -102,7 +103,7 @@ def load(capture: Capture, max_side: int | None = None, method: Demosaic = Demos
         stack = codes_to_linear(codes, frame.dtype)                      # linear sensor codes
         if stack.shape[-1] == 1:
             stack = np.repeat(stack, 3, axis=-1)
-        shots = [_reduce(np.ascontiguousarray(shot), max_side) for shot in stack]
+        shots = [area_reduce(np.ascontiguousarray(shot), max_side) for shot in stack]
         return np.stack(shots).astype(np.float32), [float(a) for a in angles]
     if capture.kind == "cells":
         codes = cv2.imread(str(capture.files[0]), cv2.IMREAD_GRAYSCALE)    # LZW TIFF: OpenCV reads it, tifffile needs imagecodecs
@@ -112,7 +113,7 @@ def load(capture: Capture, max_side: int | None = None, method: Demosaic = Demos
         cells = [(a, frame[i::2, j::2]) for i, row in enumerate(HAGEN_CELL_DEG) for j, a in enumerate(row)]
         cells.sort(key=lambda cell: cell[0])
         h, w = (min(c.shape[k] for _, c in cells) for k in (0, 1))
-        shots = [_reduce(np.ascontiguousarray(np.repeat(c[:h, :w], 3, axis=2)), max_side) for _, c in cells]
+        shots = [area_reduce(np.ascontiguousarray(np.repeat(c[:h, :w], 3, axis=2)), max_side) for _, c in cells]
         return np.stack(shots).astype(np.float32), [a for a, _ in cells]
-    shots = [_reduce(read_image(path), max_side) for path in capture.files]
+    shots = [area_reduce(read_image(path), max_side) for path in capture.files]
     return np.stack(shots).astype(np.float32), list(ANGLES_DEG)
