@@ -98,7 +98,7 @@ def polarization_maps(images: np.ndarray, angles_deg: Sequence[float], reference
     ``reference`` as in `separate`, chosen the same way (`separate.reference.resolve_reference`):
     the φ⊥ map is the estimated field ("auto"), one estimated angle ("global") or the given
     angle; an assumed side is settled by separating both sides with ``method``: by default the
-    classical Schechner inversion (a fraction of a second), "network" for the network's verdict.
+    classical Schechner inversion (a fraction of a second; the network's side trial is the same).
     """
     from separate.maps import polarization_maps as maps
     from separate.methods import check_reference, get_method, sees_polarization_of
