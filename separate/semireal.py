@@ -15,8 +15,9 @@ Each scene (`SIZE`² crops, seeded, the same for every method):
   R_obs/T_obs drawn log-uniform in `STRENGTH` (`FAINT_STRENGTH` in the faint-reflection row);
   grey where the capture is mono;
 * the shots: 3, 4 or 6 angles (`SHOT_SETS_DEG`) from a random first angle, each off by up to
-  ±`ANGLE_ERROR_DEG`, exposed to a mean S0/2 in [0.1, 0.35] (never clipped), with the training
-  synthesis's shot and read noise; the methods get the nominal angles.
+  ±`ANGLE_ERROR_DEG`, exposed to a mean S0/2 in [0.1, 0.35] (never clipped; twice the training
+  synthesis's exposure), with the training synthesis's shot and read noise levels; the methods
+  get the nominal angles.
 
 Conditions (rows): 3 shots (two scenes per capture), 4 and 6 shots (one each); the first 3-shot
 scene again with the transmitted layer made unpolarized (what the paper's synthesis shows), and,
