@@ -632,13 +632,15 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
                     group["lr"] = lr_at(cfg, step, wall)
                 optim.zero_grad(set_to_none=True)
                 loss_sum = 0.0
-                for _ in range(0, per_rank, micro):
+                for start in range(0, per_rank, micro):
                     batch = next(batches)
                     obs, r, t = to_tensors(batch, device)
-                    with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16):
-                        outputs = ddp(obs, **network_inputs(batch, device))
-                    loss = model.loss(outputs, r, t, cfg.loss) * micro / per_rank
-                    loss.backward()
+                    last_micro = start + micro >= per_rank         # DDP averages the gradients once, after it
+                    with ddp.no_sync() if distributed and not last_micro else contextlib.nullcontext():
+                        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16):
+                            outputs = ddp(obs, **network_inputs(batch, device))
+                        loss = model.loss(outputs, r, t, cfg.loss) * micro / per_rank
+                        loss.backward()
                     loss_sum += loss.item()
                 norm = torch.nn.utils.clip_grad_norm_([p for p in model.parameters() if p.requires_grad], 1.0)
                 if not math.isfinite(norm.item()):           # a non-finite loss makes it so; one value on every DDP rank

@@ -301,8 +301,8 @@ def torchrun_train(config: Path, run_dir: Path) -> subprocess.CompletedProcess:
 @pytest.mark.slow
 def test_ddp_with_two_gloo_processes(tmp_path):
     cfg = tmp_path / "ddp.toml"
-    cfg.write_text('width = 8\npatch = 32\nbatch = 8\nmicro_batch = 4\nsteps = 4\nval_samples = 8\nval_every = 4\nprecision = "fp32"\nthreads = 1\n')
-    out = torchrun_train(cfg, tmp_path / "run")
+    cfg.write_text('width = 8\npatch = 32\nbatch = 16\nmicro_batch = 4\nsteps = 4\nval_samples = 8\nval_every = 4\nprecision = "fp32"\nthreads = 1\n')
+    out = torchrun_train(cfg, tmp_path / "run")                     # two micro-batches per rank: one without a sync
     assert out.returncode == 0, out.stderr[-2000:]
     state = torch.load(tmp_path / "run" / "last.pt", weights_only=True)
     assert state["step"] == 4 and "2 processes" in state["trained_on"]
