@@ -270,6 +270,28 @@ def test_a_counter_rolling_over_among_shots_of_one_second_is_named(tmp_path):
     assert not counter_wraps(["shot_00_000.0deg.dng", "a.dng"]) and not counter_wraps(["DSC_1.NEF", "DSC_2.NEF"])
 
 
+def test_an_interrupted_ingest_decodes_no_further_shot_and_leaves_no_staging(tmp_path, monkeypatch):
+    import urd.ingest as ingest_module
+
+    ds = Dataset.open_or_create(tmp_path / "ds")
+    scene, _ = capture_virtual(ds, angles=(0, 30, 60, 90, 120, 150), size=(96, 64), shake_px=0, shake_deg=0)
+    decoded, real_decode = [], rawio.decode
+
+    def slow_decode(path, half_size=False):                  # a 24 MP shot takes a second or two
+        decoded.append(path.name)
+        time.sleep(0.3)
+        return real_decode(path, half_size)
+
+    def progress(done, total, label):
+        if done == 1:
+            raise KeyboardInterrupt                           # Ctrl-C, in the main thread, after the first shot
+
+    monkeypatch.setattr(ingest_module.rawio, "decode", slow_decode)
+    with pytest.raises(KeyboardInterrupt):
+        ingest_module.prepare_ingest(scene, IngestOptions(), progress)
+    assert len(decoded) <= 4 and not list(scene.path.glob(".staging-*"))
+
+
 def test_shots_of_one_second_are_ordered_by_their_file_numbers_as_numbers(tmp_path):
     files = []
     for name in ("frame_10.raw", "frame_11.raw", "frame_8.raw", "frame_9.raw"):   # not RAW: their times are the files'

@@ -287,26 +287,28 @@ def prepare_ingest(scene: Scene, opts: IngestOptions, progress: Progress | None 
             write_aligned(written[i], image)
         return result
 
+    pool = ThreadPoolExecutor(INGEST_THREADS)
     try:
-        with ThreadPoolExecutor(INGEST_THREADS) as pool:
-            decoding = pool.submit(rawio.decode, paths[0], opts.half_size)
-            runs = pool.map(aligned, range(1, len(paths)))        # the first shot decoded beside the reference
-            try:
-                reference = decoding.result()
-                prepared.set_result((reference.shape, prepare_target(reference)))    # once for every shot
-            finally:
-                if not prepared.done():
-                    prepared.set_exception(AlignmentError(f"{paths[0]}: the reference shot was not decoded"))
-            write_aligned(written[0], reference)
-            del reference
-            results = []
-            for i, result in enumerate(runs, start=1):
-                if progress:
-                    progress(i, len(paths), label)
-                results.append(result)
+        decoding = pool.submit(rawio.decode, paths[0], opts.half_size)
+        runs = pool.map(aligned, range(1, len(paths)))            # the first shot decoded beside the reference
+        try:
+            reference = decoding.result()
+            prepared.set_result((reference.shape, prepare_target(reference)))    # once for every shot
+        finally:
+            if not prepared.done():
+                prepared.set_exception(AlignmentError(f"{paths[0]}: the reference shot was not decoded"))
+        write_aligned(written[0], reference)
+        del reference
+        results = []
+        for i, result in enumerate(runs, start=1):
+            if progress:
+                progress(i, len(paths), label)
+            results.append(result)
     except BaseException:
+        pool.shutdown(cancel_futures=True)                        # the shots not begun are not decoded (Ctrl-C)
         shutil.rmtree(staging, ignore_errors=True)
         raise
+    pool.shutdown()
     alignment = [{"shot": 0, "reference": True}] + [{"shot": i, **r.record()} for i, r in enumerate(results, 1)]
     if not all(r.ok for r in results):
         shutil.rmtree(staging, ignore_errors=True)
