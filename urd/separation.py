@@ -344,15 +344,18 @@ def add_maps(scene: Scene, method: str, reference: str | float = "auto") -> Sepa
 
 def describe_incidence(incidence: dict) -> str:
     """A line on the angle-of-incidence estimate (`separate.incidence.Incidence.record`) and
-    whether the physics-anchored network used it."""
+    how the physics-anchored network used it."""
     lo, hi = incidence["range_deg"]
     if incidence.get("given"):
         return f"angle of incidence {incidence['median_deg']:g} deg (given; the network's Fresnel gate on)"
-    if incidence["gate"]:
+    if incidence["anchor"] == "field":
         return (f"angle of incidence {incidence['median_deg']:.0f} deg ({lo:.0f}-{hi:.0f} across the frame; "
                 "estimated, the network's Fresnel gate on)")
-    return (f"angle of incidence not clear from the shots (clarity {incidence['clarity']:.2f}, sharpness "
-            f"{incidence['sharpness']:.3f}): the network ran without its Fresnel gate")
+    unclear = f"(clarity {incidence['clarity']:.2f}, sharpness {incidence['sharpness']:.3f})"
+    if incidence["anchor"] == "median":
+        return (f"angle of incidence not clear across the frame {unclear}: the network's Fresnel gate on at one "
+                f"angle for the view, {incidence['median_deg']:.0f} deg (the estimate's median)")
+    return f"angle of incidence not clear from the shots {unclear}: the network ran without its Fresnel gate"
 
 
 def _maps(images: np.ndarray, angles: list[float], used: float | np.ndarray) -> dict[str, np.ndarray]:
