@@ -96,32 +96,16 @@ class Incidence:
 
     @property
     def clear(self) -> bool:
-        """Whether the per-pixel field can be trusted (clarity ≥ `INCIDENCE_CLARITY_MIN` and
-        sharpness ≥ `INCIDENCE_SHARPNESS_MIN`)."""
+        """Whether the estimate can be trusted (clarity ≥ `INCIDENCE_CLARITY_MIN` and sharpness ≥
+        `INCIDENCE_SHARPNESS_MIN`)."""
         return self.clarity >= INCIDENCE_CLARITY_MIN and self.sharpness >= INCIDENCE_SHARPNESS_MIN
-
-    @property
-    def anchor(self) -> str:
-        """How a physics-anchored network uses the estimate: "field" where it is `clear`;
-        "median", one angle for the view, where only its dip is sharp (sharpness ≥
-        `INCIDENCE_SHARPNESS_MIN`: the least mutual information stands out of its neighbours
-        but not far below the other angles); else "none", the network without its gate."""
-        if self.clear:
-            return "field"
-        return "median" if self.sharpness >= INCIDENCE_SHARPNESS_MIN else "none"
-
-    @property
-    def anchor_deg(self) -> np.ndarray | float | None:
-        """The angle of incidence the network is anchored at (`anchor`): the field (deg, h×w),
-        its median (deg), or None."""
-        return {"field": self.field_deg, "median": float(np.median(self.field_deg)), "none": None}[self.anchor]
 
     def record(self) -> dict:
         """The estimate for a manifest: the field's median and range (deg), clarity, sharpness
-        and how a physics-anchored network uses it (`anchor`)."""
+        and whether a physics-anchored network uses it (its Fresnel gate on)."""
         return {"median_deg": round(float(np.median(self.field_deg)), 1),
                 "range_deg": [round(float(self.field_deg.min()), 1), round(float(self.field_deg.max()), 1)],
-                "clarity": round(self.clarity, 3), "sharpness": round(self.sharpness, 3), "anchor": self.anchor}
+                "clarity": round(self.clarity, 3), "sharpness": round(self.sharpness, 3), "gate": self.clear}
 
 
 def estimate_incidence_field(images: np.ndarray, angles_deg: Sequence[float], reference: float | np.ndarray) -> np.ndarray:

@@ -31,10 +31,9 @@ Input handling: NaN or infinite pixels are an error; negative pixels (linear dec
 below black) are clipped to 0; the angles must span at least `separate.optics.MIN_SPAN_DEG`. The outputs hold no
 negative light: each tile's R̂ and T̂ from urd's network (not the CEILNet baseline, whose R̂ is
 S0 − T̂ by design) are clipped below at 0, as the physics-anchored network's anchor clips them
-(`separate.model.SeparationNet.anchor`). Without its gate (a θ estimate neither clear nor sharp,
-`separate.incidence.Incidence.anchor`) that network's backbone alone can go below 0 where its
-training clipped it (views without glass: R̂ down to −9% of the light with T̂ right, so R̂ is
-clipped, not moved into T̂). Monochrome shots (one
+(`separate.model.SeparationNet.anchor`). Without its gate (a θ estimate that is not clear) that
+network's backbone alone can go below 0 where its training clipped it (views without glass: R̂
+down to −9% of the light with T̂ right, so R̂ is clipped, not moved into T̂). Monochrome shots (one
 channel, or colour channels that are all equal, as urd stores a mono sensor's frames) carry no
 colour: the network sees the grey image in each of its colour channels and its outputs are
 averaged over them, so R̂ and T̂ are grey too (an RGB-trained network otherwise invents tints).
@@ -453,10 +452,9 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
         theta_deg: the angle of incidence (deg) of a physics-anchored network (``base="fresnel"``),
             a number or a map of any size (resized to H×W, `separate.presentation.field_at`), or
             an estimate (`separate.incidence.Incidence`); estimated per pixel from the shots at
-            the reference when None (`separate.incidence.estimate_incidence`). An estimate is
-            used as `separate.incidence.Incidence.anchor` says: its field where it is clear, its
-            median (one angle for the view) where only its dip is sharp, else the network runs
-            without its gate. Ignored by other networks.
+            the reference when None (`separate.incidence.estimate_incidence`). Where an estimate
+            is not clear (`separate.incidence.Incidence.clear`) the network runs without its
+            gate. Ignored by other networks.
         device: where the network runs (`runner`; `separate.precision.resolve_device` chooses
             it); the tiles are built and blended on the CPU.
     """
@@ -479,7 +477,7 @@ def separate_stack(model: torch.nn.Module, images: np.ndarray, angles_deg: list[
         if theta_deg is None:
             theta_deg = estimate_incidence(images, angles_deg, angles_deg[0] if reference_deg is None else reference_deg)
         if isinstance(theta_deg, Incidence):
-            theta_deg = theta_deg.anchor_deg
+            theta_deg = theta_deg.field_deg if theta_deg.clear else None
         if theta_deg is None:
             model = without_gate(model)                   # no anchor to an angle of incidence the shots do not tell
         elif np.ndim(theta_deg) not in (0, 2) or not np.isfinite(theta_deg).all() or not (

@@ -5,7 +5,7 @@
 linear, or its uint16 codes (`separate.optics.code_scale`; the network converts them a tile at a
 time, the baselines all at once), and its N ≥ 3 polarizer angles (deg) to (R̂, T̂), each H×W×C
 float32 linear; ``trial=True`` makes it the side decision's trial separation
-(`separate.reference.decide_side`): silent, and for the network Schechner's inversion; ``info``
+(`separate.reference.decide_side`): silent, and for a fresnel network without its gate; ``info``
 describes the method, its parameters and its reference policy for the manifest.
 
 Reference policy of the polarization methods (network, schechner, kong, farid): the shots are
@@ -142,7 +142,7 @@ def network(weights: Path | None = None, tile: int | None = None, precision: str
             info["incidence"] = incidence.record()
         elif anchored:
             info["incidence"] = {"median_deg": incidence_deg, "range_deg": [incidence_deg, incidence_deg],
-                                 "given": True, "anchor": "given"}
+                                 "given": True, "gate": True}
         r_hat, t_hat = separate_stack(model, images, list(angles_deg), tile, OVERLAP, chosen, progress,
                                       reference_deg=chosen_deg, theta_deg=incidence, device=target)
         if return_copies:
@@ -289,7 +289,7 @@ def separate_inspected(images: np.ndarray, angles: list[float], run, reference: 
     Returns:
         R̂, T̂, the inspection, and the reference used (deg: a field on the reduced grid, or an angle).
     """
-    trial = partial(run, trial=True) if sees_polarization else None      # silent; the network's is Schechner's
+    trial = partial(run, trial=True) if sees_polarization else None      # silent, a fresnel network ungated
     inspection, chosen = resolve_reference(images, angles, reference, trial)
     r_hat, t_hat = run(images, angles, chosen)
     return r_hat, t_hat, inspection, inspection.field if np.ndim(chosen) == 2 else chosen

@@ -313,7 +313,7 @@ def test_separate_says_which_angle_of_incidence_the_network_used_and_takes_a_giv
     scene = tmp_path / "demo" / "scene_01"
     truth = float(np.median(cv2.imread(str(scene / "truth" / "theta_deg.tiff"), cv2.IMREAD_UNCHANGED)))
     record = json.loads((scene / "scene.json").read_text())["results"]["network"]["incidence"]
-    assert record["anchor"] == "field" and record["median_deg"] == pytest.approx(truth, abs=4.0)
+    assert record["gate"] and record["median_deg"] == pytest.approx(truth, abs=4.0)
     lo, hi = record["range_deg"]
     assert f"angle of incidence {record['median_deg']:.0f} deg ({lo:.0f}-{hi:.0f} across the frame; estimated" in out.stdout
     given = invoke("separate", scene, "--force", "--incidence", "47.5")

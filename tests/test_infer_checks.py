@@ -168,9 +168,8 @@ def test_presenting_tile_by_tile_matches_presenting_the_stack():
     angles = [5.0, 50.0, 95.0, 140.0]
     stack = np.stack([s0 * (1 + dolp * np.cos(2 * (np.radians(a) - np.pi * aolp))) / 4 for a in angles]).astype(np.float32)
     shots, angles3 = present(stack, angles, 30.0)
-    r_want, t_want = separate_stack(model, shots, angles3, tile=128, overlap=32, precision="fp32", theta_deg=50.0)
-    r_got, t_got = separate_stack(model, stack, angles, tile=128, overlap=32, precision="fp32", reference_deg=30.0,
-                                  theta_deg=50.0)                 # θ given: the presentation is what is compared
+    r_want, t_want = separate_stack(model, shots, angles3, tile=128, overlap=32, precision="fp32")
+    r_got, t_got = separate_stack(model, stack, angles, tile=128, overlap=32, precision="fp32", reference_deg=30.0)
     # one exposure scale, from the shots as given: the same as from presented ones where nothing is clipped
     np.testing.assert_allclose(r_got, r_want, atol=1e-5)
     np.testing.assert_allclose(t_got, t_want, atol=1e-5)

@@ -361,8 +361,8 @@ def test_negative_pixels_are_clipped_to_zero():
     stack = np.random.default_rng(0).random((3, 32, 40, 3)).astype(np.float32) * 0.5
     stack[0, :4] = -0.05
     stack[2, :, :3] = -0.2
-    r_hat, t_hat = separate_stack(model, stack, [0, 45, 90], precision="fp32", theta_deg=50.0)   # θ: not estimated twice
-    r_clip, t_clip = separate_stack(model, np.clip(stack, 0.0, None), [0, 45, 90], precision="fp32", theta_deg=50.0)
+    r_hat, t_hat = separate_stack(model, stack, [0, 45, 90], precision="fp32")
+    r_clip, t_clip = separate_stack(model, np.clip(stack, 0.0, None), [0, 45, 90], precision="fp32")
     np.testing.assert_array_equal(r_hat, r_clip)
     np.testing.assert_array_equal(t_hat, t_clip)
 

@@ -344,18 +344,15 @@ def add_maps(scene: Scene, method: str, reference: str | float = "auto") -> Sepa
 
 def describe_incidence(incidence: dict) -> str:
     """A line on the angle-of-incidence estimate (`separate.incidence.Incidence.record`) and
-    how the physics-anchored network used it."""
+    whether the physics-anchored network used it."""
     lo, hi = incidence["range_deg"]
     if incidence.get("given"):
         return f"angle of incidence {incidence['median_deg']:g} deg (given; the network's Fresnel gate on)"
-    if incidence["anchor"] == "field":
+    if incidence["gate"]:
         return (f"angle of incidence {incidence['median_deg']:.0f} deg ({lo:.0f}-{hi:.0f} across the frame; "
                 "estimated, the network's Fresnel gate on)")
-    unclear = f"(clarity {incidence['clarity']:.2f}, sharpness {incidence['sharpness']:.3f})"
-    if incidence["anchor"] == "median":
-        return (f"angle of incidence not clear across the frame {unclear}: the network's Fresnel gate on at one "
-                f"angle for the view, {incidence['median_deg']:.0f} deg (the estimate's median)")
-    return f"angle of incidence not clear from the shots {unclear}: the network ran without its Fresnel gate"
+    return (f"angle of incidence not clear from the shots (clarity {incidence['clarity']:.2f}, sharpness "
+            f"{incidence['sharpness']:.3f}): the network ran without its Fresnel gate")
 
 
 def _maps(images: np.ndarray, angles: list[float], used: float | np.ndarray) -> dict[str, np.ndarray]:
