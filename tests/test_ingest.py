@@ -271,25 +271,29 @@ def test_a_counter_rolling_over_among_shots_of_one_second_is_named(tmp_path):
 
 
 def test_an_interrupted_ingest_decodes_no_further_shot_and_leaves_no_staging(tmp_path, monkeypatch):
+    import threading
+
     import urd.ingest as ingest_module
 
     ds = Dataset.open_or_create(tmp_path / "ds")
     scene, _ = capture_virtual(ds, angles=(0, 30, 60, 90, 120, 150), size=(96, 64), shake_px=0, shake_deg=0)
-    decoded, real_decode = [], rawio.decode
+    first_two = {path.name for path in scene.raw_paths()[:2]}
+    decoded, held, real_decode = [], threading.Event(), rawio.decode
 
-    def slow_decode(path, half_size=False):                  # a 24 MP shot takes a second or two
+    def decode(path, half_size=False):                        # shots 2.. wait, as a 24 MP decode takes seconds
         decoded.append(path.name)
-        time.sleep(0.3)
+        if path.name not in first_two:
+            held.wait(2.0)
         return real_decode(path, half_size)
 
     def progress(done, total, label):
         if done == 1:
             raise KeyboardInterrupt                           # Ctrl-C, in the main thread, after the first shot
 
-    monkeypatch.setattr(ingest_module.rawio, "decode", slow_decode)
+    monkeypatch.setattr(ingest_module.rawio, "decode", decode)
     with pytest.raises(KeyboardInterrupt):
         ingest_module.prepare_ingest(scene, IngestOptions(), progress)
-    assert len(decoded) <= 4 and not list(scene.path.glob(".staging-*"))
+    assert len(decoded) == 4 and not list(scene.path.glob(".staging-*"))   # two threads: shots 2 and 3 had begun
 
 
 def test_shots_of_one_second_are_ordered_by_their_file_numbers_as_numbers(tmp_path):
