@@ -19,7 +19,6 @@ from pathlib import Path
 from typing import Iterator
 
 from urd.core.dataset import Dataset, Scene
-from urd.core.manifest import stale_reason
 from urd.core.processes import kept_note, process_pool
 from urd.core.progress import Progress, plural
 
@@ -36,8 +35,7 @@ class BatchOutcome:
 
 def stale_results(scene: Scene, method: str) -> str:
     """"STALE <method> results: <why>" for results the manifest marks stale."""
-    note = next(w.removeprefix("STALE: ") for w in scene.result(method, verify=False).warnings if w.startswith("STALE: "))
-    return f"STALE {method} results: {stale_reason(note)}"
+    return f"STALE {method} results: {scene.stale_reason(method)}"
 
 
 def targets(ds: Dataset, method: str, force: bool) -> tuple[list[Scene], list[BatchOutcome]]:

@@ -496,21 +496,21 @@ def ingest_scenes(scenes: list[Scene], opts: IngestOptions, jobs: int, progress:
     return sorted(outcomes, key=lambda o: order.get(o.name, len(order)))
 
 
-def ingest_group(ds: Dataset, files: list[Path], metas: list[dict], opts: IngestOptions,
+def ingest_group(ds: Dataset, files: list[Path], metas: list[dict], digests: list[str], opts: IngestOptions,
                  progress: Progress | None = None) -> SceneOutcome:
     """Make a new scene from RAW files taken at ``opts.angles_deg`` (``metas``: their
-    `urd.core.raw.metadata`); nothing is left on failure."""
+    `urd.core.raw.metadata`, ``digests`` their SHA-256 as read before); nothing is left on failure."""
     try:
         warning = exposure_warning(metas)
         with ds.staged_scene("ingest", {"source_files": [str(f) for f in files], "angles_deg": list(opts.angles_deg),
                                         "gap_s": opts.gap_s, "complete": True}) as staged:
             (staged.path / "raw").mkdir()
-            for i, (src, angle, meta) in enumerate(zip(files, opts.angles_deg, metas)):
+            for i, (src, angle, meta, digest) in enumerate(zip(files, opts.angles_deg, metas, digests)):
                 dst = staged.path / "raw" / f"shot_{i:02d}_{angle:05.1f}deg{src.suffix.lower()}"
                 with atomic_path(dst) as part:
                     shutil.copyfile(src, part)
-                if sha256_file(dst) != sha256_file(src):
-                    raise DatasetError(f"{src}: copy does not match the source")
+                if sha256_file(dst) != digest:
+                    raise DatasetError(f"{src}: copy does not match the source (did it change while being ingested?)")
                 staged.add_shot(i, dst, angle, time=meta["time"], camera=meta)
             named = progress and (lambda done, total, _: progress(done, total, f"ingest {files[0].name}"))
             error = process_scene(staged, opts, named)  # the staged scene has no name yet: its first file's
@@ -586,7 +586,7 @@ def ingest_folder(raw_dir: Path, ds: Dataset, opts: IngestOptions, progress: Pro
             outcomes.append(SceneOutcome(None, files, f"{first.name} and {twin.name} are the same file (identical "
                                                       "content): a scene needs one shot per polarizer angle", "failed"))
         else:
-            outcomes.append(ingest_group(ds, files, [metas[p] for p in files], opts, progress))
+            outcomes.append(ingest_group(ds, files, [metas[p] for p in files], [digests[p] for p in files], opts, progress))
     return IngestReport(outcomes, ignored, notes)
 
 

@@ -135,13 +135,19 @@ def prepare_target(reference: np.ndarray, finest_level: int | None = None) -> Ta
     """The `Target` of ``reference`` (H×W×C linear float32); ``finest_level`` as in `align`."""
     if finest_level is None:
         finest_level = finest_level_for(reference.shape)
-    pyramid = [representation(_reduce(reference, finest_level), clipped_pixels(reference, finest_level))]
     levels = max(finest_level, int(np.floor(np.log2(min(reference.shape[:2]) / 256))))
-    for _ in range(levels - finest_level):
+    return Target(tuple(reference.shape), finest_level, _pyramid(reference, finest_level, levels - finest_level))
+
+
+def _pyramid(image: np.ndarray, finest_level: int, coarser: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """`representation` and mask of ``image`` on its pyramid ``finest_level`` and the ``coarser``
+    levels above it."""
+    pyramid = [representation(_reduce(image, finest_level), clipped_pixels(image, finest_level))]
+    for _ in range(coarser):
         rep, mask = pyramid[-1]
         size = ((rep.shape[1] + 1) // 2, (rep.shape[0] + 1) // 2)
         pyramid.append((cv2.pyrDown(rep), cv2.resize(mask, size, interpolation=cv2.INTER_NEAREST)))
-    return Target(tuple(reference.shape), finest_level, pyramid)
+    return pyramid
 
 
 def align(reference: np.ndarray | Target, shot: np.ndarray, motion: Motion = Motion.EUCLIDEAN,
@@ -163,11 +169,7 @@ def align(reference: np.ndarray | Target, shot: np.ndarray, motion: Motion = Mot
     if finest_level is not None and finest_level != target.finest_level:
         raise ValueError(f"expected finest_level {target.finest_level} (the prepared reference's), got {finest_level}")
     finest_level, levels = target.finest_level, target.finest_level + len(target.pyramid) - 1
-    shots = [representation(_reduce(shot, finest_level), clipped_pixels(shot, finest_level))]
-    for _ in range(levels - finest_level):
-        rep, mask = shots[-1]
-        size = ((rep.shape[1] + 1) // 2, (rep.shape[0] + 1) // 2)
-        shots.append((cv2.pyrDown(rep), cv2.resize(mask, size, interpolation=cv2.INTER_NEAREST)))
+    shots = _pyramid(shot, finest_level, levels - finest_level)
     warp = np.eye(3, dtype=np.float32) if motion is Motion.HOMOGRAPHY else np.eye(2, 3, dtype=np.float32)
     coarse_ref, coarse_shot = target.pyramid[-1][0], shots[-1][0]
     window = cv2.createHanningWindow(coarse_ref.shape[::-1], cv2.CV_32F)

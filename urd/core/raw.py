@@ -41,11 +41,16 @@ def _open(path: Path) -> rawpy.RawPy:
         raw.close()
         raise RawFormatError(f"{path}: not a colour-filter-array camera image (LibRaw reports a {raw.raw_type.name} raw)")
     wb = raw.camera_whitebalance
-    if (wb[0] == 0 or wb[2] == 0) and not np.abs(np.asarray(raw.color_matrix)).any() and "make" not in _tiff_tags(path):
+    if (wb[0] == 0 or wb[2] == 0) and not _has_colour_matrix(raw) and "make" not in _tiff_tags(path):
         raw.close()                                  # LibRaw reads any TIFF as a Bayer frame, and invents these
         raise RawFormatError(f"{path}: not a camera RAW file: no camera, white balance or colour matrix (an image "
                              "saved under a RAW name?); polarization-camera frames are ingested with --mosaic")
     return raw
+
+
+def _has_colour_matrix(raw: rawpy.RawPy) -> bool:
+    """Whether LibRaw knows the camera → sRGB matrix of ``raw``'s camera (all zeros where not)."""
+    return bool(np.abs(np.asarray(raw.color_matrix)[:, :3]).any())
 
 
 def decode(path: Path, half_size: bool = False) -> np.ndarray:
@@ -118,7 +123,7 @@ def metadata(path: Path) -> dict:
             "white_level": int(raw.white_level),
             "camera_whitebalance": [float(v) for v in raw.camera_whitebalance],
             "cfa": raw.color_desc.decode(),
-            "colour": "linear sRGB" if np.abs(np.asarray(raw.color_matrix)[:, :3]).any() else
+            "colour": "linear sRGB" if _has_colour_matrix(raw) else
                       "camera RGB (LibRaw has no colour matrix for this camera)",
         }
     record.update(_tiff_tags(path))

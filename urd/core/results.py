@@ -173,12 +173,17 @@ class SceneResults:
             earlier["reason"] = "computed from the earlier alignment"
         return earlier
 
+    def stale_reason(self, method: str) -> str | None:
+        """Why the manifest marks ``method``'s results stale (`urd.core.manifest.stale_reason`), or None."""
+        note = self._data().get("results", {}).get(method, {}).get("stale")
+        return None if note is None else stale_reason(note)
+
     def check_no_results(self, method: str) -> None:
         """DatasetError if the manifest already records results of ``method``, or its results folder
         holds files the manifest does not list (replacing them takes --force)."""
         if method in self.methods():
-            stale = self._data()["results"][method].get("stale")
-            what = f"STALE {method} results ({stale_reason(stale)})" if stale else f"{method} results"
+            stale = self.stale_reason(method)
+            what = f"STALE {method} results ({stale})" if stale else f"{method} results"
             raise DatasetError(f"{self.name} already has {what} ({self.results_dir(method)}); pass --force to replace them")
         folder = self.results_dir(method)
         unlisted = sorted(p.name for p in folder.iterdir() if not p.name.startswith(".")) if folder.is_dir() else []
