@@ -187,20 +187,23 @@ def render(
     return alpha * i_r / 2 + (1.0 - alpha) * i_t / 2
 
 
-def diattenuate(stokes: Array, along: Array, across: Array, axis: Array) -> Array:
+def diattenuate(stokes: Array, along: Array, across: Array, axis: Array, phase_sign: Array | float = 1.0) -> Array:
     """Stokes stack (3, ...) after a linear diattenuator: intensity transmittance ``along`` for
     light polarized along ``axis`` (rad) and ``across`` for light polarized across it (a
     dielectric interface's Fresnel reflection or transmission, an ideal polarizer at 1 and 0).
 
     In the axis's frame (`rotate_stokes`) S0' = (a + b)/2·S0 + (a − b)/2·S1,
-    S1' = (a − b)/2·S0 + (a + b)/2·S1, S2' = √(ab)·S2; the result is turned back. ``along``,
-    ``across`` and ``axis`` broadcast against ``stokes[0]`` (give H×W maps a channel axis with
-    `expand_map` for H×W×C stacks).
+    S1' = (a − b)/2·S0 + (a + b)/2·S1, S2' = ±√(ab)·S2; the result is turned back. The sign,
+    ``phase_sign``, is −1 where the two components' amplitudes come out in opposite phase
+    relative to their phase below Brewster's angle (a reflection beyond it, `pane_stokes`).
+    ``along``, ``across``, ``axis`` and ``phase_sign`` broadcast against ``stokes[0]`` (give H×W
+    maps a channel axis with `expand_map` for H×W×C stacks).
     """
     xp = _xp(stokes)
     s0, s1, s2 = rotate_stokes(stokes, axis)
     half_sum, half_diff = (along + across) / 2, (along - across) / 2
-    turned = xp.stack([half_sum * s0 + half_diff * s1, half_diff * s0 + half_sum * s1, xp.sqrt(along * across) * s2])
+    turned = xp.stack([half_sum * s0 + half_diff * s1, half_diff * s0 + half_sum * s1,
+                       phase_sign * xp.sqrt(along * across) * s2])
     return rotate_stokes(turned, -axis)
 
 
@@ -211,7 +214,9 @@ def pane_stokes(stokes_r: Array, stokes_t: Array, theta: Array, phi_perp: Array,
     ``stokes_r`` is the light that the pane reflects towards the camera, ``stokes_t`` the light
     from behind it, each of any polarization (an unpolarized photo I is (I, 0, 0)); the pane
     reflects with R_s, R_p and transmits with 1 − R_s, 1 − R_p along / across its s-direction
-    φ⊥ (`diattenuate`; one interface, as `render`). Their sum seen through a polarizer at φ is
+    φ⊥ (`diattenuate`; one interface, as `render`); beyond Brewster's angle the reflected p
+    amplitude changes sign against the s amplitude, which turns the sign of the reflected light's
+    S2 in the s frame. Their sum seen through a polarizer at φ is
     `intensity_from_stokes`, and for unpolarized layers equals `render`; their S0 are the
     observable layers (R_obs, T_obs) of the separation target (`observable_layers`).
 
@@ -221,9 +226,9 @@ def pane_stokes(stokes_r: Array, stokes_t: Array, theta: Array, phi_perp: Array,
         phi_perp: s-direction φ⊥ (rad), scalar or H×W map.
         n: refractive index.
     """
-    r_s, r_p = fresnel_reflectance(theta, n)
-    r_s, r_p, axis = (expand_map(x, stokes_r[0]) for x in (r_s, r_p, phi_perp))
-    return diattenuate(stokes_r, r_s, r_p, axis), diattenuate(stokes_t, 1.0 - r_s, 1.0 - r_p, axis)
+    amp_s, amp_p = _fresnel_amplitudes(theta, n)[:2]                  # amp_s < 0; amp_p > 0 below θ_B, < 0 beyond
+    r_s, r_p, axis, sign = (expand_map(x, stokes_r[0]) for x in (amp_s**2, amp_p**2, phi_perp, _xp(amp_p).sign(amp_p)))
+    return diattenuate(stokes_r, r_s, r_p, axis, sign), diattenuate(stokes_t, 1.0 - r_s, 1.0 - r_p, axis)
 
 
 def observable_layers(

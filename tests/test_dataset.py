@@ -118,6 +118,24 @@ def test_interrupted_write_leaves_old_manifest_intact(tmp_path):
     assert not [p for p in tmp_path.iterdir() if "tmp" in p.name and p.stat().st_size == len("partial")]
 
 
+def test_an_aligned_shot_replaced_by_a_compressed_file_is_refused_before_its_pixels_are_allocated(tmp_path_factory):
+    import numpy as np
+    import tifffile
+
+    from conftest import ingested_dataset
+
+    scene = dataset.Dataset.open(ingested_dataset(tmp_path_factory, "bomb")).scene("scene_01")
+    path = scene.path / "aligned" / "shot_01.tiff"
+    tifffile.imwrite(path, np.zeros((4000, 6000, 3), np.uint16), photometric="rgb", compression="zlib")
+    record = scene.load()                                   # the manifest made to name the new file, as a hostile one would
+    for rec in record["ingest"]["aligned"]:
+        if rec["file"] == "aligned/shot_01.tiff":
+            rec.update(size=path.stat().st_size, sha256=files.sha256_file(path))
+    files.write_json_atomic(scene.manifest_path, record)
+    with pytest.raises(DatasetError, match=r"shot_01.tiff: not an image as urd writes them .*compression (zlib|adobe_deflate)"):
+        scene.reload().load_stack()
+
+
 @pytest.mark.parametrize("replacement", ["float32", "smaller"])
 def test_an_aligned_stack_of_mixed_images_is_refused_by_name(tmp_path_factory, replacement):
     import numpy as np

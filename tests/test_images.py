@@ -146,3 +146,15 @@ def test_tiffs_of_other_colour_models_and_huge_headers_are_refused_in_one_line(t
     assert stored_bits(tmp_path / "rgb.tif") == 8 and stored_bits(tmp_path / "huge.png") == 8
     tifffile.imwrite(tmp_path / "deep.tif", np.zeros((8, 8), np.uint16))
     assert stored_bits(tmp_path / "deep.tif") == 16 and stored_bits(tmp_path / "cmyk.tif") == 8
+
+
+def test_a_compressed_tiff_announcing_more_pixels_than_memory_holds_is_refused_before_decoding(tmp_path, monkeypatch):
+    import urd.core.images as images
+
+    tifffile.imwrite(tmp_path / "flat.tif", np.zeros((600, 800, 3), np.uint16), photometric="rgb", compression="zlib")
+    assert (tmp_path / "flat.tif").stat().st_size < 100_000                  # 2.9 MB of pixels in a small file
+    monkeypatch.setattr(images, "available_memory", lambda: 2_000_000)
+    with pytest.raises(RawFormatError, match=r"flat.tif: its header announces 0.0 GiB of pixels, more than"):
+        read_raw_codes(tmp_path / "flat.tif")
+    monkeypatch.setattr(images, "available_memory", lambda: 3_000_000)
+    assert read_raw_codes(tmp_path / "flat.tif").shape == (600, 800, 3)

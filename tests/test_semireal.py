@@ -62,6 +62,24 @@ def test_diattenuator_closed_forms():
     assert optics.axis_gap_deg(np.degrees(optics.aolp(out)), 100.0) == pytest.approx(0.0, abs=1e-9)
 
 
+@pytest.mark.parametrize("theta_deg", [30.0, 50.0, 70.0, 80.0])
+def test_reflected_polarized_light_turns_as_jones_calculus(theta_deg):
+    # light polarized at 45 deg to the s-direction, reflected: its field (r_s·E_s, r_p·E_p) with the
+    # textbook amplitudes, read in the frame that keeps the reflection right-handed (E_p mirrored),
+    # leaves at -atan(r_p / r_s) from s; beyond Brewster's angle r_p changes sign and so does the angle
+    n, theta = 1.5, np.radians(theta_deg)
+    cos_i, cos_t = np.cos(theta), np.sqrt(1 - (np.sin(theta) / n) ** 2)
+    amp_s, amp_p = (cos_i - n * cos_t) / (cos_i + n * cos_t), (n * cos_i - cos_t) / (n * cos_i + cos_t)
+    phi_perp = np.radians(15.0)
+    light = optics.stokes_from_polarization(np.float64(1.0), 1.0, phi_perp + np.radians(45.0))
+    part_r, part_t = optics.pane_stokes(light, np.zeros(3), theta, phi_perp, n)
+    expected = np.degrees(phi_perp - np.arctan(amp_p / amp_s))
+    assert optics.axis_gap_deg(np.degrees(optics.aolp(part_r)), expected) == pytest.approx(0.0, abs=1e-9)
+    assert part_r[0] == pytest.approx((amp_s**2 + amp_p**2) / 2)
+    assert optics.dolp(part_r) == pytest.approx(1.0)
+    assert np.all(part_t == 0)
+
+
 @pytest.mark.parametrize("flip,turns,expected_deg", [(False, 1, 120.0), (True, 0, -30.0), (True, 1, 60.0), (False, 2, 30.0)])
 def test_turned_stokes_turn_their_polarization(flip, turns, expected_deg):
     stokes = optics.stokes_from_polarization(np.ones((4, 4, 1), np.float32), 0.5, np.radians(30.0)).astype(np.float32)

@@ -1,8 +1,9 @@
 """Kong, Tai & Shin, "A physically-based approach to reflection separation: from physical
 modeling to constrained optimization", TPAMI 36(2), 2014 — re-implemented.
 
-Three shots at unknown absolute angles. Per pixel the sinusoid fit gives φ⊥ and the canonical
-images I⊥ ≥ I∥, a 2×2 Fresnel mixture of the layers whose coefficients R_s, R_p depend on the
+Three shots at unknown absolute angles. Per pixel the sinusoid fit gives φ⊥ (within ±45° of the
+first shot's angle, `common.canonical`) and the canonical images I⊥, I∥, a 2×2 Fresnel mixture
+of the layers whose coefficients R_s, R_p depend on the
 angle of incidence θ(x), which varies over the image. θ comes from one constrained
 optimization over the whole image, solved coarse to fine (Kong et al.'s multiscale scheme):
 

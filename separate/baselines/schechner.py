@@ -12,9 +12,9 @@ facade's light in R̂ at θ = 87°): θ in 10°–80° in 0.5° steps. Outside i
 degenerate: below 10° R_s − R_p < 0.003, so the inverse amplifies noise and misregistration by
 hundreds; towards grazing incidence R_s and R_p approach 1 and every layer becomes
 "reflection". A minimum on either end of the range means the criterion prefers such a
-degenerate mixture, and θ falls back to Brewster's angle (56°), where R_p = 0 and the
-canonical images are the layers themselves: the best-conditioned inversion, which moves only
-the polarized light into R̂.
+degenerate mixture, and θ falls back to Brewster's angle (56°), where R_p = 0: I∥ = I_T/2 holds
+transmitted light alone and R̂ is what I⊥ holds beyond it, the best-conditioned inversion, which
+moves only the polarized light into R̂.
 """
 
 from __future__ import annotations

@@ -16,6 +16,7 @@ reads it, so that urd can say so), because the polarizer angles are measured in 
 from __future__ import annotations
 
 import enum
+import os
 import struct
 from pathlib import Path
 
@@ -133,10 +134,51 @@ def _read_tiff(path: Path) -> np.ndarray:
         if page.samplesperpixel == 2 and not any(extra in alpha for extra in page.extrasamples):
             raise RawFormatError(f"{path}: a TIFF of 2 samples per pixel, neither grey with alpha nor RGB; save it as "
                                  "RGB or grey")
+        check_decodable(path, int(np.prod(page.shape)) * page.dtype.itemsize)
         data = page.asarray()
         if page.planarconfig == tifffile.PLANARCONFIG.SEPARATE and page.samplesperpixel > 1:
             data = np.moveaxis(data, 0, -1)
         return data
+
+
+def available_memory() -> int:
+    """Bytes of memory the system can give this process now (Linux's MemAvailable; the physical
+    memory where that is not known)."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+
+
+def check_decodable(path: Path, nbytes: int) -> None:
+    """RawFormatError when the pixels a file's header announces (``nbytes`` decoded) would not fit
+    in the memory available: a small compressed file can claim gigabytes."""
+    if nbytes > available_memory():
+        raise RawFormatError(f"{path}: its header announces {nbytes / 2**30:.1f} GiB of pixels, more than the "
+                             f"{available_memory() / 2**30:.1f} GiB of memory available")
+
+
+def stored_tiff_layout(path: Path) -> tuple[tuple[int, ...], np.dtype]:
+    """Shape and dtype of a TIFF urd wrote itself (aligned shots, results): one uncompressed image
+    whose pixels the file holds. DatasetError otherwise: a compressed file in their place can
+    announce more pixels than memory holds (a file received with a dataset is not trusted)."""
+    with tifffile.TiffFile(path) as tif:
+        page = tif.pages[0]
+        nbytes = int(np.prod(page.shape)) * page.dtype.itemsize
+        if len(tif.pages) != 1 or page.compression != tifffile.COMPRESSION.NONE or nbytes > path.stat().st_size:
+            raise DatasetError(f"{path}: not an image as urd writes them (one uncompressed image, {len(tif.pages)} "
+                               f"page(s), compression {page.compression.name.lower()}, "
+                               f"{nbytes} bytes of pixels in a file of {path.stat().st_size})")
+        return tuple(page.shape), page.dtype
+
+
+def read_stored_tiff(path: Path) -> np.ndarray:
+    """The pixels of a TIFF urd wrote itself, checked first (`stored_tiff_layout`)."""
+    stored_tiff_layout(path)
+    return tifffile.imread(path)
 
 
 #: EXIF's orientation tag, and its values: 1 is the pixels as stored; 2-8 ask viewers to mirror or turn them.

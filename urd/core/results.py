@@ -91,7 +91,7 @@ class SceneResults:
         import numpy as np
         import tifffile
 
-        from urd.core.images import u16_to_linear
+        from urd.core.images import stored_tiff_layout, u16_to_linear
 
         ingest = self.check_ingested()
         try:
@@ -100,10 +100,7 @@ class SceneResults:
             raise ManifestError(f"{exc}; the aligned shots are made again from the RAW shots by: "
                                 f"urd ingest {self.path} --redo") from exc
         paths = [confined_path(self.path, f["file"], str(self.manifest_path)) for f in ingest["aligned"]]
-        layouts = []
-        for path in paths:
-            with tifffile.TiffFile(path) as tif:
-                layouts.append((tif.series[0].shape, tif.series[0].dtype))
+        layouts = [stored_tiff_layout(path) for path in paths]
         if len(set(layouts)) != 1 or layouts[0][1] != np.uint16:
             raise DatasetError(f"{self.name}: the aligned shots are not one stack of 16-bit images of one size "
                                f"({', '.join(f'{shape} {dtype}' for shape, dtype in layouts)}); ingest the scene "

@@ -57,10 +57,11 @@ def _imx250mzr(root: Path, name: str) -> Capture:
 #: The no-glass captures kept out of training: the semi-real benchmark's held-out part.
 NO_GLASS_TEST = (tuple(f"dphr2022-outdoor-{k:02d}" for k in range(1, 20, 2))
                  + ("lmmse-cpfa-3", "qiu2019-kettle", "imx250mzr-camera", "imx250mzr-fruits", "wen2019-scene61"))
-#: Angles (deg) of a 2×2 cell of the Hagen 2023 mono mosaic once turned upside down: its source's
-#: order 135-0-45-90 read clockwise from the top left (the raw frame is Sony's IMX250MZR layout).
-#: The only pairing for which I0 + I90 = I45 + I135 holds (residual 2.4% of S0; 6% and 14% for the others).
-HAGEN_CELL_DEG = ((135.0, 0.0), (90.0, 45.0))
+#: Angles (deg, urd's convention) of a 2×2 cell of the Hagen 2023 mono mosaic once turned upside
+#: down. The raw frame is Sony's IMX250MZR layout, ((90, 45), (135, 0)); turning it upside down puts
+#: the 135° and 0° pixels on top and mirrors every angle (α → −α: 45° ↔ 135°). The pairing is the
+#: only one for which I0 + I90 = I45 + I135 holds (residual 2.4% of S0; 6% and 14% for the others).
+HAGEN_CELL_DEG = ((45.0, 0.0), (90.0, 135.0))
 
 
 def no_glass_captures(root: Path = SHARED, split: str | None = None) -> list[Capture]:
