@@ -98,6 +98,13 @@ def load_model(path: Path | str | None = None) -> tuple[torch.nn.Module, dict]:
         raise WeightsError(f"{path} is not a urd weights or checkpoint file (no 'model_config': the network it holds is unknown)")
     digest = hashlib.sha256(path.read_bytes()).hexdigest()
     try:
+        with torch.device("meta"):                         # no memory: a small file's config may name a huge network
+            skeleton = {k: tuple(v.shape) for k, v in build_model(state["model_config"]).state_dict().items()}
+        tensors = {k: tuple(v.shape) for k, v in state["model"].items()}
+        if tensors != skeleton:
+            wrong = sorted(set(skeleton) ^ set(tensors)) or [k for k in skeleton if skeleton[k] != tensors[k]]
+            raise ValueError(f"its tensors are not those of the network its model_config names ({len(tensors)} "
+                             f"tensors for {len(skeleton)}; first difference: {wrong[0]})")
         with torch.random.fork_rng():                      # the weights' random start must not move the caller's RNG
             model = build_model(state["model_config"])
         model.load_state_dict({k: v.float() for k, v in state["model"].items()})

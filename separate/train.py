@@ -169,6 +169,9 @@ COUNT: Limit = (lambda v: v >= 1, "at least 1")
 MAX_THREADS = 256
 #: The largest seed: torch's and numpy's generators take a seed of 64 bits; 2**63 - 1 keeps it a signed one.
 MAX_SEED = 2**63 - 1
+#: The widest network (channels at full resolution; 8× that at the coarsest level) and the most
+#: CEILNet blocks per stage a config may name (the shipped network has 16; CEILNet 32 and 6).
+MAX_WIDTH, MAX_BLOCKS = 128, 24
 NONNEGATIVE: Limit = (lambda v: v >= 0, "at least 0")
 PROBABILITY: Limit = (lambda v: 0 <= v <= 1, "between 0 and 1")
 
@@ -181,8 +184,8 @@ def _one_of(choices: tuple[str, ...]) -> Limit:
 #: loading a config file. Sizes in px, times in minutes, probabilities in [0, 1].
 LIMITS: dict[str, Limit] = {
     "variant": _one_of(VARIANTS + ("ceilnet",)),
-    "width": COUNT,
-    "blocks": COUNT,
+    "width": (lambda v: 1 <= v <= MAX_WIDTH, f"at least 1 and at most {MAX_WIDTH}"),
+    "blocks": (lambda v: 1 <= v <= MAX_BLOCKS, f"at least 1 and at most {MAX_BLOCKS}"),
     "patch": (lambda v: v > 0 and v % 8 == 0, "a positive multiple of 8 (the network's 3 down-samplings)"),
     "batch": COUNT,
     "micro_batch": COUNT,

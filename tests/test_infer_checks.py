@@ -12,6 +12,7 @@ from separate import infer
 from separate.infer import STRIP_ROWS, FusedNet, load_model, runner, separate_stack, shipped_weights
 from separate.tiling import OVERLAP, TILE, tile_spans
 from separate.model import FresnelGate, ResizeUp, SeparationNet
+from separate.networks import build_model
 from urd.core.errors import WeightsError
 
 SMALL = np.random.default_rng(0).random((3, 40, 48, 3)).astype(np.float32)
@@ -115,6 +116,22 @@ def test_shipped_weights_load_by_name():
     assert isinstance(load_model()[0].up[0], ResizeUp)                      # the default decoder resizes
     with pytest.raises(WeightsError, match="not found .*shipped: .*urd-canonical-transposed"):
         load_model("urd-canonical-nonexistent")
+
+
+def test_a_small_file_naming_a_huge_network_is_refused_before_the_network_is_built(tmp_path, monkeypatch):
+    import separate.infer as infer
+
+    built = []
+    monkeypatch.setattr(infer, "build_model", lambda config: built.append(config) or build_model(config))
+    torch.save({"model": {}, "model_config": {"width": 700, "variant": "canonical", "channels": 3}}, tmp_path / "big.pt")
+    with pytest.raises(WeightsError, match=r"big.pt is corrupt or does not fit the model: its tensors are not those "
+                                           r"of the network its model_config names \(0 tensors for \d+; first difference: "):
+        load_model(tmp_path / "big.pt")
+    assert len(built) == 1                                  # on the meta device only: never with memory behind it
+    model, _ = load_model("urd-canonical")
+    torch.save({"model": model.state_dict(), "model_config": {**model.config(), "width": 24}}, tmp_path / "wide.pt")
+    with pytest.raises(WeightsError, match="first difference: "):
+        load_model(tmp_path / "wide.pt")
 
 
 @pytest.mark.parametrize("weights", ["urd-canonical", "urd-anchored"])
