@@ -47,6 +47,8 @@ ESTIMATED = ("auto", "global")
 def check_reference(reference: Reference) -> Reference:
     """``reference`` as "auto", "global" or a float (deg) from any finite real number (NumPy's
     included, bool not); ValueError otherwise."""
+    if isinstance(reference, np.ndarray) and reference.ndim == 0:
+        reference = reference.item()
     if isinstance(reference, str):
         if reference in ESTIMATED:
             return reference
@@ -121,7 +123,7 @@ def network(weights: Path | None = None, tile: int | None = None, precision: str
     model, weights_info = load_model(weights)
     name = Path(weights_info["file"]).name
     if uses_reference and weights_info["config"].get("variant") == "ceilnet":
-        raise ValueError(f"weights {name} hold CEILNet, not the polarization network: use --method ceilnet for them")
+        raise ValueError(f"weights {name} hold CEILNet, not the polarization network: use the method 'ceilnet' for them")
     anchored = getattr(model, "base", "canonical") == "fresnel"
     if incidence_deg is not None and not anchored:
         raise ValueError(f"an angle of incidence is for a physics-anchored network (urd-anchored), not {name}")
@@ -177,7 +179,7 @@ def ceilnet(weights: Path | None = None, reference: Reference = "auto", tile: in
                         return_copies=False, device=device)
     if info["weights"]["config"].get("variant") != "ceilnet":
         raise ValueError(f"weights {weights} hold a {info['weights']['config'].get('variant')} network, not CEILNet: "
-                         "use --method network for them")
+                         "use the method 'network' for them")
 
     def clipped(*args, **kwargs) -> tuple[np.ndarray, np.ndarray]:    # R̂ = S0 − T̂ goes below 0: no light is
         return tuple(np.maximum(layer, 0.0, out=layer) for layer in run(*args, **kwargs))
@@ -298,12 +300,14 @@ def separate_inspected(images: np.ndarray, angles: list[float], run, reference: 
 def get_method(name: str, reference: Reference = "auto", **options) -> tuple[Run, dict]:
     """The method called ``name`` with its options and reference policy ("auto", "global" or degrees);
     ValueError naming the known methods, the bad reference, or an option the method does not take."""
-    if name not in METHODS:
+    if not isinstance(name, str) or name not in METHODS:
         raise ValueError(f"unknown method {name!r}; expected one of {sorted(METHODS)}")
     factory = METHODS[name]
-    taken = inspect.signature(factory).parameters
-    if not any(p.kind is p.VAR_KEYWORD for p in taken.values()):
-        unknown = sorted(set(options) - set(taken))
-        if unknown:
-            raise ValueError(f"unknown options {unknown} for {name}; expected some of {sorted(set(taken) - {'reference', 'uses_reference'})}")
+    parameters = inspect.signature(factory).parameters
+    taken = {p for p, kind in parameters.items() if kind.kind is not kind.VAR_KEYWORD} - {"reference", "uses_reference"}
+    unknown = sorted(set(options) - taken)          # uses_reference: how `ceilnet` runs the network, not an option
+    if unknown and not any(p.kind is p.VAR_KEYWORD for p in parameters.values()):      # a baseline checks its own
+        raise ValueError(f"unknown options {unknown} for {name}; expected some of {sorted(taken)}")
+    if "uses_reference" in options:
+        raise ValueError(f"unknown options ['uses_reference'] for {name}; expected some of {sorted(taken)}")
     return factory(reference=check_reference(reference), **options)

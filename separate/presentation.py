@@ -24,13 +24,14 @@ def check_stack(images: np.ndarray, angles_deg: Sequence[float]) -> np.ndarray:
     """Validate a stack and its angles; return the angles in radians (float64).
 
     Raises TypeError unless ``images`` is a numpy array, ValueError unless it is (N, H, W, C)
-    with N ≥ 3, one angle per shot, angles that determine S0, S1, S2, and finite values.
+    with N ≥ 3 and C 1 or 3, one angle per shot, angles that determine S0, S1, S2, and finite values.
     """
     if not isinstance(images, np.ndarray):
         raise TypeError(f"expected images as a numpy array, got {type(images).__name__}")
     optics.code_scale(images)
-    if images.ndim != 4 or images.shape[0] < 3:
-        raise ValueError(f"expected a stack of shape (N>=3, H, W, C), got {images.shape}")
+    if images.ndim != 4 or images.shape[0] < 3 or images.shape[3] not in (1, 3):
+        raise ValueError(f"expected a stack of shape (N>=3, H, W, C) with C = 1 or 3 channels (grey or RGB, "
+                         f"channels last), got {images.shape}")
     short, long = sorted(images.shape[1:3])
     if short < 2 or long > 128 * short:                # the side trial's frame, reduced to 256 px, keeps 2 px
         raise ValueError(f"expected images of at least 2 px on a side, at most 128 times as long as wide, "

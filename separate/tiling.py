@@ -23,6 +23,8 @@ def check_tiling(tile: int, overlap: int) -> tuple[int, int]:
     """Validate tile size and overlap (px); return the tile rounded down to the 8-px grid and
     the overlap. ValueError unless tile ≥ `MIN_TILE` and ≥ 2·overlap, and overlap ≥ 0."""
     try:
+        if isinstance(tile, bool) or isinstance(overlap, bool):
+            raise TypeError
         tile, overlap = operator.index(tile), operator.index(overlap)
     except TypeError:
         raise TypeError(f"expected integer tile and overlap (px), got {tile!r} and {overlap!r}") from None

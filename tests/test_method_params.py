@@ -28,8 +28,9 @@ def small_stack(size: int = 16) -> np.ndarray:
     ("kong", "steps", 1e9, "kong parameter steps to be an integer ≥ 1, got 1000000000.0"),
     ("kong", "steps", True, "steps to be an integer ≥ 1, got True"),
     ("schechner", "grid_step_deg", 0, "schechner parameter grid_step_deg to be a finite number ≥ 0.01 and ≤ 20, got 0"),
-    ("schechner", "theta_deg", 95, "schechner parameter theta_deg to be a finite number > 0 and < 90 or null, got 95"),
-    ("schechner", "theta_deg", "35", "theta_deg to be a finite number > 0 and < 90 or null, got '35'"),
+    ("schechner", "theta_deg", 95, "schechner parameter theta_deg to be a finite number ≥ 10 and ≤ 80 or null, got 95"),
+    ("schechner", "theta_deg", 0.8, "theta_deg to be a finite number ≥ 10 and ≤ 80 or null, got 0.8"),   # radians
+    ("schechner", "theta_deg", "35", "theta_deg to be a finite number ≥ 10 and ≤ 80 or null, got '35'"),
     ("arvanitopoulos", "lam", "x", "arvanitopoulos parameter lam to be a finite number > 0 and < 50000, got 'x'"),
     ("li-brown", "lam", -1.0, "li_brown parameter lam to be a finite number ≥ 0, got -1.0"),
 ])
@@ -59,8 +60,8 @@ def test_every_numeric_baseline_parameter_has_a_range(module):
     ("kong", "smoothness", 0.0, -1e-9),
     ("kong", "steps", 1, 0),
     ("kong", "min_side", 2, 1),
-    ("schechner", "theta_deg", 0.5, 0.0),
-    ("schechner", "theta_deg", 89.5, 90.0),
+    ("schechner", "theta_deg", 10.0, 9.99),
+    ("schechner", "theta_deg", 80.0, 80.01),
     ("schechner", "grid_step_deg", 0.01, 0.009),
     ("schechner", "grid_step_deg", 20.0, 20.5),
     ("li-brown", "lam", 0.0, -1e-9),
@@ -76,12 +77,12 @@ def test_a_ranges_edge_runs_to_finite_layers_and_the_value_past_it_is_refused(me
 
 
 def test_the_network_refuses_ceilnet_weights():
-    with pytest.raises(ValueError, match="weights ceilnet.pt hold CEILNet, not the polarization network: use --method ceilnet"):
+    with pytest.raises(ValueError, match="weights ceilnet.pt hold CEILNet, not the polarization network: use the method 'ceilnet'"):
         get_method("network", weights=ceilnet.WEIGHTS, device="cpu")
 
 
 def test_ceilnet_refuses_the_networks_weights_pointing_to_method_network():
-    with pytest.raises(ValueError, match="weights urd-anchored hold a .* network, not CEILNet: use --method network"):
+    with pytest.raises(ValueError, match="weights urd-anchored hold a .* network, not CEILNet: use the method 'network'"):
         get_method("ceilnet", weights="urd-anchored", device="cpu")
 
 

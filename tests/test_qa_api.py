@@ -47,9 +47,45 @@ def test_angles_and_codes_urd_cannot_use_are_refused():
         urd.separate(stack * 2 - 1, ANGLES, method="schechner")
     with pytest.raises(ValueError, match="read with 1.0 as white"):            # the maps read the stack alike
         urd.polarization_maps(stack * 255, ANGLES)
-    for angles in (45, "0,45,90,135", ["0", "45", "90", "135"], [True, 45, 90, 135], [0, [45], 90, 135], []):
+    for angles in (45, "0,45,90,135", ["0", "45", "90", "135"], [True, 45, 90, 135], [0, [45], 90, 135]):
         with pytest.raises(TypeError, match="expected the polarizer angles as"):
             urd.separate(stack, angles, method="schechner")
+    with pytest.raises(ValueError, match=r"expected 4 angles \(one per shot\), got \[\]"):
+        urd.separate(stack, [], method="schechner")
+    with pytest.raises(ValueError, match=r"\(N>=3, H, W, C\) with C = 1 or 3 .*, got \(0, 64, 48, 3\)"):
+        urd.separate(stack[:0], [], method="schechner")
+
+
+@pytest.mark.parametrize("method", ["network", "schechner", "kong", "farid", "none"])
+def test_every_method_refuses_channels_first_and_channel_counts_other_than_1_or_3(method):
+    stack = pane_stack()
+    for bad in (np.ascontiguousarray(stack[:3].transpose(0, 3, 1, 2)), stack[..., :0], np.concatenate([stack, stack[..., :1]], -1)):
+        with pytest.raises(ValueError, match=r"with C = 1 or 3 channels \(grey or RGB, channels last\), got \("):
+            urd.separate(bad, ANGLES[: len(bad)], method=method)
+    with pytest.raises(ValueError, match="with C = 1 or 3 channels"):
+        urd.polarization_maps(np.ascontiguousarray(stack[:3].transpose(0, 3, 1, 2)), ANGLES[:3])
+
+
+def test_options_urd_uses_inside_are_not_options_of_the_api_and_a_method_is_named_by_a_string():
+    stack = pane_stack()
+    with pytest.raises(ValueError, match=r"unknown options \['uses_reference'\] for network"):
+        urd.separate(stack, ANGLES, uses_reference=False)
+    with pytest.raises(ValueError, match=r"unknown method \['schechner'\]"):
+        urd.separate(stack, ANGLES, method=["schechner"])
+    with pytest.raises(TypeError, match="expected integer tile"):
+        urd.separate(stack, ANGLES, tile=True)
+    with pytest.raises(ValueError, match=r"theta_deg to be a finite number ≥ 10 and ≤ 80 or null, got 0.8"):
+        urd.separate(stack, ANGLES, method="schechner", theta_deg=0.8)      # radians where degrees are asked
+    by_array = urd.separate(stack, ANGLES, method="schechner", reference=np.array(20.0))
+    by_float = urd.separate(stack, ANGLES, method="schechner", reference=20.0)
+    np.testing.assert_array_equal(by_array.transmission, by_float.transmission)
+
+
+def test_polarization_maps_issue_the_stacks_warnings_as_separate_does():
+    stack = np.stack([optics.render(np.full((32, 32, 3), 0.3), np.full((32, 32, 3), 0.2), np.radians(50), np.radians(20),
+                                    np.radians(a)) for a in (0, 30, 60)]).astype(np.float32)
+    with pytest.warns(UserWarning, match=r"span only 60 deg"):
+        urd.polarization_maps(stack, [0, 30, 60])
 
 
 def test_polarization_maps_refuse_a_method_that_cannot_settle_the_side_and_bad_arguments():

@@ -22,6 +22,7 @@ from typing import NamedTuple, Sequence
 import numpy as np
 
 from urd.core.dataset import Dataset
+from urd.core.errors import RawFormatError
 from urd.core.images import check_float_scale
 
 
@@ -42,7 +43,8 @@ def separate(images: np.ndarray, angles_deg: Sequence[float], method: str = "net
     """Separate an aligned polarization stack into transmission and reflection.
 
     Args:
-        images: (N, H, W, C) float32 linear shots (or uint16 codes, 65535 = 1.0), N ≥ 3.
+        images: (N, H, W, C) float32 linear shots (or uint16 / uint8 codes, 65535 / 255 = 1.0),
+            N ≥ 3, C 1 (grey) or 3 (RGB).
         angles_deg: the N polarizer angles (deg).
         method: "network" (default), "schechner", "kong", "farid", "li-brown",
             "arvanitopoulos", "ceilnet" or "none" (`separate.methods.METHODS`).
@@ -78,15 +80,18 @@ def checked_stack(images: np.ndarray, angles_deg: Sequence[float]) -> list[float
     from separate.presentation import check_stack
 
     try:
-        given = [] if isinstance(angles_deg, (str, bytes)) else list(angles_deg)
+        given = None if isinstance(angles_deg, (str, bytes)) else list(angles_deg)
     except TypeError:
-        given = []
-    if not given or not all(isinstance(a, numbers.Real) and not isinstance(a, (bool, np.bool_)) for a in given):
+        given = None
+    if given is None or not all(isinstance(a, numbers.Real) and not isinstance(a, (bool, np.bool_)) for a in given):
         raise TypeError(f"expected the polarizer angles as a sequence of numbers in degrees, one per shot, got {angles_deg!r}")
     angles = [float(a) for a in given]
     check_stack(images, angles)
     if images.dtype.kind == "f":
-        check_float_scale(images, "16-bit codes: pass them as uint16, or divide by 65535")
+        try:
+            check_float_scale(images, "16-bit codes: pass them as uint16, or divide by 65535")
+        except RawFormatError as exc:                       # a file's error class; an array's is a ValueError
+            raise ValueError(str(exc)) from None
     return angles
 
 
@@ -99,6 +104,7 @@ def polarization_maps(images: np.ndarray, angles_deg: Sequence[float], reference
     the φ⊥ map is the estimated field ("auto"), one estimated angle ("global") or the given
     angle; an assumed side is settled by separating both sides with ``method``: by default the
     classical Schechner inversion (a fraction of a second; the network's side trial is the same).
+    The warnings about the stack are issued as in `separate`.
     """
     from separate.maps import polarization_maps as maps
     from separate.methods import check_reference, get_method, sees_polarization_of
@@ -111,4 +117,7 @@ def polarization_maps(images: np.ndarray, angles_deg: Sequence[float], reference
         raise ValueError(f"method {method!r} sees only S0, so its trial separations cannot tell the two sides of the "
                          "reference apart; settle the side with 'schechner' (the default), 'kong', 'farid' or 'network'")
     trial = partial(run, trial=True) if reference in ("auto", "global") else None
-    return maps(images, angles, resolve_reference(images, angles, reference, trial)[1])
+    inspection, chosen = resolve_reference(images, angles, reference, trial)
+    for message in inspection.warnings:
+        warnings.warn(message, UserWarning, stacklevel=2)
+    return maps(images, angles, chosen)

@@ -27,11 +27,11 @@ from separate.reference import INCIDENCE_RANGE_DEG
 
 #: The θ grid step (deg) over `separate.reference.INCIDENCE_RANGE_DEG`.
 GRID_STEP_DEG = 0.5
-#: The valid values of `separate`'s parameters (deg): a fixed θ strictly between normal and grazing
-#: incidence, where the inversion is defined; a grid step of at most 20°, which keeps at least 3
+#: The valid values of `separate`'s parameters (deg): a fixed θ within the search range, where the
+#: inversion is well conditioned (below 10° it amplifies noise by hundreds: module docstring); a grid step of at most 20°, which keeps at least 3
 #: grid angles, all below 90° (the grid may pass the range's end by under half a step), and of at
 #: least 0.01° (7001 angles; finer only costs time and memory).
-PARAM_RANGES = {"theta_deg": Interval(above=0.0, below=90.0), "grid_step_deg": Interval(at_least=0.01, at_most=20.0)}
+PARAM_RANGES = {"theta_deg": Interval(at_least=INCIDENCE_RANGE_DEG[0], at_most=INCIDENCE_RANGE_DEG[1]), "grid_step_deg": Interval(at_least=0.01, at_most=20.0)}
 
 
 def estimate_theta(i_perp: np.ndarray, i_par: np.ndarray, grid_deg: np.ndarray) -> float:
