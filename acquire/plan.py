@@ -25,6 +25,7 @@ from acquire.ell14 import Ell14
 from urd.core.dataset import SCENE_NAME, Dataset, Scene
 from urd.core.errors import DatasetError, DeviceError, ManifestError, RawFormatError, UrdError
 from urd.core.files import atomic_path, disk_full, sha256_file, write_error
+from urd.core.manifest import printable
 from urd.core.processes import capture_stopped
 from urd.core.progress import Progress
 
@@ -190,7 +191,7 @@ def resume_command(root: Path, scene: Scene) -> str:
 def recorded_mismatches(scene: Scene, info: dict) -> list[str]:
     """How the devices in ``info`` (`acquire.rig.open_rig`'s) differ from those ``scene`` was
     captured with: the camera's description field by field (fields the scene does not record
-    are not compared) and the stage's identity (`acquire.rig.stage_identity`)."""
+    are not compared) and the stage's identity (`acquire.rig.stage_identity`), `printable`."""
     from acquire.rig import describe_stage, stage_identity
 
     capture = scene.load(verify=False)["capture"]
@@ -198,11 +199,11 @@ def recorded_mismatches(scene: Scene, info: dict) -> list[str]:
     recorded = capture.get("camera", {})
     for key, value in recorded.items():
         if info["camera"].get(key) != value:
-            problems.append(f"camera {key} {value} (this one: {info['camera'].get(key)})")
+            problems.append(printable(f"camera {key} {value} (this one: {info['camera'].get(key)})"))
     if "stage" in capture:
         was, now = stage_identity(capture["stage"]), stage_identity(info["stage"])
         if was != now:
-            problems.append(f"stage {describe_stage(was)} (this one: {describe_stage(now)})")
+            problems.append(printable(f"stage {describe_stage(was)} (this one: {describe_stage(now)})"))
     return problems
 
 

@@ -14,12 +14,19 @@ from __future__ import annotations
 from calib.polarizer import ShotErrors, estimate_shot_errors
 from urd.core import raw as rawio
 from urd.core.dataset import Scene
+from urd.core.errors import CalibrationError
 
 
 def sweep_intensities(scene: Scene) -> tuple[list[float], list[float]]:
-    """Stage angles (deg) and mean central-crop intensities of a sweep scene's shots."""
+    """Stage angles (deg) and mean central-crop intensities of a sweep scene's shots.
+    CalibrationError when a shot records no stage angle (the scene is no sweep urd captured)."""
+    shots = scene.shots()
+    unknown = next((shot for shot in shots if shot.stage_position_deg is None), None)
+    if unknown is not None:
+        raise CalibrationError(f"{scene.manifest_path}: shot {unknown.index} records no stage angle "
+                               "(stage_position_deg), which every shot of a calibration sweep has")
     angles, values = [], []
-    for shot, path in zip(scene.shots(), scene.raw_paths()):
+    for shot, path in zip(shots, scene.raw_paths()):
         image = rawio.decode(path, half_size=True)
         h, w = image.shape[:2]
         values.append(float(image[h // 4 : 3 * h // 4, w // 4 : 3 * w // 4].mean()))

@@ -54,16 +54,19 @@ def polarization_maps(images: np.ndarray, angles_deg: Sequence[float], reference
     Returns:
         name → float32 array: S0, S1, S2 H×W×C; the others H×W; DoLP in [0, 1] and AoLP in
         [0, 180), both NaN where the luminance's S0 < `DARK_S0`.
+
+    Raises TypeError or ValueError for a stack `check_stack` refuses, a ``reference_deg`` that is
+    not a number or an h×w array of numbers, or one that is not finite.
     """
     phi = check_stack(images, angles_deg)
     check_rows(rows)
+    reference = check_reference(reference_deg)
     n, h, w, c = images.shape
     pinv = optics.stokes_fit(phi).astype(np.float32)
     stokes = np.empty((3, h, w, c), np.float32)
     for y in range(0, h, rows):
         stokes[:, y : y + rows] = np.tensordot(pinv, optics.to_float(images[:, y : y + rows]), axes=1)
     lum = stokes.mean(axis=-1)
-    reference = np.asarray(reference_deg, np.float32)
     field = field_at(reference, (h, w)) if reference.ndim == 2 else np.full((h, w), float(reference), np.float32)
     theta = field_at(estimate_incidence_field(images, angles_deg, reference_deg), (h, w))
     aolp = np.mod(np.degrees(optics.aolp(lum.astype(np.float64))), 180.0).astype(np.float32)
@@ -79,3 +82,16 @@ def polarization_maps(images: np.ndarray, angles_deg: Sequence[float], reference
         "phi_perp": field,
         "theta": theta,
     }
+
+
+def check_reference(reference_deg: float | np.ndarray) -> np.ndarray:
+    """φ⊥ (deg) as float32: one angle, or an h×w field. TypeError unless it is a real number or an
+    array of them, ValueError unless it has 0 or 2 dimensions (none of them empty) and finite values."""
+    reference = np.asarray(reference_deg)
+    if reference.dtype.kind not in "iuf":
+        raise TypeError(f"expected reference_deg a number or an array of numbers (deg), got {reference.dtype}")
+    if reference.ndim not in (0, 2) or 0 in reference.shape:
+        raise ValueError(f"expected reference_deg one angle or an h×w field (deg), got shape {reference.shape}")
+    if not np.isfinite(reference).all():
+        raise ValueError("expected reference_deg finite (deg), got NaN or infinite values")
+    return reference.astype(np.float32)

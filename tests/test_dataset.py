@@ -14,7 +14,7 @@ from urd.core.errors import DatasetError, ManifestError
 
 def make_scene(tmp_path):
     ds = dataset.Dataset.open_or_create(tmp_path / "ds")
-    scene = ds.new_scene("test", {"stage": "sim"})
+    scene = ds.new_scene("test", {"stage": {"kind": "ELL14", "port": "sim"}})
     (scene.path / "raw").mkdir()
     for i, angle in enumerate((0, 45, 90)):
         path = scene.path / "raw" / f"shot_{i:02d}.dng"

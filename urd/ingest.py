@@ -42,6 +42,7 @@ from urd.core.swap import STAGING_PREFIX
 from urd.core.errors import AlignmentError, DatasetError, RawFormatError, UrdError
 from urd.core.files import atomic_path, sha256_file
 from urd.core.processes import kept_note, process_pool
+from urd.core.manifest import printable
 from urd.core.images import IMAGE_SUFFIXES, Transfer, codes_to_linear, linear_to_u16, read_raw_codes
 from urd.core.mosaic import MosaicLayout
 from urd.core.progress import Progress
@@ -197,12 +198,13 @@ EXPOSURE_SETTINGS = (("exposure_s", "exposure times", "", " s"), ("iso", "ISO sp
 def exposure_warning(cameras: list[dict | None]) -> str | None:
     """What differs between the exposure settings of a scene's shots, from their camera metadata
     (`urd.core.raw.metadata`: exposure time (s), ISO speed, aperture (f-number)), or None when
-    they agree; a setting a shot does not record is compared among the others.
+    they agree; a setting a shot does not record is compared among the others. The camera models
+    it names are `printable` (a RAW file's metadata may hold terminal escapes).
 
     Raises AlignmentError when the shots come from different camera models.
     """
     records = [camera or {} for camera in cameras]
-    models = [str(r.get("model") or "?") for r in records]
+    models = [printable(str(r.get("model") or "?")) for r in records]
     if len(set(models) - {"?"}) > 1:
         raise AlignmentError(f"the shots come from different cameras ({', '.join(models)}): a scene is one camera's "
                              "shots of one view; put each camera's shots in a folder of their own")
@@ -408,8 +410,9 @@ def _not_to_ingest(scene: Scene, opts: IngestOptions) -> SceneOutcome | None:
         return SceneOutcome(scene.name, [], f"incomplete capture ({status.shots} of {status.expected} shots); "
                             f"resume it with: {resume_command(scene.path.parent, scene)}", "incomplete")
     if status.state == "alignment failed" and not opts.redo:
-        return SceneOutcome(scene.name, [], f"its alignment failed ({scene.load(verify=False)['ingest'].get('error', '')}); "
-                            "--redo tries again, e.g. with another --motion", "skipped")
+        error = printable(scene.load(verify=False)["ingest"].get("error", ""))
+        return SceneOutcome(scene.name, [], f"its alignment failed ({error}); --redo tries again, e.g. with another "
+                            "--motion", "skipped")
     if scene.is_ingested() and not opts.redo:
         aligned = {rec["file"] for rec in scene.load(verify=False)["ingest"].get("aligned", [])}
         missing = [name for name in scene.missing_files() if name in aligned]

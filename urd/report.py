@@ -8,7 +8,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from urd.core.dataset import SCENE_MANIFEST, Dataset, OffsetCalibration, Scene
-from urd.core.errors import ManifestError, UrdError
+from urd.core.errors import DatasetError, ManifestError, UrdError
 from urd.core.progress import plural
 
 
@@ -38,11 +38,20 @@ def report_text(root: Path) -> str:
 
             lines.append(f"    resume it with: {resume_command(ds.root, scene)}")
         if status.state != "broken":
-            lines += [f"    {note}" for note in (scene.lost_truth(), scene.unfinished_swap(), _offset_note(scene, calibration))
-                      if note]
+            lines += [f"    {note}" for note in (_link_note(scene), scene.lost_truth(), scene.unfinished_swap(),
+                                                 _offset_note(scene, calibration)) if note]
         lines += [f"    {line}" for line in _truth_lines(scene)]
     lines += [f"  {name}: {message}" for name, message in ds.misnamed_scenes().items()]
     return "\n".join(lines)
+
+
+def _link_note(scene: Scene) -> str | None:
+    """The symbolic link in ``scene`` (`Scene.refuse_links`), which no command works through, or None."""
+    try:
+        scene.refuse_links()
+    except DatasetError as exc:
+        return str(exc)
+    return None
 
 
 def _truth_lines(scene) -> list[str]:
@@ -116,16 +125,20 @@ def scene_view(scene, max_side: int = 2048, calibration: OffsetCalibration | Non
     """What the HTML report shows of one scene (`urd.report_html.SceneView`), images at most
     ``max_side`` px long. Shots or results that cannot be read, and results of another size than
     the shots (or than the first result shown), are left out with a note saying why; a scene
-    captured with another polarizer offset than the dataset's ``calibration`` gets a note."""
-    import tifffile
-
+    captured with another polarizer offset than the dataset's ``calibration`` gets a note. A scene
+    holding a symbolic link (its folder one, or a file or folder in it) is shown as broken, naming
+    the link: a dataset from someone else could show files from anywhere through it."""
     from urd.core.images import u16_to_linear
     from urd.report_html import ResultView, SceneView
+    from urd.separation import read_result
 
     status = scene.status()
     notes = [status.problem] if status.problem else []
     if status.state == "broken":
         return SceneView(scene.name, status.describe(), [], None, None, [], notes, state="broken")
+    link = _link_note(scene)
+    if link is not None:
+        return SceneView(scene.name, "BROKEN (a symbolic link)", [], None, None, [], [f"not shown: {link}"], state="broken")
     offset_note = _offset_note(scene, calibration)
     if offset_note:
         notes.append(offset_note)
@@ -133,6 +146,9 @@ def scene_view(scene, max_side: int = 2048, calibration: OffsetCalibration | Non
     if status.state == "ingested":
         try:
             stack, angles = scene.load_stack()
+            if stack.ndim not in (3, 4) or (stack.ndim == 4 and stack.shape[-1] not in (1, 3)) or 0 in stack.shape:
+                raise ManifestError(f"{scene.name}: the aligned shots are of shape {stack.shape[1:]}, expected H×W×3 (RGB) "
+                                    f"or H×W (grey); ingest the scene again: urd ingest {scene.path} --redo")
         except (OSError, ValueError) as exc:
             notes.append(f"shots not shown: {exc}")
         else:
@@ -141,10 +157,9 @@ def scene_view(scene, max_side: int = 2048, calibration: OffsetCalibration | Non
     for method in scene.methods():
         try:
             result = scene.result(method)
-            r, t = (u16_to_linear(tifffile.imread(result.files[f"{name}.tiff"]), result.full_scale) for name in ("R", "T"))
-            confidence, field = (result.files.get(name) for name in ("confidence.tiff", "reference_deg.tiff"))
-            confidence = None if confidence is None else tifffile.imread(confidence)
-            field = None if field is None else tifffile.imread(field)
+            r, t = (u16_to_linear(read_result(result.files[f"{name}.tiff"]), result.full_scale) for name in ("R", "T"))
+            confidence, field = (None if path is None else read_result(path)
+                                 for path in (result.files.get(name) for name in ("confidence.tiff", "reference_deg.tiff")))
         except (OSError, ValueError) as exc:
             notes.append(f"{method}: {exc}")
             continue

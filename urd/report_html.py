@@ -48,12 +48,11 @@ from typing import Callable, Sequence
 from urllib.parse import quote
 
 import numpy as np
-import tifffile
 
 from urd.core.dataset import enclosing_dataset
 from urd.core.errors import DatasetError
 from urd.core.files import disk_full, write_error
-from urd.core.images import srgb_encode, to_display
+from urd.core.images import read_stored_tiff, srgb_encode, to_display
 from urd.report_assets import CSS, JS, calibration_svg, compare_html, wheel_svg
 from urd.report_images import (
     AOLP_FULL_SATURATION_DOLP,
@@ -190,6 +189,11 @@ def _check_scene(scene: SceneView, index: int) -> None:
         sizes.add(_check_image(result.t, f"{where}, {result.method} T̂"))
         if result.confidence is not None:
             sizes.add(_check_image(result.confidence, f"{where}, {result.method} confidence", channels=False))
+        if result.reference_field is not None:
+            _check_image(result.reference_field, f"{where}, {result.method} reference field", channels=False)
+            if not np.isfinite(result.reference_field).all():
+                raise ValueError(f"{where}, {result.method} reference field: expected finite angles (deg), got NaN or "
+                                 "infinite values")
     if len(sizes) > 1:
         raise ValueError(f"{where}: expected shots and results of one size H×W, got {sorted(sizes)}")
     if scene.shot_errors_deg is not None and scene.shots and len(scene.shot_errors_deg) != len(scene.shots):
@@ -454,7 +458,7 @@ def _exports_html(exports: list[Path], links_from: Path, root: Path, stem: str) 
     links = []
     for path in exports:
         try:
-            rgb, span = map_preview(path.stem, tifffile.imread(path))
+            rgb, span = map_preview(path.stem, read_stored_tiff(path))
         except (OSError, ValueError) as exc:
             links.append(f"{_e(path.stem)} (cannot be read: {_e(str(exc))})")
             continue

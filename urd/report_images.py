@@ -102,8 +102,10 @@ def map_preview(name: str, values: np.ndarray) -> tuple[np.ndarray, str]:
     RGB, and the range it spans in the map's units: AoLP as hue over [0, 180) deg (cyclic, as
     `aolp_image`: 0° and 180° are both red); the others in viridis, DoLP over [0, 1], S1 and S2
     over ±their 99.5th percentile of |value|, S0 over [0, its 99.5th percentile], φ⊥ and θ over
-    their own range. NaN (dark pixels) is black."""
+    their own range. NaN (dark pixels) is black. ValueError for values of another shape."""
     values = np.asarray(values, np.float32)
+    if values.ndim not in (2, 3) or 0 in values.shape:
+        raise ValueError(f"{name}: expected an H×W or H×W×C map, got shape {values.shape}")
     values = values.mean(axis=-1) if values.ndim == 3 else values
     if name == "AoLP":
         full = np.ones_like(values)

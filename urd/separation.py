@@ -35,9 +35,10 @@ from separate import metrics, optics
 from separate.methods import sees_polarization_of, separate_inspected
 from separate.reference import Inspection, resolve_reference
 from urd.core.dataset import SCENE_NAME, Scene, enclosing_dataset
-from urd.core.errors import DatasetError
+from urd.core.errors import DatasetError, ManifestError
 from urd.core.files import atomic_path
-from urd.core.images import ORIENTATIONS, Transfer, exif_orientation, linear_image, linear_to_u16, read_raw_codes, to_display
+from urd.core.images import (ORIENTATIONS, Transfer, exif_orientation, linear_image, linear_to_u16, read_raw_codes,
+                             read_stored_tiff, to_display)
 
 FULL_SCALE = 2.0
 PREVIEW_SIDE = 2048
@@ -73,7 +74,7 @@ def _read_mapped(path: Path, shape: tuple[int, ...], scene: Scene) -> np.ndarray
         try:
             image = tifffile.memmap(path, mode="r")
         except ValueError:
-            image = tifffile.imread(path)
+            image = read_stored_tiff(path)
     except (OSError, ValueError) as exc:              # tifffile.TiffFileError is a ValueError
         problem = f"cannot be read ({exc})"
     else:
@@ -152,6 +153,31 @@ def write_float_map(path: Path, values: np.ndarray, quantity: str, unit: str, ov
               {"photometric": "minisblack", "planarconfig": "contig"} if values.ndim == 3 else {"photometric": "minisblack"})
     with atomic_path(path, overwrite) as tmp:
         tifffile.imwrite(tmp, values, description=description, metadata=None, **layout)
+
+
+#: The stored result files `read_result` checks: name → (what it holds, its dtypes, the numbers of
+#: dimensions it may have, the channels of a 3-D one, whether every value must be finite).
+RESULT_FILES = {
+    "R.tiff": ("H×W×3 (or grey) 16-bit linear codes", ("uint16",), (2, 3), (1, 3), False),
+    "T.tiff": ("H×W×3 (or grey) 16-bit linear codes", ("uint16",), (2, 3), (1, 3), False),
+    "confidence.tiff": ("an H×W float map of reflection presence", ("float32", "float64"), (2,), (), False),
+    "reference_deg.tiff": ("an h×w float map of finite angles (deg)", ("float32", "float64"), (2,), (), True),
+}
+
+
+def read_result(path: Path) -> np.ndarray:
+    """A stored result file (`RESULT_FILES`, by its name) as `write_results` wrote it; ManifestError
+    naming the file when it holds another layout or dtype (or, for the reference field, a NaN or an
+    infinity): damaged, or not written by urd."""
+    what, dtypes, dims, channels, finite = RESULT_FILES[Path(path).name]
+    values = read_stored_tiff(Path(path))                  # an uncompressed file, as urd writes them
+    if (values.dtype.name not in dtypes or values.ndim not in dims or 0 in values.shape
+            or (values.ndim == 3 and values.shape[2] not in channels)):
+        raise ManifestError(f"{path}: expected {what}, got {values.dtype} of shape {values.shape} (damaged, or not "
+                            "written by urd)")
+    if finite and not np.isfinite(values).all():
+        raise ManifestError(f"{path}: expected {what}, got NaN or infinite values (damaged, or not written by urd)")
+    return values
 
 
 def write_maps(folder: Path, maps: dict[str, np.ndarray], overwrite: bool = False) -> list[Path]:
@@ -326,10 +352,10 @@ def add_maps(scene: Scene, method: str, reference: str | float = "auto") -> Sepa
         if any(path.parent.name == "maps" for path in result.files.values()):
             raise DatasetError(f"{scene.name}'s {method} results already have maps ({scene.results_dir(method) / 'maps'}); "
                                "pass --force to separate again with maps")
+        field_file = result.files.get("reference_deg.tiff")
+        used = None if field_file is None else read_result(field_file)      # checked before the stack is read
         images, angles = scene.load_stack(codes=True)
-        if "reference_deg.tiff" in result.files:
-            used = tifffile.imread(result.files["reference_deg.tiff"])
-        else:
+        if used is None:
             inspection, chosen = resolve_reference(images, angles, reference, None)
             used = inspection.field if np.ndim(chosen) == 2 else chosen
         polarization = _maps(images, angles, used)

@@ -9,6 +9,7 @@ import typer
 
 from urd.cli.common import bad, choice, fail, given, note_new_dataset, parse_angles, run_guarded, usage, warn, within
 from urd.core.dataset import default_root
+from urd.core.manifest import printable
 from urd.core.progress import TerminalProgress, plural
 
 
@@ -90,23 +91,23 @@ def ingest(
     report = run_guarded(ingest_workflow, source, root, opts, layout, method, transfer_rule,
                          progress=TerminalProgress(), jobs=jobs)
     for path in report.ignored:
-        typer.echo(f"ignored (not a RAW file name): {path.resolve()}", err=True)
+        typer.echo(f"ignored (not a RAW file name): {printable(str(path.resolve()))}", err=True)
     for note in report.notes:
         warn(note)
     for outcome in report.outcomes:
         for note in outcome.notes:
             warn(note)
-        where = outcome.name or ", ".join(p.name for p in outcome.files)
+        where = outcome.name or ", ".join(printable(p.name) for p in outcome.files)       # file names as given
         if outcome.state == "failed":
-            typer.secho(f"FAILED {where}: {outcome.error}", fg=typer.colors.RED, err=True)
+            typer.secho(f"FAILED {where}: {printable(str(outcome.error))}", fg=typer.colors.RED, err=True)
         elif outcome.state == "ingested":
-            names = ", ".join(p.name for p in outcome.files)
+            names = ", ".join(printable(p.name) for p in outcome.files)
             origin = f"from {len(outcome.files)} files" if len(outcome.files) > 3 else f"from {names}"
             typer.echo(f"ingested {outcome.name} ({origin})")
         elif outcome.state == "skipped" and outcome.files:            # files of a folder that a scene already holds
-            typer.echo(f"skipped {', '.join(p.name for p in outcome.files)}: {outcome.error}")
+            typer.echo(f"skipped {', '.join(printable(p.name) for p in outcome.files)}: {printable(str(outcome.error))}")
         else:
-            typer.echo(f"{outcome.state} {where}: {outcome.error}")
+            typer.echo(f"{outcome.state} {where}: {printable(str(outcome.error))}")
     if not report.outcomes:
         typer.echo("nothing to ingest")
     if report.failed:

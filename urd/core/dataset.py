@@ -69,6 +69,7 @@ from urd.core.manifest import (
     SCHEMA_VERSION,
     confined_path,
     now_iso,
+    printable,
     provenance,
     validate_calibration,
     validate_dataset,
@@ -85,7 +86,7 @@ SCENE_MANIFEST = "scene.json"
 CALIBRATION_FILE = "calibration.json"
 SWEEP_FOLDER = "calibration"       # the calibration sweeps behind calibration.json
 LOCK_FILE = ".urd.lock"
-SCENE_NAME = re.compile(r"^scene_(\d{2,})$")
+SCENE_NAME = re.compile(r"^scene_([0-9]{2,})\Z")        # \Z: "scene_01\n" is no scene
 
 
 @dataclasses.dataclass(frozen=True)
@@ -406,13 +407,14 @@ class Dataset:
     def misnamed_scenes(self) -> dict[str, str]:
         """Folders holding a scene manifest under a name that is not a scene's (``kitchen``,
         ``scene_1``, ``scene_01.bak``), which no command takes for a scene: folder name → what
-        `urd verify` and `urd report` say of it (rename it, with a free name). A folder that
-        cannot be read (a root-owned lost+found) is none."""
+        `urd verify` and `urd report` say of it (rename it, with a free name), both `printable`. A
+        folder that cannot be read (a root-owned lost+found) is none."""
         folders = sorted(p for p in self.root.iterdir() if p.is_dir() and not SCENE_NAME.match(p.name)
                          and not p.name.startswith(STAGING_PREFIX) and os.path.isfile(p / SCENE_MANIFEST))
         first = int(SCENE_NAME.match(self.next_scene_name()).group(1))
-        return {path.name: f"holds a {SCENE_MANIFEST} but is not named scene_NN, so no command sees it as a scene; rename "
-                           f"it: mv {shlex.quote(str(path))} {shlex.quote(str(self.root / f'scene_{n:02d}'))}"
+        return {printable(path.name): printable(f"holds a {SCENE_MANIFEST} but is not named scene_NN, so no command sees "
+                                                f"it as a scene; rename it: mv {shlex.quote(str(path))} "
+                                                f"{shlex.quote(str(self.root / f'scene_{n:02d}'))}")
                 for n, path in enumerate(folders, first)}
 
     def scenes(self) -> list[Scene]:
