@@ -62,7 +62,7 @@ def test_glints_clipped_in_the_shot_alone_are_masked_and_the_shot_still_aligns(t
     for y, x in zip(rng.integers(20, 440, 60), rng.integers(20, 600, 60)):   # glare the polarizer let through here only
         shot[y:y + 18, x:x + 18] = 1.0
     result = align(prepare_target(reference), shot)
-    assert result.ok and result.correlation > 0.8, result
+    assert result.ok and result.correlation > 0.7, result                   # unmasked: 0.51, 0.20 px off
     assert warp_rms(result.warp, cam.shake(1), 480, 640) < 0.15
 
 
@@ -293,7 +293,9 @@ def test_an_interrupted_ingest_decodes_no_further_shot_and_leaves_no_staging(tmp
     monkeypatch.setattr(ingest_module.rawio, "decode", decode)
     with pytest.raises(KeyboardInterrupt):
         ingest_module.prepare_ingest(scene, IngestOptions(), progress)
-    assert len(decoded) == 4 and not list(scene.path.glob(".staging-*"))   # two threads: shots 2 and 3 had begun
+    never = {path.name for path in scene.raw_paths()[4:]}    # two threads: at most shots 2 and 3 had begun
+    assert first_two <= set(decoded) and not never & set(decoded), decoded
+    assert not list(scene.path.glob(".staging-*"))
 
 
 def test_shots_of_one_second_are_ordered_by_their_file_numbers_as_numbers(tmp_path):
