@@ -400,7 +400,12 @@ RUN_FILES = ("config.toml", "best.pt", "log.jsonl")
 def check_run_folder(run_dir: Path) -> None:
     """TrainingError when ``run_dir`` holds an earlier run's ``best.pt`` but no ``last.pt`` to resume
     from: a new run there would overwrite it. (A start killed before its first checkpoint leaves
-    config.toml and log.jsonl only; a new run takes the folder over.)"""
+    config.toml and log.jsonl only; a new run takes the folder over; a run from ``--init`` writes
+    ``last.pt`` beside its step-0 ``best.pt``.) Removes the temporary files of checkpoints whose
+    writing was killed (the folder is locked: no other run writes them)."""
+    for stale in Path(run_dir).glob(".*.tmp.*"):
+        if stale.name.startswith((".last.", ".best.", ".config.")):
+            stale.unlink(missing_ok=True)
     if (Path(run_dir) / "best.pt").exists() and not (Path(run_dir) / "last.pt").exists():
         raise TrainingError(f"{run_dir} holds best.pt of an earlier run but no last.pt to resume from, and a new "
                             "run would overwrite it; use a new run folder (or restore last.pt there to resume)")
@@ -624,6 +629,8 @@ def _train(cfg: TrainConfig, run_dir: Path, init: Path | None, progress) -> dict
         record = {"step": 0, "lr": lr_at(cfg, 0), "wall_s": 0.0, "patches_seen": 0, **evaluate(model, val, device)}
         best = record["psnr_t"]
         keep(run_dir / "best.pt", False, val=record)
+        keep(last, True, val=record)                            # resumable from here: best.pt is never left alone
+        saved = 0
         log.write(json.dumps(record) + "\n")
         log.flush()
         if progress is not None:

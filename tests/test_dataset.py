@@ -118,6 +118,18 @@ def test_interrupted_write_leaves_old_manifest_intact(tmp_path):
     assert not [p for p in tmp_path.iterdir() if "tmp" in p.name and p.stat().st_size == len("partial")]
 
 
+def test_a_writer_failing_without_an_errno_on_a_full_disk_is_a_disk_full_error(tmp_path, monkeypatch):
+    from urd.core.errors import DiskFullError
+
+    path = tmp_path / "last.pt"
+    monkeypatch.setattr(files, "MIN_FREE_BYTES", 1 << 62)          # the disk as good as full
+    with pytest.raises(DiskFullError, match=r"disk full: .*last.pt \(nothing was changed"):
+        with files.atomic_path(path) as tmp:
+            tmp.write_bytes(b"part")
+            raise RuntimeError("[enforce fail at inline_container.cc:672] . unexpected pos 817664 vs 817552")   # torch.save
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_an_aligned_shot_replaced_by_a_compressed_file_is_refused_before_its_pixels_are_allocated(tmp_path_factory):
     import numpy as np
     import tifffile

@@ -92,6 +92,27 @@ def test_a_swap_a_failure_left_is_named_by_the_report_and_recovered_without_link
     assert not [p.name for p in (root / SCENE).rglob(".*") if p.name.endswith(".link")]
 
 
+def test_separating_again_after_a_stopped_swap_finishes_it_before_saying_the_results_exist(base, tmp_path, monkeypatch):
+    root = shutil.copytree(base, tmp_path / "ds")
+    real_place, calls = swap_module._place, []
+
+    def place_failing_the_second_file(source, target):
+        calls.append(target)
+        if len(calls) == 2:
+            raise IsADirectoryError(21, "Is a directory")
+        real_place(source, target)
+
+    monkeypatch.setattr(swap_module, "_place", place_failing_the_second_file)
+    with pytest.raises(DatasetError, match="cannot be put in place"):
+        separate_again(root)
+    monkeypatch.undo()
+    assert Scene(root / SCENE).unfinished_swap() is not None
+    out = invoke("separate", SCENE, "--dataset", root, "--method", "none")
+    assert out.exit_code == 1 and "already has none results" in out.output, out.output
+    assert Scene(root / SCENE).unfinished_swap() is None                    # put in place by the refused command
+    assert not list((root / SCENE).glob(".staging-*")) and verify(root) == {SCENE: []}
+
+
 def test_the_shot_count_is_worded_for_none_and_one():
     assert SceneStatus(SCENE, "incomplete", 0, 3, [], []).describe() == (
         "scene_01: 0 shots, INCOMPLETE (0 of 3 shots; resume the capture), nominal angles, no results")

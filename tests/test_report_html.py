@@ -252,6 +252,23 @@ def test_existing_folder_is_never_silently_replaced(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["photos", "report"]     # no staging left behind
 
 
+def test_a_report_a_killed_run_moved_aside_to_replace_it_is_put_back(tmp_path):
+    out = tmp_path / "report"
+    scenes = _scenes()[:1]
+    write_html_report(scenes, out, "first")
+    aside = tmp_path / ".report.old-k2x9q1zz"            # a kill between the two renames of a replacement
+    aside.mkdir()
+    out.rename(aside / "report")
+    with pytest.raises(FileExistsError, match=re.escape(str(out))):    # put back, so replacing it asks again
+        write_html_report(scenes, out, "second")
+    assert "<title>first</title>" in (out / "index.html").read_text(encoding="utf-8") and not aside.exists()
+    aside.mkdir()
+    (aside / "report").mkdir()
+    write_html_report(scenes, out, "third", overwrite=True)           # a report is there: the one aside is removed
+    assert "<title>third</title>" in (out / "index.html").read_text(encoding="utf-8")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["report"]
+
+
 def test_failure_midway_leaves_no_folder(tmp_path):
     def stop(done, total):
         if done == 1:

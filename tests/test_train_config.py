@@ -195,3 +195,25 @@ def test_a_step_splits_into_whole_micro_batches_per_rank(batch, micro, world, ex
 def test_a_batch_that_does_not_split_over_the_ranks_is_refused(batch, micro, world):
     with pytest.raises(ValueError, match=f"batch {batch} does not split into {world} rank"):
         rank_batches(batch, micro, world)
+
+
+def test_a_run_from_init_weights_stopped_before_its_first_step_resumes_with_the_command_it_printed(tmp_path, monkeypatch):
+    import separate.train as train_module
+
+    config = tiny_config(tmp_path)
+    assert invoke("train", config, tmp_path / "start").exit_code == 0
+    weights, run = tmp_path / "start" / "best.pt", tmp_path / "run"
+    real_batches = train_module.synthesis_batches
+
+    def stopped(*args, **kwargs):                       # Ctrl-C once the step-0 validation wrote best.pt
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(train_module, "synthesis_batches", stopped)
+    out = invoke("train", config, run, "--init", weights)
+    assert out.exit_code == 130 and (run / "best.pt").exists(), out.output
+    assert load_checkpoint(run / "last.pt")["step"] == 0
+    (run / ".last.k2x9.tmp.pt").write_bytes(b"")            # what a kill during a checkpoint's writing leaves
+    monkeypatch.setattr(train_module, "synthesis_batches", real_batches)
+    again = invoke("train", config, run, "--init", weights)
+    assert again.exit_code == 0, again.output
+    assert load_checkpoint(run / "last.pt")["step"] == 2 and not list(run.glob(".last.*"))

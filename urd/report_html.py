@@ -24,7 +24,8 @@ The images, and the display gain they are shown with, come from `urd.report_imag
 
 The report folder is built in a fresh staging folder beside ``out_dir``, locked while in use,
 and renamed into place when complete; the next run removes staging folders that killed runs
-left (`_remove_stale_staging`), and a full disk is reported naming the report folder. An
+left (`_remove_stale_staging`) and puts back a report a killed run had moved aside to replace it
+(`_restore_replaced`), and a full disk is reported naming the report folder. An
 existing folder is replaced only with ``overwrite=True`` and only when it is empty or an urd
 HTML report holding nothing but what the report wrote; a folder inside an urd dataset is
 refused (`check_report_folder`).
@@ -294,6 +295,17 @@ def _lock_folder(folder: Path) -> int | None:
         os.close(fd)
         return None
     return fd
+
+
+def _restore_replaced(out_dir: Path) -> None:
+    """The report a run killed between its two renames left aside (``.NAME.old-*/report``): put
+    back at ``out_dir`` when nothing is there (the newest), else removed with its folder."""
+    pattern = glob.escape(f".{out_dir.name}.old-") + "[a-z0-9_]" * 8          # tempfile.mkdtemp's names
+    for folder in sorted(out_dir.parent.glob(pattern), key=lambda path: path.stat().st_mtime, reverse=True):
+        kept = folder / "report"
+        if kept.is_dir() and not kept.is_symlink() and not out_dir.exists() and not out_dir.is_symlink():
+            os.rename(kept, out_dir)
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 def _remove_stale_staging(out_dir: Path, started: float) -> None:
@@ -670,6 +682,7 @@ def write_html_report(scenes: list[SceneView], out_dir: Path, title: str, calibr
         raise ValueError(f"calibration: expected one fit intensity per fit angle ({len(calibration.fit_angles_deg)}), "
                          f"got {len(calibration.fit_intensities)}")
     out_dir = Path(out_dir)
+    _restore_replaced(out_dir)
     check_report_folder(out_dir, overwrite)
     started = time.time()
     try:

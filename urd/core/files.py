@@ -46,7 +46,9 @@ def atomic_path(path: Path, overwrite: bool = False) -> Iterator[Path]:
     On any exception the temporary file is removed and ``path`` is untouched. Raises
     DatasetError if ``path`` exists and ``overwrite`` is false, and DiskFullError naming
     ``path`` when writing it failed for want of room on its disk (whatever words the writer
-    used: numpy's "N requested and M written", libpng's "Write Error").
+    used: numpy's "N requested and M written", libpng's "Write Error", torch.save's
+    RuntimeError "unexpected pos"). The file and then its folder are synced, so that the
+    rename survives a power loss.
     """
     path = Path(path)
     if path.exists() and not overwrite:
@@ -64,11 +66,17 @@ def atomic_path(path: Path, overwrite: bool = False) -> Iterator[Path]:
             os.fsync(fh.fileno())
         os.replace(tmp, path)
     except BaseException as exc:
-        full = isinstance(exc, OSError) and not isinstance(exc, DatasetError) and disk_full(exc, path.parent)
+        full = ((isinstance(exc, OSError) and not isinstance(exc, DatasetError) and disk_full(exc, path.parent))
+                or (isinstance(exc, RuntimeError) and disk_full(None, path.parent)))
         tmp.unlink(missing_ok=True)
         if full:
-            raise write_error(path, exc, full=True) from exc
+            raise write_error(path, exc if isinstance(exc, OSError) else None, full=True) from exc
         raise
+    folder = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(folder)
+    finally:
+        os.close(folder)
 
 
 def disk_full(exc: OSError | None, folder: Path) -> bool:

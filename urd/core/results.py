@@ -145,7 +145,8 @@ class SceneResults:
         def change(files: list[dict]) -> None:
             data = self._data()
             earlier = self._supersede(data) if "ingest" in data else None
-            data["ingest"] = {**record, "angles_deg": self.angles_deg(), "aligned": files}
+            data["ingest"] = {**record, "aligned": files}
+            data["ingest"]["angles_deg"] = self.angles_deg()              # in the new alignment's frame
             if earlier:
                 data["provenance"].append(provenance("supersede", earlier))
             data["provenance"].append(provenance("ingest", options))
@@ -177,7 +178,12 @@ class SceneResults:
 
     def check_no_results(self, method: str) -> None:
         """DatasetError if the manifest already records results of ``method``, or its results folder
-        holds files the manifest does not list (replacing them takes --force)."""
+        holds files the manifest does not list (replacing them takes --force). What a killed run
+        left unfinished is finished first (taking the dataset's lock does it), so that the answer is
+        about the scene as it stands."""
+        if self.unfinished_swap() is not None:
+            with self.lock():
+                self.reload()
         if method in self.methods():
             stale = self.stale_reason(method)
             what = f"STALE {method} results ({stale})" if stale else f"{method} results"
