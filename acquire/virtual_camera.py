@@ -92,11 +92,15 @@ def _cover(img: np.ndarray, width: int, height: int) -> np.ndarray:
 
 def make_glass_scene(width: int = 1536, height: int = 1024, reflection: Path | None = None,
                      transmission: Path | None = None, curved: bool = True,
-                     theta_center_deg: float = 50.0, phi_perp_deg: float = 10.0) -> GlassScene:
+                     theta_center_deg: float = 50.0, phi_perp_deg: float = 90.0) -> GlassScene:
     """A window scene: the reflection brighter than the transmission, θ across the pane.
 
-    Defaults use scikit-image's bundled photos (astronaut reflected, coffee transmitted);
-    ``reflection`` and ``transmission`` take any image files instead.
+    The pane's s-direction is ``phi_perp_deg`` at the centre (turning by 6° from top to bottom)
+    and θ changes along the plane of incidence, the image direction φ⊥ − 90° (the default: a
+    window seen from one side, θ growing across the columns, s vertical), as on a real pane
+    (`separate.synthesis.surface_maps` likewise). Defaults use scikit-image's bundled photos
+    (astronaut reflected, coffee transmitted); ``reflection`` and ``transmission`` take any
+    image files instead.
     """
     if width % 2 or height % 2 or width < 32 or height < 32:
         raise ValueError(f"expected an even sensor size of at least 32×32, got {width}×{height}")
@@ -106,9 +110,13 @@ def make_glass_scene(width: int = 1536, height: int = 1024, reflection: Path | N
     trans_u8 = _read_rgb(transmission) if transmission else skimage.data.coffee()
     refl = photo_to_linear(_cover(refl_u8, width, height)) * 1.6
     trans = photo_to_linear(_cover(trans_u8, width, height)) * 0.9
-    xs = np.linspace(-0.5, 0.5, width)
-    theta_row = parabola_aoi(np.radians(theta_center_deg), 2.0, 1.5, 0.03 if curved else 0.0, 1, xs)
-    theta = np.repeat(theta_row[None, :], height, axis=0).astype(np.float32)
+    omega = np.radians(phi_perp_deg) - np.pi / 2                       # the plane of incidence's image direction
+    xs = np.linspace(-0.5, 0.5, width, dtype=np.float32)[None, :]
+    ys = np.linspace(-0.5, 0.5, height, dtype=np.float32)[:, None] * (height / width)     # square pixels
+    along = xs * np.float32(np.cos(omega)) - ys * np.float32(np.sin(omega))               # rows grow downwards, angles count upwards
+    profile = np.linspace(float(along.min()), float(along.max()), 4096)         # θ is smooth along it: interpolated
+    theta = np.interp(along, profile, parabola_aoi(np.radians(theta_center_deg), 2.0, 1.5, 0.03 if curved else 0.0, 1, profile))
+    theta = theta.astype(np.float32)
     ys = np.linspace(-0.5, 0.5, height)[:, None]
     phi_perp = np.broadcast_to(np.radians(phi_perp_deg + 6.0 * ys), (height, width)).astype(np.float32)
     return GlassScene(refl.astype(np.float32), trans.astype(np.float32), theta, np.ascontiguousarray(phi_perp))
@@ -155,21 +163,33 @@ class VirtualCamera:
         return {"kind": CameraKind.VIRTUAL.value, "model": "urd virtual camera", "width": w, "height": h,
                 "shake_px": self.shake_px, "shake_deg": self.shake_deg, "seed": self.seed}
 
+    def _shake_draw(self, index: int) -> tuple[float, float, float]:
+        """Shot ``index``'s translation (px) and turn (deg, counter-clockwise: the scene turns so in
+        the shot, the camera the other way); zero for shot 0."""
+        if index == 0:
+            return 0.0, 0.0, 0.0
+        rng = np.random.default_rng([self.seed, index, 1])
+        tx, ty = rng.uniform(-self.shake_px, self.shake_px, 2)
+        return float(tx), float(ty), float(rng.uniform(-self.shake_deg, self.shake_deg))
+
     def shake(self, index: int) -> np.ndarray:
         """The 2×3 affine warp M of shot ``index``: shot(M·x) = scene(x); identity for shot 0."""
         h, w = self.scene.shape
-        if index == 0:
-            return np.float32([[1, 0, 0], [0, 1, 0]])
-        rng = np.random.default_rng([self.seed, index, 1])
-        tx, ty = rng.uniform(-self.shake_px, self.shake_px, 2)
-        rot = rng.uniform(-self.shake_deg, self.shake_deg)
-        m = cv2.getRotationMatrix2D(((w - 1) / 2, (h - 1) / 2), rot, 1.0)
+        tx, ty, turn = self._shake_draw(index)
+        m = cv2.getRotationMatrix2D(((w - 1) / 2, (h - 1) / 2), turn, 1.0)
         m[:, 2] += (tx, ty)
         return m.astype(np.float32)
 
+    def scene_angle_deg(self, angle_deg: float, index: int) -> float:
+        """The polarizer's angle in the scene's frame (the reference shot's, deg) when it stands at
+        ``angle_deg`` in the camera's: the polarizer sits in front of the lens and turns with the
+        camera, against the scene's turn in the shot (`shake`)."""
+        return angle_deg - self._shake_draw(index)[2]
+
     def render(self, angle_deg: float, index: int) -> np.ndarray:
-        """The noiseless linear image of shot ``index`` at polarizer angle ``angle_deg``."""
-        img = self.scene.render(np.radians(angle_deg)) * self.gain
+        """The noiseless linear image of shot ``index`` with the polarizer at ``angle_deg`` in the
+        camera's frame (`scene_angle_deg` in the scene's)."""
+        img = self.scene.render(np.radians(self.scene_angle_deg(angle_deg, index))) * self.gain
         h, w = self.scene.shape
         return cv2.warpAffine(img.astype(np.float32), self.shake(index), (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
 
@@ -191,7 +211,8 @@ class VirtualCamera:
     def capture(self, folder: Path, index: int) -> tuple[Path, dict]:
         angle = float(self.angle_source())
         m = self.shake(index)
-        info = {"shot": index, "true_angle_deg": angle, "shake_matrix": m.tolist(), "seed": self.seed}
+        info = {"shot": index, "true_angle_deg": angle, "scene_angle_deg": self.scene_angle_deg(angle, index),
+                "shake_matrix": m.tolist(), "seed": self.seed}
         cfa = self.mosaic(self.render(angle, index), index)
         fd, name = tempfile.mkstemp(dir=folder, prefix=".shot-", suffix=".dng")
         os.close(fd)

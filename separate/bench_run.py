@@ -39,9 +39,9 @@ from separate.scoring import gap, make_method
 from separate.speed import run_isolated, synthesis_throughput, time_method, time_training
 from urd.core.progress import Progress
 
-#: Where `urd bench` writes by default: docs/bench in a source checkout (its figures are the
-#: project's record), ./urd-bench in the working folder where urd is installed as a package.
-DEFAULT_OUT = REPO / "docs" / "bench" if (REPO / "pyproject.toml").is_file() and (REPO / "docs").is_dir() else Path("urd-bench")
+#: Where `urd bench` writes by default: ./urd-bench in the working folder, never the source tree
+#: (the project's record in docs/bench is renewed with ``--out docs/bench``).
+DEFAULT_OUT = Path("urd-bench")
 #: The quick run's expected figures, shipped inside the package (`separate.bench_check`).
 EXPECTED_QUICK = Path(__file__).resolve().parent / "expected-quick.json"
 

@@ -126,6 +126,9 @@ class TrainConfig:
         except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
             raise ValueError(f"{path}: not a valid TOML file: {exc}") from None
         names = {f.name for f in dataclasses.fields(cls)}
+        if not data:
+            raise ValueError(f"{path}: no settings (an empty file, or comments only); a config names at least the "
+                             "steps to train, e.g. configs/cpu.toml")
         unknown = sorted(set(data) - names)
         if unknown:
             raise ValueError(f"{path}: unknown config keys {unknown}; expected some of {sorted(names)}")

@@ -157,7 +157,7 @@ def test_baseline_parameters_from_the_command_line(tmp_path):
     assert out.returncode == 0, out.stderr
     assert scene.load()["results"]["kong"]["parameters"] == {"smoothness": 0.5, "steps": 10}
     out = subprocess.run(base + ["--force", "--param", "lambda=3"], capture_output=True, text=True, timeout=600)
-    assert out.returncode == 1 and "unknown parameters ['lambda']" in out.stderr and "smoothness" in out.stderr
+    assert out.returncode == 2 and "unknown parameters ['lambda']" in out.stderr and "smoothness" in out.stderr
 
 
 @pytest.mark.parametrize("name", ["schechner", pytest.param("kong", marks=pytest.mark.slow), "farid", "li-brown", "arvanitopoulos"])

@@ -104,8 +104,9 @@ def test_per_shot_errors_on_the_virtual_rig_and_their_effect_on_the_stokes_fit(t
     assert result.errors_deg == dry.errors_deg
     assert scene.reload().status().stale == ("none",)          # separated at the nominal angles
     record = scene.load()
-    true = np.array([shot_truth(scene.path / s["file"])["true_angle_deg"] for s in record["shots"]])
-    true_err = true - np.array(angles)
+    true = np.array([shot_truth(scene.path / s["file"])["scene_angle_deg"] for s in record["shots"]])   # aligned frame
+    uncalibrated = np.array(scene.uncalibrated_angles_deg())          # the stage's angles, turned with the camera
+    true_err = true - uncalibrated
     assert np.abs(true_err).max() > 1.0                               # the jitter is real
     assert np.abs(np.array(result.errors_deg) - (true_err - true_err.mean())).max() < 0.5
     # Stokes with the calibrated angles is closer to the truth (the same stack fitted with the true
@@ -113,7 +114,7 @@ def test_per_shot_errors_on_the_virtual_rig_and_their_effect_on_the_stokes_fit(t
     stack, calibrated = scene.reload().load_stack()
     truth = optics.stokes_from_images(stack, np.radians(true))
     rows = {}
-    for name, used in (("nominal", np.array(angles, float)), ("calibrated", np.array(calibrated))):
+    for name, used in (("nominal", uncalibrated), ("calibrated", np.array(calibrated))):
         used = used + (true - used).mean()            # the common rotation is the offset calibration's job
         est = optics.stokes_from_images(stack, np.radians(used))
         rows[name] = float(np.sqrt(np.mean((est[1:] - truth[1:]) ** 2)))

@@ -101,6 +101,7 @@ def test_the_installed_urd_command_is_main_with_its_sigterm_handling_and_quick_e
     ended = []
     monkeypatch.setattr(sys, "argv", ["urd", "--version"])
     monkeypatch.setattr(urd.cli, "exit_now", ended.append)
+    monkeypatch.setattr(urd.cli, "handle_interrupts", lambda: None)     # this process's handlers stay pytest's
     urd.cli.main()
     assert ended == [0]
 

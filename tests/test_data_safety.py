@@ -407,9 +407,9 @@ def test_ingest_redo_marks_results_stale_and_removes_the_shot_calibration(tmp_pa
     from urd.batch import targets
 
     assert targets(Dataset.open(root), "none", force=False)[1][0].detail == \
-        "has STALE none results: separated at other angles than the shots' calibrated ones; --force replaces them"
-    with pytest.raises(DatasetError, match=r"already has STALE none results \(separated at other angles than the shots' "
-                                           r"calibrated ones\) .*pass --force"):
+        "has STALE none results: computed from an earlier alignment (the scene was ingested again); --force replaces them"
+    with pytest.raises(DatasetError, match=r"already has STALE none results \(computed from an earlier alignment \(the "
+                                           r"scene was ingested again\)\) .*pass --force"):
         scene.check_no_results("none")
     superseded = [p for p in scene.provenance() if p["step"] == "supersede"]
     assert superseded and superseded[-1]["parameters"]["calibration"]["errors_deg"] == [0.4, -0.3, 0.2]

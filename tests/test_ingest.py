@@ -41,15 +41,31 @@ def test_alignment_recovers_known_shake_within_a_tenth_of_a_pixel(tmp_path, seed
         assert np.abs(truth[:, 2]).max() > 1.0 or entry["shot"] == 0     # the shake is real
         assert warp_rms(entry["warp"], truth, 768, 1024) < 0.1, entry
     stack, angles = scene.reload().load_stack()
-    assert stack.shape == (4, 768, 1024, 3) and stack.dtype == np.float32 and angles == [0.0, 45.0, 90.0, 135.0]
+    assert stack.shape == (4, 768, 1024, 3) and stack.dtype == np.float32 and scene.stage_angles_deg() == [0.0, 45.0, 90.0, 135.0]
+    np.testing.assert_allclose(angles, [cam.scene_angle_deg(a, i) for i, a in enumerate((0, 45, 90, 135))], atol=0.01)
     codes, _ = scene.load_stack(codes=True)                     # the stored 16-bit codes, 65535 = 1.0
     assert codes.dtype == np.uint16
     np.testing.assert_allclose(codes / np.float32(65535.0), stack, rtol=1e-6)
     # aligned shots agree with the noiseless rendering in the reference frame (away from borders)
     for i, angle in enumerate(angles):
-        expected = cam.render(angle, 0)
+        expected = cam.render(cam.scene_angle_deg(angle, i), 0)     # the polarizer turned with the camera
         err = np.abs(stack[i] - expected)[40:-40, 40:-40].mean()
         assert err < 0.02, (i, err)
+
+
+def test_the_aligned_stacks_angles_turn_with_the_camera_as_the_polarizer_in_front_of_its_lens(tmp_path):
+    from acquire.virtual_camera import shot_truth
+
+    ds = Dataset.open_or_create(tmp_path / "ds")
+    scene, cam = capture_virtual(ds, angles=(0, 45, 90), size=(320, 240), shake_px=3, shake_deg=4.0, seed=3)
+    assert ingest_scene(scene, IngestOptions()).error is None
+    truth = [shot_truth(path)["scene_angle_deg"] for path in scene.raw_paths()]
+    turns = [cam.scene_angle_deg(0.0, i) for i in range(3)]
+    assert max(abs(t) for t in turns) > 1.0                                   # the camera turned
+    stack, angles = scene.reload().load_stack()
+    assert scene.stage_angles_deg() == [0.0, 45.0, 90.0]
+    np.testing.assert_allclose(angles, truth, atol=0.02)                      # not the stage's: off by the turns
+    assert scene.load()["ingest"]["angles_deg"] == angles
 
 
 def test_glints_clipped_in_the_shot_alone_are_masked_and_the_shot_still_aligns(tmp_path):
@@ -329,3 +345,20 @@ def test_a_scene_failing_with_an_os_error_is_reported_and_the_next_is_ingested(t
     states = {o.name: (o.state, o.error) for o in report.outcomes}
     assert states[first.name][0] == "failed" and states[first.name][1].startswith("OSError: [Errno 5] Input/output error")
     assert states[second.name] == ("ingested", None)
+
+
+def test_a_redo_says_which_results_went_stale_and_that_the_shot_calibration_was_removed(tmp_path):
+    from calib.polarizer import ShotErrors
+    from rig import separated_virtual_scene
+
+    scene = separated_virtual_scene(Dataset.open_or_create(tmp_path / "ds"))
+    record = ShotErrors([0.1, -0.2, 0.1], [0.05, 0.05, 0.05], 400, 4, None).record()
+    scene.set_shot_calibration(record, [0.1, 44.8, 90.1])
+    outcome = ingest_scene(scene.reload(), IngestOptions(redo=True))
+    assert outcome.state == "ingested", outcome
+    said = " ".join(outcome.notes)
+    assert "results of none are stale" in said and "urd separate scene_01 --force" in said
+    assert "per-shot angle calibration was of the earlier alignment and is removed" in said
+    assert "earlier alignment" in scene.reload().stale_reason("none")
+    assert ingest_scene(scene, IngestOptions(redo=True)).notes == ["scene_01: results of none are stale (of the earlier "
+                                                                   "alignment); renew them with: urd separate scene_01 --force"]

@@ -2,6 +2,8 @@
 
 import io
 
+import pytest
+
 from urd.core import progress
 
 
@@ -75,3 +77,31 @@ def test_a_label_naming_the_item_at_hand_does_not_start_a_line_per_item(monkeypa
     bar(6, 6, "semi-real")
     bar(0, 2, "tables")                       # a new step: another total
     assert [line.split()[0:2] for line in out.getvalue().splitlines()] == [["semi-real:", "scene"], ["semi-real", "[########################]"], ["tables", "[------------------------]"]]
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")      # the swallowed exception, as printed
+def test_a_ctrl_c_a_finalizer_swallowed_stops_the_work_at_the_next_progress_report():
+    import signal
+    import weakref
+
+    from urd.core import processes
+
+    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    bar = progress.TerminalProgress(io.StringIO())
+    try:
+        processes.handle_interrupts()
+
+        class Held:
+            pass
+
+        held = Held()
+        watch = weakref.ref(held, lambda ref: signal.raise_signal(signal.SIGINT))   # Ctrl-C during a weakref callback
+        del held                                            # its KeyboardInterrupt is printed by Python, not raised
+        assert watch() is None
+        with pytest.raises(KeyboardInterrupt):
+            bar(1, 2, "work")
+        bar(2, 2, "work")                                   # raised once: a later report goes on
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        processes._RAISED.clear()

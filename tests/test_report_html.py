@@ -259,11 +259,13 @@ def test_a_report_a_killed_run_moved_aside_to_replace_it_is_put_back(tmp_path):
     aside = tmp_path / ".report.old-k2x9q1zz"            # a kill between the two renames of a replacement
     aside.mkdir()
     out.rename(aside / "report")
+    os.utime(aside, (time.time() - 60, time.time() - 60))
     with pytest.raises(FileExistsError, match=re.escape(str(out))):    # put back, so replacing it asks again
         write_html_report(scenes, out, "second")
     assert "<title>first</title>" in (out / "index.html").read_text(encoding="utf-8") and not aside.exists()
     aside.mkdir()
     (aside / "report").mkdir()
+    os.utime(aside, (time.time() - 60, time.time() - 60))
     write_html_report(scenes, out, "third", overwrite=True)           # a report is there: the one aside is removed
     assert "<title>third</title>" in (out / "index.html").read_text(encoding="utf-8")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["report"]

@@ -163,7 +163,6 @@ def test_training_without_the_shared_photos_warns_and_its_model_card_says_what_i
 def test_ctrl_c_during_the_optimizer_update_takes_effect_after_it(tmp_path, monkeypatch):
     """A checkpoint holds whole updates: Ctrl-C arriving inside ``optim.step`` stops the run after
     it, and last.pt's weights are the update of the step it records."""
-    import os
     import signal
 
     calls = []
@@ -172,7 +171,7 @@ def test_ctrl_c_during_the_optimizer_update_takes_effect_after_it(tmp_path, monk
     def interrupted_step(self, *args, **kwargs):
         calls.append(1)
         if len(calls) == 2:
-            os.kill(os.getpid(), signal.SIGINT)         # arrives between the parameters' updates
+            signal.raise_signal(signal.SIGINT)          # to this thread (os.kill may reach another, later); between updates
         return real_step(self, *args, **kwargs)
 
     monkeypatch.setattr(torch.optim.Adam, "step", interrupted_step)
@@ -217,3 +216,10 @@ def test_a_run_from_init_weights_stopped_before_its_first_step_resumes_with_the_
     again = invoke("train", config, run, "--init", weights)
     assert again.exit_code == 0, again.output
     assert load_checkpoint(run / "last.pt")["step"] == 2 and not list(run.glob(".last.*"))
+
+
+def test_an_empty_config_file_is_refused_rather_than_training_on_every_default(tmp_path):
+    (tmp_path / "empty.toml").write_text("# nothing set\n")
+    out = invoke("train", tmp_path / "empty.toml", tmp_path / "run")
+    assert out.exit_code == 1 and "empty.toml: no settings" in out.output, out.output      # as every bad config
+    assert not (tmp_path / "run").exists()

@@ -38,7 +38,8 @@ def dataset(tmp_path_factory):
 
 
 @pytest.mark.parametrize("options, message", [
-    (("--angles", "370,45,1000"), "within ±720 deg"),
+    (("--angles", "370,45,1000"), "within ±360 deg"),
+    (("--angles", "0,,45,90"), "expected comma-separated degrees like 0,45,90"),
     (("--tolerance", "nan"), "expected a finite number"),
     (("--sim-shake", "nan"), "expected a finite number"),
     (("--sim-offset", "inf"), "expected a finite number"),
@@ -257,7 +258,7 @@ def test_a_dataset_given_as_the_scene_is_named_as_one(dataset):
 
 def test_separate_all_refuses_bad_weights_once(dataset, tmp_path):
     out = invoke("separate", "--all", "--dataset", dataset, "--weights", tmp_path / "nosuch.pt", "--force")
-    assert out.exit_code == 1 and out.output.count("nosuch.pt") == 1 and "failed" not in out.output
+    assert out.exit_code == 2 and out.output.count("nosuch.pt") == 1 and "failed" not in out.output
 
 
 def test_an_empty_folder_of_mosaic_frames_is_an_error_and_makes_no_dataset(tmp_path):
@@ -325,26 +326,29 @@ def test_an_option_a_method_does_not_take_is_a_value_error_naming_it(method):
 
 
 def test_signals_within_a_deferred_block_take_effect_as_it_ends():
-    import os
     import signal
 
     from urd.core.processes import interrupts_deferred
 
-    reached = []
+    reached, before = [], signal.getsignal(signal.SIGINT)
     with pytest.raises(KeyboardInterrupt):
         with interrupts_deferred():
-            os.kill(os.getpid(), signal.SIGINT)
+            signal.raise_signal(signal.SIGINT)          # to this thread: os.kill may reach another thread, later
             reached.append("after the signal")
     assert reached == ["after the signal"]
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert signal.getsignal(signal.SIGINT) is before
 
 
 def test_an_installed_urd_benchmarks_into_the_working_folder_and_checks_against_its_shipped_figures(tmp_path):
-    """Outside a source checkout `urd bench` writes into ./urd-bench, never into the installed
-    package, and the quick run's expected figures travel inside the package."""
+    """`urd bench` writes into ./urd-bench, never into the installed package or the source tree,
+    and the quick run's expected figures travel inside the package."""
+    from pathlib import Path
+
+    from separate.bench_run import DEFAULT_OUT
+
+    assert DEFAULT_OUT == Path("urd-bench")                    # in this source checkout too
     import subprocess
     import sys
-    from pathlib import Path
 
     from separate.bench_run import EXPECTED_QUICK
 
@@ -388,3 +392,19 @@ def test_a_capture_without_shake_is_a_tripod_neither_shifted_nor_turned(tmp_path
 
     warps = [shot_truth(path)["shake_matrix"] for path in scene.raw_paths()]
     assert len(warps) == 3 and all(np.array_equal(m, np.eye(3)[:2]) for m in warps)
+
+
+@pytest.mark.parametrize("options, message", [
+    (("--weights", "nonexistent.pt"), "nonexistent.pt: no such file (shipped weights, by name: ceilnet, urd-anchored"),
+    (("--method", "farid", "--reference", "1e300"), "an angle within ±360 deg, got '1e300'"),
+])
+def test_separate_refuses_a_missing_weights_file_and_an_absurd_reference_as_usage_errors(dataset, options, message):
+    out = invoke("separate", "scene_01", "--dataset", dataset, *options)
+    assert out.exit_code == 2 and message in " ".join(out.output.split()), out.output
+
+
+def test_a_given_reference_is_the_policy_the_manifest_records(tmp_path_factory):
+    root = ingested_dataset(tmp_path_factory, "given-reference")
+    assert invoke("separate", "scene_01", "--dataset", root, "--method", "schechner", "--reference", "-10").exit_code == 0
+    entry = Dataset.open(root).scene("scene_01").load()["results"]["schechner"]
+    assert entry["reference_deg"] == 170.0 and entry["reference_policy"].startswith("fixed: 170 deg")

@@ -56,8 +56,9 @@ def calibrate_seed(seed: int, width: int, height: int, shake: float, jitter: flo
         except CalibrationError as exc:
             print(f"seed {seed}: refused ({exc})")
             return None
-        true = np.array([shot_truth(scene.path / shot["file"])["true_angle_deg"] for shot in scene.load()["shots"]])
-    error = np.array(result.errors_deg) - (true - ANGLES_DEG - np.mean(true - ANGLES_DEG))
+        true = np.array([shot_truth(scene.path / shot["file"])["scene_angle_deg"] for shot in scene.load()["shots"]])
+        base = np.array(scene.uncalibrated_angles_deg())        # the stage's angles turned with the camera, aligned frame
+    error = np.array(result.errors_deg) - (true - base - np.mean(true - base))
     worst = float(np.abs(error).max())
     sigma, shot = np.array(result.uncertainty_deg), int(np.argmax(np.abs(error)))
     print(f"seed {seed}: largest error {worst:.2f} deg, {worst / sigma[shot]:.1f} "

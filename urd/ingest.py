@@ -426,7 +426,17 @@ def _not_to_ingest(scene: Scene, opts: IngestOptions) -> SceneOutcome | None:
 
 def _outcome(scene: Scene, error: str | None, notes: list[str]) -> SceneOutcome:
     """The outcome of a scene whose ingest was committed (`commit_ingest`'s ``error``), with
-    ``notes`` for the user."""
+    ``notes`` for the user, and a note of what the new alignment superseded (`Scene.set_ingest`):
+    results marked stale, a per-shot angle calibration removed."""
+    if error is None:
+        steps = scene.reload().provenance()
+        earlier = steps[-2].get("parameters", {}) if len(steps) >= 2 and steps[-2].get("step") == "supersede" else {}
+        if earlier.get("stale_results"):
+            notes = [*notes, f"{scene.name}: results of {', '.join(earlier['stale_results'])} are stale (of the earlier "
+                             f"alignment); renew them with: urd separate {scene.name} --force"]
+        if "calibration" in earlier:
+            notes = [*notes, f"{scene.name}: its per-shot angle calibration was of the earlier alignment and is removed "
+                             f"(kept in the provenance); calibrate again with: urd calibrate shots {scene.name}"]
     return SceneOutcome(scene.name, scene.raw_paths(), error, "failed" if error else "ingested", notes)
 
 
@@ -558,7 +568,7 @@ def ingest_folder(raw_dir: Path, ds: Dataset, opts: IngestOptions, progress: Pro
             already.setdefault(scene, []).append(path)
     for scene, paths in already.items():
         try:
-            recorded = ds.scene(scene).uncalibrated_angles_deg()
+            recorded = ds.scene(scene).stage_angles_deg()
         except (UrdError, OSError):                     # a broken scene says so where it is listed
             recorded = list(opts.angles_deg)
         other = "" if [float(a) for a in opts.angles_deg] == [float(a) for a in recorded] else (

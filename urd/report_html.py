@@ -297,13 +297,17 @@ def _lock_folder(folder: Path) -> int | None:
     return fd
 
 
-def _restore_replaced(out_dir: Path) -> None:
-    """The report a run killed between its two renames left aside (``.NAME.old-*/report``): put
-    back at ``out_dir`` when nothing is there (the newest), else removed with its folder."""
+def _restore_replaced(out_dir: Path, settled_s: float = 10.0) -> None:
+    """The report a run killed between its two renames left aside (``.NAME.old-*/report``, older
+    than ``settled_s``: a live run holds one for a moment): put back at ``out_dir`` when nothing is
+    there (the newest), else removed with its folder. Folders of other contents are left alone."""
     pattern = glob.escape(f".{out_dir.name}.old-") + "[a-z0-9_]" * 8          # tempfile.mkdtemp's names
     for folder in sorted(out_dir.parent.glob(pattern), key=lambda path: path.stat().st_mtime, reverse=True):
         kept = folder / "report"
-        if kept.is_dir() and not kept.is_symlink() and not out_dir.exists() and not out_dir.is_symlink():
+        if (folder.is_symlink() or not kept.is_dir() or kept.is_symlink() or [p.name for p in folder.iterdir()] != ["report"]
+                or folder.stat().st_mtime > time.time() - settled_s):
+            continue
+        if not out_dir.exists() and not out_dir.is_symlink():
             os.rename(kept, out_dir)
         shutil.rmtree(folder, ignore_errors=True)
 

@@ -6,7 +6,8 @@ Two sets, each a table of T̂ and R̂ PSNR (dB, linear values, peak 1, mean over
 table of the angle-of-incidence estimate against the truth on the first set:
 
 1. **angles of incidence**: one flat pane (`acquire.virtual_camera.make_glass_scene`, not
-   curved) at θ = `THETAS_DEG`, φ⊥ turning 6° down the frame, for ``pairs`` photo pairs
+   curved) at θ = `THETAS_DEG`, φ⊥ 30/50/70/90° turning 6° down the frame and θ changing
+   along the plane of incidence (the image direction φ⊥ − 90°), for ``pairs`` photo pairs
    (bsds500/test from ../shared/data, else scikit-image's bundled photos); shots at 0/45/90°
    with ±2° angle errors and the camera's shot and read noise, aligned (no shake, no mosaic);
 2. **wide view**: the same panes at θ = 50° with φ⊥ turning by `WIDE_TURN_DEG` across the
@@ -16,7 +17,7 @@ table of the angle-of-incidence estimate against the truth on the first set:
 θ estimate: the median over pixels of |θ̂ − θ| (deg), for the per-pixel field
 (`separate.incidence.estimate_incidence_field`, what the network uses) and for one number per
 view (`separate.incidence.estimate_incidence_deg`); θ turns across these panes by the
-perspective (e.g. 31–61° at a nominal 50°).
+perspective (the table gives its range).
 
 Seeded (`SEED`); every method sees the same shots. It lives above `acquire` and `separate`
 because it renders with the one and scores the other.
@@ -145,7 +146,7 @@ def run_virtual_bench(methods: tuple[str, ...] = DEFAULT_METHODS, weights: Path 
     wide_runs = _runs(tuple(m for m in methods if m in POLARIZATION_METHODS), ("auto", "global"), weights)
     scenes = []
     for j, (r, t) in enumerate(photos):
-        scene = make_glass_scene(width, height, r, t, curved=False, theta_center_deg=50.0)
+        scene = make_glass_scene(width, height, r, t, curved=False, theta_center_deg=50.0, phi_perp_deg=60.0 + 40 * j)
         xs = np.linspace(-0.5, 0.5, width)[None, :]
         scene.phi_perp = np.broadcast_to(np.radians(60.0 + 40 * j + WIDE_TURN_DEG * xs), (height, width)).astype(np.float32)
         scenes.append(shoot(scene, seed=SEED + 100 + j))

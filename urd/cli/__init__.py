@@ -25,7 +25,7 @@ import typer
 from urd import __version__
 from urd.cli import bench, calibrate, capture, demo, ingest, reports, separate, train
 from urd.cli.common import HELP_OPTIONS, WorkflowOrder
-from urd.core.processes import terminate_on_sigterm
+from urd.core.processes import handle_interrupts
 
 app = typer.Typer(
     cls=WorkflowOrder,
@@ -65,7 +65,7 @@ app.command()(demo.demo)
 
 def main() -> None:
     """The ``urd`` command: the app, then a quick exit (`exit_now`)."""
-    terminate_on_sigterm()                  # SIGTERM stops worker pools and says what was kept, as Ctrl-C does
+    handle_interrupts()                     # SIGTERM stops worker pools and says what was kept, as Ctrl-C does
     try:
         app(prog_name="urd")                # standalone: always ends in SystemExit
     except SystemExit as done:

@@ -20,7 +20,7 @@ def bench(
     full: bool = typer.Option(False, "--full", help="The paper's full evaluation (20-50 min on 2 cores): cross-validation, robustness, speed into OUT/full."),
     large: bool = typer.Option(False, "--24mp", help="With --full: also time the network and Schechner on a 24 MP scene."),
     images: Optional[Path] = typer.Option(None, help="With --quick/--full: also cross-validate on the photos of this folder (JPEG, PNG, 8/16-bit TIFF)."),
-    out: Optional[Path] = typer.Option(None, help="With --quick/--full/--ablation/--semireal/--virtual: output folder (default: docs/bench in a source checkout, else ./urd-bench)."),
+    out: Optional[Path] = typer.Option(None, help="With --quick/--full/--ablation/--semireal/--virtual: output folder (default: ./urd-bench; the project's record: --out docs/bench)."),
     count: int = typer.Option(64, callback=within(1), help="Benchmark patches (seeded, from bsds500/test or bundled photos)."),
     size: int = typer.Option(256, callback=within(32), help="Patch size (px)."),
     methods: str = typer.Option("none,network", help="Comma-separated methods, plus 'direct' for the direct variant (shipped urd-direct.pt or --direct-weights), and LABEL=PATH for the network with other weights."),

@@ -20,7 +20,6 @@ from typing import Optional
 import typer
 
 from urd.core.dataset import DATASET_MANIFEST, default_root, enclosing_dataset
-from urd.core.manifest import MAX_ANGLE_DEG
 from urd.core.errors import CaptureInterrupted, UrdError
 from urd.core.processes import Terminated
 from urd.core.progress import TerminalProgress
@@ -121,10 +120,14 @@ def check_rig(ctx: typer.Context, stage: str, camera: str, stage_options: tuple[
 
 def refuse_weights_folder(path: Optional[Path], option: str) -> None:
     """A usage error naming ``option`` when the weights file ``path`` is a folder (a run folder
-    points at its best.pt)."""
+    points at its best.pt) or neither a file nor the name of shipped weights."""
     if path is not None and path.is_dir():
         raise bad(option, f"{path} is a folder, expected a weights file"
                   + (" (a run folder: pass its best.pt)" if (path / "best.pt").is_file() else ""))
+    shipped = Path(__file__).resolve().parents[2] / "separate" / "weights"
+    if path is not None and not path.exists() and not (path.name == str(path) and (shipped / f"{path}.pt").is_file()):
+        names = ", ".join(sorted(p.stem for p in shipped.glob("*.pt")))
+        raise bad(option, f"{path}: no such file (shipped weights, by name: {names})")
 
 
 def check_address(value: str) -> str:
@@ -199,18 +202,23 @@ def end_line(bar) -> None:
         bar.close()
 
 
+#: The largest |angle| (deg) a command-line option takes: one turn either way, as --target-angle,
+#: --sim-offset and --offset.
+CLI_ANGLE_DEG = 360.0
+
+
 def parse_angles(text: str, min_distinct: int = 3, option: str = "--angles") -> list[float]:
     """'0,45,90' → [0.0, 45.0, 90.0] (degrees): finite, no direction twice (mod 180), at least
     ``min_distinct`` of them, spread so that they determine S0, S1, S2 (`separate.optics.check_angles`,
     the check separation applies)."""
     try:
-        angles = [float(a) for a in text.split(",") if a.strip()]
+        angles = [float(a) for a in text.split(",")]          # an empty item ("0,,45") is no angle
     except ValueError:
         raise bad(option, f"expected comma-separated degrees like 0,45,90, got {text!r}") from None
     if not all(math.isfinite(a) for a in angles):
         raise bad(option, f"expected finite angles in degrees, got {text!r}")
-    if any(abs(a) > MAX_ANGLE_DEG for a in angles):
-        raise bad(option, f"expected angles within ±{MAX_ANGLE_DEG:g} deg, got {text!r}")
+    if any(abs(a) > CLI_ANGLE_DEG for a in angles):
+        raise bad(option, f"expected angles within ±{CLI_ANGLE_DEG:g} deg, got {text!r}")
     directions = [round(a % 180.0, 6) for a in angles]
     if len(set(directions)) != len(directions):
         raise bad(option, f"expected each polarizer direction once (angles are the same mod 180 deg), got {text!r}")
@@ -277,8 +285,8 @@ def parse_reference(text: str, option: str = "--reference") -> str | float:
         value = float(text)
     except ValueError:
         raise bad(option, f"expected 'auto', 'global' or an angle in degrees, got {text!r}") from None
-    if not math.isfinite(value):
-        raise bad(option, f"expected a finite angle, got {text!r}")
+    if not (math.isfinite(value) and abs(value) <= CLI_ANGLE_DEG):
+        raise bad(option, f"expected 'auto', 'global' or an angle within ±{CLI_ANGLE_DEG:g} deg, got {text!r}")
     return value % 180.0
 
 

@@ -94,6 +94,12 @@ def separate(
     if param and method in NETWORKS + ("none",):
         raise usage(f"--param is for the baselines; {method} takes its own options")
     params = parse_params(param or [])
+    if params:                                           # checked as the method is made: a usage error, before any work
+        from separate.methods import get_method
+        try:
+            get_method(method, **params)
+        except (TypeError, ValueError) as exc:
+            raise bad("--param", str(exc)) from None
     forced = parse_reference(reference)
     angle_list = parse_angles(angles) if images else None
     if method in NETWORKS:                               # the names only: torch comes after every check
@@ -184,7 +190,7 @@ def separate(
         typer.echo(f"precision: {describe(chosen, network_device)}" + (f" on {network_device.type}" if network_device.type != "cpu" else ""), err=True)
     else:
         options = {**params, "progress": show} if method in PROGRESS_BASELINES else params
-    run, info = run_guarded(get_method, method, **options)
+    run, info = run_guarded(get_method, method, reference=forced, **options)
     # separate.methods records a baseline's keywords as its parameters: the callback is not one
     if images:
         result = run_guarded(separate_images, images, angle_list, out, run, transfer_rule, force, forced, maps,

@@ -258,11 +258,31 @@ def _check_ingest(ingest: Any, where: str, base: Path, shots: int) -> None:
         raise ManifestError(f"{where}.aligned: expected one aligned shot per shot ({shots}), got {len(ingest['aligned'])}")
     if not ingest["ok"] and "error" not in ingest:
         raise ManifestError(f"{where}: missing field 'error' of a failed ingest")
+    for i, entry in enumerate(ingest["alignment"] if isinstance(ingest.get("alignment"), list) else []):
+        _check_alignment(entry, f"{where}.alignment[{i}]")
     for i, digest in enumerate(ingest.get("shot_hashes", [])):
         if not (isinstance(digest, str) and SHA256.match(digest)):
             raise ManifestError(f"{where}.shot_hashes[{i}]: expected a SHA-256 hex digest, got {digest!r:.80}")
     if "mosaic" in ingest["options"]:
         _check(ingest["options"], f"{where}.options", {"mosaic": str, "demosaic": str, "transfer": str})
+
+
+def _check_alignment(entry: Any, where: str) -> None:
+    """One shot's alignment: its index and, where it was aligned, its warp (2×3 or 3×3 finite
+    numbers, with W₀₀ and W₁₀ not both 0: the shot's turn is read from them)."""
+    _check(entry, where, {"shot": int}, {"warp": list, "reference": bool, "ecc_correlation": NUMBER, "ok": bool,
+                                         "reason": str})
+    warp = entry.get("warp")
+    if warp is None:
+        return
+    if len(warp) not in (2, 3):
+        raise ManifestError(f"{where}.warp: expected 2 or 3 rows, got {len(warp)}")
+    for k, row in enumerate(warp):
+        _check_numbers(row, f"{where}.warp[{k}]")
+        if len(row) != 3:
+            raise ManifestError(f"{where}.warp[{k}]: expected 3 numbers, got {len(row)}")
+    if warp[0][0] == 0 and warp[1][0] == 0:
+        raise ManifestError(f"{where}.warp: a warp that flattens the image (W00 = W10 = 0)")
 
 
 def _check_result(method: Any, entry: Any, where: str, base: Path) -> None:

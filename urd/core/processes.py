@@ -32,7 +32,7 @@ WATCH_S = 1.0                           # how often a worker checks that its par
 
 
 class Terminated(KeyboardInterrupt):
-    """The process was sent SIGTERM (raised in the main thread by `terminate_on_sigterm`)."""
+    """The process was sent SIGTERM (raised in the main thread by `handle_interrupts`' handler)."""
 
 
 def capture_stopped(exc: KeyboardInterrupt, what: str, kept: str) -> CaptureInterrupted:
@@ -42,13 +42,34 @@ def capture_stopped(exc: KeyboardInterrupt, what: str, kept: str) -> CaptureInte
     return CaptureInterrupted(f"{what} {'stopped by SIGTERM' if terminated else 'interrupted'}; {kept}", terminated)
 
 
-def _raise_terminated(signum: int, frame) -> None:
-    raise Terminated(f"stopped by signal {signal.Signals(signum).name}")
+#: The signals `handle_interrupts`' handler raised an exception for, in this process.
+_RAISED: list[int] = []
 
 
-def terminate_on_sigterm() -> None:
-    """Raise `Terminated` in the main thread on SIGTERM (call once, from the main thread)."""
-    signal.signal(signal.SIGTERM, _raise_terminated)
+def _interrupt(signum: int, frame) -> None:
+    _RAISED.append(signum)
+    if signum == signal.SIGTERM:
+        raise Terminated(f"stopped by signal {signal.Signals(signum).name}")
+    raise KeyboardInterrupt
+
+
+def handle_interrupts() -> None:
+    """Ctrl-C raises KeyboardInterrupt and SIGTERM `Terminated` in the main thread, each noted so
+    that `check_interrupted` raises it again where Python swallowed it (an exception raised while
+    a finalizer or weak-reference callback runs is only printed). Call once, from the main thread."""
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, _interrupt)
+
+
+def check_interrupted() -> None:
+    """In the main thread, raise the interrupt `handle_interrupts` noted if its exception was
+    lost (a command that reports progress goes on otherwise); nothing elsewhere or without one."""
+    if _RAISED and threading.current_thread() is threading.main_thread():
+        signum = _RAISED.pop()
+        _RAISED.clear()
+        if signum == signal.SIGTERM:
+            raise Terminated(f"stopped by signal {signal.Signals(signum).name}")
+        raise KeyboardInterrupt
 
 
 @contextlib.contextmanager

@@ -58,6 +58,9 @@ class TerminalProgress:
         self.done, self.total = 0, 0                 # the last call's counts
 
     def __call__(self, done: int, total: int, label: str) -> None:
+        from urd.core.processes import check_interrupted
+
+        check_interrupted()                 # a Ctrl-C whose exception a finalizer swallowed stops the work here
         now = time.monotonic()
         goes_on = self.label is not None and total == self.total and done >= self.done
         self.done, self.total = done, total

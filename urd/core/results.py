@@ -158,10 +158,9 @@ class SceneResults:
         """Mark results stale and remove the per-shot calibration of ``data`` (before a new
         alignment); returns what was superseded, for the provenance (empty when nothing)."""
         earlier = {}
-        for method, entry in data.get("results", {}).items():
-            if "stale" not in entry:
-                entry["stale"] = stale_note(self.path, method, "computed from an earlier alignment (the scene was ingested again)")
-                earlier.setdefault("stale_results", []).append(method)
+        for method, entry in data.get("results", {}).items():     # the newest reason: the earlier ones no longer hold
+            entry["stale"] = stale_note(self.path, method, "computed from an earlier alignment (the scene was ingested again)")
+            earlier.setdefault("stale_results", []).append(method)
         if "calibration" in data:
             earlier["calibration"] = data.pop("calibration")
             earlier["angles_calibrated_deg"] = [s.get("angle_calibrated_deg") for s in data["shots"]]

@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 import copy
 import dataclasses
+import math
 from pathlib import Path
 
 from urd.core.errors import DatasetError, ManifestError
@@ -84,12 +85,31 @@ class SceneShots:
         return [Shot(**{k: v for k, v in s.items() if k in known}) for s in sorted(self._data()["shots"], key=lambda s: s["index"])]
 
     def angles_deg(self) -> list[float]:
-        """Best known polarizer angle of each shot (deg): calibrated, else measured, else commanded."""
-        return [shot.angle_deg for shot in self.shots()]
+        """Best known polarizer angle of each shot in the aligned stack (deg): calibrated, else
+        `uncalibrated_angles_deg`."""
+        return [s.angle_calibrated_deg if s.angle_calibrated_deg is not None else float(angle)
+                for s, angle in zip(self.shots(), self.uncalibrated_angles_deg())]
+
+    def stage_angles_deg(self) -> list[float]:
+        """Each shot's measured, else commanded, angle (deg): the polarizer's against the camera."""
+        return [dataclasses.replace(s, angle_calibrated_deg=None).angle_deg for s in self.shots()]
 
     def uncalibrated_angles_deg(self) -> list[float]:
-        """Each shot's measured, else commanded, angle (deg): the base of a calibration."""
-        return [dataclasses.replace(s, angle_calibrated_deg=None).angle_deg for s in self.shots()]
+        """Each shot's angle in the aligned stack (deg), the base of a calibration: its stage angle
+        plus its turn against the reference shot (`frame_turns_deg`)."""
+        return [round(angle + turn, 4) if turn else angle for angle, turn in zip(self.stage_angles_deg(), self.frame_turns_deg())]
+
+    def frame_turns_deg(self) -> list[float]:
+        """Each shot's turn against the reference shot (deg, counter-clockwise in urd's convention),
+        read from its alignment warp W (reference → shot pixels): atan2(W₁₀, W₀₀). The polarizer
+        sits in front of the lens and turns with the camera, so in the aligned stack (the
+        reference's frame) its angle is the stage's plus this. Zero before an ingest and for the
+        reference."""
+        ingest = self._data().get("ingest") or {}
+        alignment = ingest.get("alignment") if isinstance(ingest.get("alignment"), list) else []
+        turns = {entry["shot"]: math.degrees(math.atan2(entry["warp"][1][0], entry["warp"][0][0]))
+                 for entry in alignment if entry.get("warp") is not None}
+        return [turns.get(s.index, 0.0) for s in self.shots()]
 
     def capture_angles_deg(self) -> list[float] | None:
         """The angles the capture plan asked for (deg), or None for ingested RAW folders."""
