@@ -5,7 +5,7 @@ Every map is H×W float32 on the luminance (the mean of the colour channels) exc
 which keep the colour channels (H×W×C). Angles are degrees in urd's image-plane convention
 (`separate.optics`: from the +x axis, counter-clockwise as the viewer sees the image): AoLP in
 [0, 180), φ⊥ the reference field (`separate.reference.estimate_reference_field`, continuous, so
-it may leave [0, 180)), θ the per-pixel estimate of `separate.incidence.estimate_incidence_field`
+it may leave [0, 180)), θ the per-pixel estimate of `separate.incidence.estimate_incidence` (NaN where it is not trusted)
 (a plane fitted to block estimates: it turns across a wide view of a flat pane). DoLP keeps to
 [0, 1]; where S0 is within the sensor's noise (luminance below `DARK_S0`) DoLP and AoLP have no
 meaning and are NaN. `MAPS` gives each map's unit and meaning; the exporter writes them into the
@@ -19,7 +19,7 @@ from typing import Sequence
 import numpy as np
 
 from separate import optics
-from separate.incidence import estimate_incidence_field
+from separate.incidence import estimate_incidence
 from separate.presentation import check_rows, check_stack, field_at
 
 #: S0 of the luminance (linear, 1.0 = a shot's white level) below which a pixel is dark: its
@@ -37,7 +37,8 @@ MAPS = {
     "AoLP": ("deg in [0, 180), from +x, counter-clockwise",
              f"angle of linear polarization of the luminance; NaN where S0 < {DARK_S0} (dark: within the noise)"),
     "phi_perp": ("deg, from +x, counter-clockwise", "reference s-direction of the glass used for separation"),
-    "theta": ("deg", "estimated angle of incidence on the glass, per pixel (a plane fitted over the frame)"),
+    "theta": ("deg", "estimated angle of incidence on the glass, per pixel (a plane fitted over the frame); NaN "
+                     "everywhere when the shots do not tell it (fewer than 3 blocks of the frame give an angle)"),
 }
 
 
@@ -68,7 +69,10 @@ def polarization_maps(images: np.ndarray, angles_deg: Sequence[float], reference
         stokes[:, y : y + rows] = np.tensordot(pinv, optics.to_float(images[:, y : y + rows]), axes=1)
     lum = stokes.mean(axis=-1)
     field = field_at(reference, (h, w)) if reference.ndim == 2 else np.full((h, w), float(reference), np.float32)
-    theta = field_at(estimate_incidence_field(images, angles_deg, reference_deg), (h, w))
+    incidence = estimate_incidence(images, angles_deg, reference_deg)
+    theta = field_at(incidence.field_deg, (h, w))
+    if incidence.clarity == 0.0:                              # too few blocks tell an angle: no estimate to show
+        theta = np.full((h, w), np.nan, np.float32)
     aolp = np.mod(np.degrees(optics.aolp(lum.astype(np.float64))), 180.0).astype(np.float32)
     aolp[aolp >= 180.0] = 0.0                                 # float32 rounding of values just below 180
     dark = lum[0] < DARK_S0

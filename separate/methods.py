@@ -274,6 +274,10 @@ METHODS: dict[str, Callable[..., tuple[Run, dict]]] = {
 }
 
 
+#: The methods that see S0 alone: a reference angle does not change their layers.
+S0_ONLY = ("none", "li-brown", "arvanitopoulos", "ceilnet")
+
+
 def sees_polarization_of(info: dict) -> bool:
     """Whether a method (its ``info`` from `get_method`) uses the polarization, and so a reference
     angle; the single-image methods see S0 only."""

@@ -161,3 +161,20 @@ def test_angles_spread_too_little_are_named_in_a_warning_by_every_method_the_net
         urd.separate(stack, narrow, method="schechner")
     with pytest.raises(ValueError, match="spanning at least 70 deg"):
         urd.separate(stack, narrow)
+
+
+def test_the_theta_map_of_a_stack_that_does_not_tell_the_angle_of_incidence_is_nan():
+    black = np.zeros((3, 64, 64, 3), np.float32)
+    with pytest.warns(UserWarning):
+        maps = urd.polarization_maps(black, [0, 45, 90])
+    assert np.isnan(maps["theta"]).all()                   # not Brewster's angle shown as an estimate
+    told = urd.polarization_maps(pane_stack(), ANGLES)["theta"]
+    assert np.isfinite(told).all() and abs(float(np.median(told)) - 50.0) < 10.0
+
+
+def test_a_scene_is_named_by_a_string(tmp_path):
+    from urd.core.dataset import Dataset
+
+    ds = Dataset.open_or_create(tmp_path / "ds")
+    with pytest.raises(TypeError, match="expected a scene name such as 'scene_01', got 1"):
+        ds.scene(1)

@@ -408,3 +408,43 @@ def test_a_given_reference_is_the_policy_the_manifest_records(tmp_path_factory):
     assert invoke("separate", "scene_01", "--dataset", root, "--method", "schechner", "--reference", "-10").exit_code == 0
     entry = Dataset.open(root).scene("scene_01").load()["results"]["schechner"]
     assert entry["reference_deg"] == 170.0 and entry["reference_policy"].startswith("fixed: 170 deg")
+
+
+@pytest.mark.parametrize("command, message", [
+    (("separate", "--images", "a.tif", "--images", "b.tif", "--images", "c.tif", "--dataset", "ds"),
+     "--dataset is for a scene or --all; the results of --images go into --out"),
+    (("separate", "scene_01", "--method", "li-brown", "--reference", "30"), "--reference: li-brown sees S0 alone"),
+    (("report", "ds", "--force"), "--force replaces an HTML report folder: it goes with --html FOLDER"),
+])
+def test_options_that_would_change_nothing_are_refused_as_usage_errors(command, message):
+    out = invoke(*command)
+    assert out.exit_code == 2 and message in " ".join(out.output.split()), out.output
+
+
+def test_gap_on_a_dataset_is_a_usage_error(dataset):
+    out = invoke("ingest", dataset, "--gap", "10")
+    assert out.exit_code == 2 and "--gap groups a folder of RAW files into scenes" in " ".join(out.output.split())
+
+
+def test_a_scene_folder_that_cannot_be_written_is_said_before_the_separation_runs(tmp_path_factory, monkeypatch):
+    import errno
+    import tempfile
+    from pathlib import Path
+
+    import urd.separation as separation
+
+    root = ingested_dataset(tmp_path_factory, "read-only")
+    scene_path = root / "scene_01"
+    real_mkstemp, ran = tempfile.mkstemp, []
+
+    def mkstemp(*args, dir=None, **kwargs):              # a read-only mount: nothing can be made in the scene
+        if dir is not None and Path(dir).resolve() == scene_path.resolve():
+            raise OSError(errno.EROFS, "Read-only file system")
+        return real_mkstemp(*args, dir=dir, **kwargs)
+
+    monkeypatch.setattr(tempfile, "mkstemp", mkstemp)
+    monkeypatch.setattr(separation, "separate_inspected", lambda *a, **k: ran.append(1))
+    out = invoke("separate", "scene_01", "--dataset", root, "--method", "schechner")
+    assert out.exit_code == 1 and "Read-only file system); the separation would fail at its end: nothing was done" in \
+        " ".join(out.output.split()), out.output
+    assert not ran

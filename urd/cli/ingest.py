@@ -62,6 +62,9 @@ def ingest(
     if recorded and given(ctx, "angles"):
         raise usage("a scene's angles are in its manifest; --angles is for a folder of RAW files. To "
                                  "record other angles, move the scene folder away and ingest its raw/ files again")
+    if recorded and given(ctx, "gap"):
+        raise usage("--gap groups a folder of RAW files into scenes by capture time; a dataset's scenes are "
+                    "already grouped")
     if recorded and dataset is not None:
         own = source if (source / "dataset.json").is_file() else source.resolve().parent
         if dataset.resolve() != own.resolve():

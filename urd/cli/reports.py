@@ -8,7 +8,7 @@ from typing import Optional
 
 import typer
 
-from urd.cli.common import DATASET_HELP, existing_dataset, fail, refuse_scene_link, run_guarded
+from urd.cli.common import DATASET_HELP, existing_dataset, fail, refuse_scene_link, run_guarded, usage
 from urd.core.progress import TerminalProgress, plural
 
 
@@ -28,6 +28,8 @@ def report(
 
     from urd.report_html import check_report_folder
 
+    if force and html is None:
+        raise usage("--force replaces an HTML report folder: it goes with --html FOLDER (the text report replaces nothing)")
     root = existing_dataset(dataset)
     if html is not None:
         run_guarded(check_report_folder, html, force)          # before the text report: a refusal says only that

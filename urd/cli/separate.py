@@ -12,6 +12,7 @@ import typer
 from urd.cli.common import (DATASET_HELP, bad, choice, existing_dataset, fail, given, parse_angles, parse_params, parse_reference,
                             refuse_weights_folder, report_truth, resolve_scene, run_guarded, show_previews, usage, warn, within)
 from urd.core.errors import DatasetError
+from urd.core.files import check_writable
 from urd.core.progress import TerminalProgress, plural
 
 #: Baselines that report progress (their ``separate`` takes a ``progress`` callback).
@@ -52,7 +53,7 @@ def separate(
       urd separate scene_01 --maps --reference global
       urd separate --images a.tif --images b.tif --images c.tif --angles 0,45,90 --transfer srgb
     """
-    from separate.methods import METHODS, NETWORKS, get_method
+    from separate.methods import METHODS, NETWORKS, S0_ONLY, get_method
     from urd.core.images import Transfer, stored_bits
     from urd.core.raw import RAW_SUFFIXES
     from urd.separation import FIELD_KIND, add_maps, check_no_results_in, check_out_folder, describe_incidence, sees_polarization_of, separate_images, separate_scene
@@ -74,6 +75,11 @@ def separate(
         raise usage("expected a scene name, --all or --images")
     if images and scene is not None:
         raise usage(f"expected a scene name or --images, not both (got {scene!r} and --images)")
+    if images and dataset is not None:
+        raise usage("--dataset is for a scene or --all; the results of --images go into --out")
+    if given(ctx, "reference") and method in S0_ONLY and not maps:
+        raise usage(f"--reference: {method} sees S0 alone, so no reference angle changes its layers (with --maps it "
+                    "sets the φ⊥ map)")
     unused = [f"--{name.replace('_', '-')}" for name in ("weights", "tile", "precision", "device", "colour_match")
               if given(ctx, name)]
     if unused and method not in NETWORKS:
@@ -160,6 +166,7 @@ def separate(
         run_guarded(target.check_no_results, method)
     if target is not None:
         run_guarded(target.check_ingested)                   # before the network is set up and its precision told
+        run_guarded(check_writable, target.path, "the separation")
     network_device = chosen = None
     if method in NETWORKS:                               # torch is imported for the networks only, after the checks above
         from separate.precision import describe, resolve, resolve_device

@@ -422,7 +422,10 @@ class Dataset:
         return [Scene(self.root / name) for name in self.scene_names()]
 
     def scene(self, name: str) -> Scene:
-        """The scene called ``name``; DatasetError if there is no such folder or no manifest."""
+        """The scene called ``name``; TypeError unless it is a string, DatasetError if there is no
+        such folder or no manifest."""
+        if not isinstance(name, str):
+            raise TypeError(f"expected a scene name such as 'scene_01', got {name!r}")
         path = self.root / name
         if not SCENE_NAME.match(name) or not path.is_dir():
             known = ", ".join(self.scene_names()) or "none"

@@ -79,6 +79,18 @@ def atomic_path(path: Path, overwrite: bool = False) -> Iterator[Path]:
         os.close(folder)
 
 
+def check_writable(folder: Path, then: str) -> None:
+    """DatasetError unless a file can be made in ``folder`` (one is made and removed: permissions,
+    a read-only mount or an immutable folder all show), saying so before the work ``then``."""
+    try:
+        fd, name = tempfile.mkstemp(prefix=".urd-probe-", dir=folder)
+    except OSError as exc:
+        raise DatasetError(f"cannot write in {folder} ({exc.strerror or exc}); {then} would fail at its end: "
+                           "nothing was done") from None
+    os.close(fd)
+    os.unlink(name)
+
+
 def disk_full(exc: OSError | None, folder: Path) -> bool:
     """Whether a failed write in ``folder`` was a full disk (or quota): ENOSPC or EDQUOT, or a
     failure without an errno (numpy's short write "N requested and M written", an image
