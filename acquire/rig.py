@@ -49,6 +49,7 @@ class SimSettings:
     transmission: Path | None = None
     seed: int = 0
     target_angle_deg: float | None = None
+    reversed: bool = False
 
 
 def stage_identity(stage_info: dict) -> dict:
@@ -58,7 +59,8 @@ def stage_identity(stage_info: dict) -> dict:
     change how it moves, not where its zero is)."""
     simulated = stage_info.get("simulated")
     if simulated is not None:
-        return {"kind": "ELL14 simulator", "sim_offset_deg": float(simulated["offset_deg"])}
+        mount = {"sim_reversed": True} if simulated.get("reversed") else {}     # another mount of the polarizer
+        return {"kind": "ELL14 simulator", "sim_offset_deg": float(simulated["offset_deg"]), **mount}
     return {"kind": "ELL14", "serial": stage_info.get("serial"), "address": stage_info.get("address")}
 
 
@@ -67,7 +69,7 @@ def _sim_options(identity: dict) -> str:
     (`stage_identity`): its camera and its mounting offset; nothing for a real stage."""
     if identity.get("kind") != "ELL14 simulator":
         return ""
-    return f" --camera virtual --sim-offset {identity['sim_offset_deg']:g}"
+    return f" --camera virtual --sim-offset {identity['sim_offset_deg']:g}" + (" --sim-reversed" if identity.get("sim_reversed") else "")
 
 
 def describe_stage(identity: dict) -> str:
@@ -149,7 +151,7 @@ def open_rig(stage: str, camera: str, address: str = "0", sim: SimSettings | Non
         twin = None
         if stage == SIM:
             twin = stack.enter_context(SimulatedEll14(address, sim_offset_deg=sim.offset_deg, sim_jitter_deg=sim.jitter_deg,
-                                                      sim_faults=sim.faults, seed=sim.seed))
+                                                      sim_faults=sim.faults, seed=sim.seed, sim_reversed=sim.reversed))
             port_name = twin.port_name
         else:
             port_name = stage
@@ -174,7 +176,7 @@ def open_rig(stage: str, camera: str, address: str = "0", sim: SimSettings | Non
             camera_info.update(reflection=_image_name(sim.reflection), transmission=_image_name(sim.transmission))
         if twin is not None:
             stage_info["simulated"] = {"offset_deg": sim.offset_deg, "jitter_deg": sim.jitter_deg, "faults": sim.faults,
-                                       "seed": sim.seed}
+                                       "seed": sim.seed, **({"reversed": True} if sim.reversed else {})}
         yield Rig(driver, cam, {"stage": stage_info, "camera": camera_info}, twin)
 
 

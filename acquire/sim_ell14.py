@@ -42,11 +42,15 @@ class SimulatedEll14(Ell14StateMachine):
         sim_faults: fault kind → probability per command, each in [0, 1].
         sim_device_type: device type reported by ``in`` (0x0E is an ELL14).
         seed: seed of the jitter and fault draws.
+        sim_reversed: the mount turned round: a positive move turns the polarizer clockwise as
+            the camera sees it (urd takes stage angles counter-clockwise; `urd calibrate offset
+            --check-direction` finds this out).
     """
 
     def __init__(self, address: str = "0", pulses_per_rev: int = 143360, sim_offset_deg: float = 0.0,
                  sim_jitter_deg: float = 0.0, sim_speed_dps: float = 2000.0,
-                 sim_faults: dict[str, float] | None = None, sim_device_type: int = 0x0E, seed: int = 0):
+                 sim_faults: dict[str, float] | None = None, sim_device_type: int = 0x0E, seed: int = 0,
+                 sim_reversed: bool = False):
         if not isinstance(address, str) or len(address) != 1 or address not in ADDRESSES:
             raise ValueError(f"expected an address '0'..'F', got {address!r}")
         if pulses_per_rev <= 0:
@@ -63,6 +67,7 @@ class SimulatedEll14(Ell14StateMachine):
         self.address = address
         self.pulses_per_rev = pulses_per_rev
         self.sim_offset_deg = sim_offset_deg
+        self.sim_direction = -1.0 if sim_reversed else 1.0
         self.sim_jitter_deg = sim_jitter_deg
         self.sim_speed_dps = sim_speed_dps
         self.sim_faults = dict(sim_faults or {})
@@ -117,10 +122,13 @@ class SimulatedEll14(Ell14StateMachine):
 
     # -- simulation-only controls -----------------------------------------------------------
     def true_angle_deg(self) -> float:
-        """The polarizer's physical axis angle now (degrees, image-plane convention)."""
+        """The polarizer's physical axis angle now (degrees, image-plane convention): the
+        mounting offset plus the stage's angle, or minus it on a reversed mount (``sim_reversed``:
+        a positive move turns the polarizer clockwise as the camera sees it)."""
         with self._lock:
             counts = self._position(time.monotonic())
-            return (counts + self._frame) * 360.0 / self.pulses_per_rev + self.sim_offset_deg + self.error_deg
+            stage_deg = (counts + self._frame) * 360.0 / self.pulses_per_rev
+            return self.sim_offset_deg + self.sim_direction * stage_deg + self.error_deg
 
     def sim_force(self, kind: str) -> None:
         """Make the next command suffer fault ``kind``."""

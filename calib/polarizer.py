@@ -7,6 +7,12 @@ Mounting offset
     offset = ψ_t − ½·atan2(c2, c1). The fit is linear least squares; its covariance gives
     the uncertainty.
 
+Sense of rotation
+    urd takes a positive stage move to turn the polarizer counter-clockwise as the camera sees
+    it; a mount turned round turns it the other way, which one sweep cannot tell (it fits either
+    sense with another offset). Two sweeps with the target's axis turned between them tell it
+    (`check_direction`): counter-clockwise, both give the same offset.
+
 Per-shot angle error
     The actual angle of each shot of a scene, from the images alone. Each pixel's N shots
     must be explained by 3 Stokes parameters; the angles φ_k that make that possible are
@@ -28,6 +34,7 @@ Angles here are degrees at the interface, radians inside.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import cv2
 import numpy as np
@@ -85,6 +92,46 @@ def fit_offset(stage_angles_deg: np.ndarray, intensities: np.ndarray, target_ang
     grad = np.array([0.0, -0.5 * s2, 0.5 * s1]) / (s1**2 + s2**2)      # of AoLP = ½·atan2(S2, S1)
     offset = (target_angle_deg - np.degrees(optics.aolp(stokes))) % 180.0
     return OffsetFit(float(offset), float(np.degrees(np.sqrt(grad @ cov @ grad))), modulation, rms)
+
+
+#: The least turn (deg) of the target between the two sweeps of a direction check, away from 0°
+#: and 90° (mod 180°): at those the two senses of rotation predict the same offsets.
+MIN_TARGET_TURN_DEG = 20.0
+#: How far (deg) the second sweep's offset may lie from the nearer of the two predictions.
+DIRECTION_TOLERANCE_DEG = 5.0
+
+
+def wrapped_deg(angle: float) -> float:
+    """An axis difference (deg, mod 180) as the nearest value in (−90, 90]."""
+    return 90.0 - (90.0 - angle) % 180.0
+
+
+def check_direction(first: OffsetFit, first_target_deg: float, second: OffsetFit, second_target_deg: float) -> float:
+    """Whether the stage turns the polarizer counter-clockwise as the camera sees it, as urd takes
+    stage angles, from two sweeps with the target's axis at two angles: the offset is
+    ψ − a_peak for each. Counter-clockwise, ψ = offset + a, so both give the offset; clockwise,
+    ψ = offset − a, so they differ by twice the target's turn. Returns their difference (deg,
+    wrapped to ±90°); CalibrationError when the stage turns the polarizer clockwise, when the target
+    was turned too little (or by about 90°) to tell, or when neither sense explains the two sweeps."""
+    turn = wrapped_deg(second_target_deg - first_target_deg)
+    if not MIN_TARGET_TURN_DEG <= abs(turn) <= 90.0 - MIN_TARGET_TURN_DEG:
+        raise CalibrationError(f"the target turned by {turn:.1f} deg between the sweeps (mod 180): the two senses of "
+                               f"rotation give the same offsets there; turn it by {MIN_TARGET_TURN_DEG:g} to "
+                               f"{90 - MIN_TARGET_TURN_DEG:g} deg (45 is best)")
+    difference = wrapped_deg(second.offset_deg - first.offset_deg)
+    clockwise = wrapped_deg(difference - 2.0 * turn)
+    slack = DIRECTION_TOLERANCE_DEG + 3.0 * math.hypot(first.uncertainty_deg, second.uncertainty_deg)
+    if abs(difference) <= slack:
+        return difference
+    if abs(clockwise) <= slack:
+        raise CalibrationError(f"the stage turns the polarizer clockwise as the camera sees it: the offsets at target "
+                               f"angles {first_target_deg:g} and {second_target_deg:g} deg differ by {difference:.2f} deg, "
+                               f"twice the target's turn (or the target was turned clockwise: check that first); urd "
+                               "takes stage angles counter-clockwise, so turn the rotation mount round (its other face "
+                               "towards the camera) and calibrate again")
+    raise CalibrationError(f"the two sweeps' offsets differ by {difference:.2f} deg, which neither sense of rotation "
+                           f"explains (0, or {wrapped_deg(2 * turn):.2f} deg for a target turned by {turn:g} deg); was the "
+                           "target turned counter-clockwise as the camera sees it, by exactly that?")
 
 
 @dataclasses.dataclass

@@ -9,7 +9,7 @@ import pytest
 import tifffile
 
 from acquire.virtual_camera import shot_truth
-from calib.polarizer import _solve_angles, estimate_shot_errors, fit_offset
+from calib.polarizer import _solve_angles, check_direction, estimate_shot_errors, fit_offset
 from calib.store import calibrate_shots
 from separate.methods import get_method
 from conftest import shared_data
@@ -158,3 +158,37 @@ def test_real_division_of_time_captures(name, capsys):
         print(f"\nlapray2018 {name}: per-shot errors {np.round(result.errors_deg, 2)} ± {np.round(result.uncertainty_deg, 2)} deg")
     assert np.all(np.abs(result.errors_deg) < 4.0)          # the paper's ±4° budget
     assert result.unobservable is not None                  # 4 angles: one combination unseen
+
+
+def sweep_fit(target_deg: float, offset_deg: float, direction: float):
+    """The fit of a noiseless sweep of a fully polarized target at ``target_deg`` through a polarizer
+    at offset + direction · stage angle (deg)."""
+    stage = np.arange(0.0, 180.0, 10.0)
+    return fit_offset(stage, np.cos(np.radians(offset_deg + direction * stage - target_deg)) ** 2, target_deg)
+
+
+def test_two_sweeps_tell_the_stages_sense_of_rotation_which_one_cannot():
+    ccw, cw = sweep_fit(10.0, 7.0, 1.0), sweep_fit(10.0, 7.0, -1.0)
+    assert ccw.residual_rms < 1e-9 and cw.residual_rms < 1e-9               # one sweep fits either sense exactly
+    assert check_direction(ccw, 10.0, sweep_fit(55.0, 7.0, 1.0), 55.0) == pytest.approx(0.0, abs=1e-6)
+    with pytest.raises(CalibrationError, match="turns the polarizer clockwise as the camera sees it: .* differ by 90.00 deg"):
+        check_direction(cw, 10.0, sweep_fit(55.0, 7.0, -1.0), 55.0)
+    with pytest.raises(CalibrationError, match="turned by 85.0 deg between the sweeps"):
+        check_direction(ccw, 10.0, sweep_fit(95.0, 7.0, 1.0), 95.0)
+    with pytest.raises(CalibrationError, match="which neither sense of rotation explains"):
+        check_direction(ccw, 10.0, sweep_fit(55.0, 37.0, 1.0), 55.0)
+
+
+def test_the_direction_check_on_the_virtual_rig_records_a_counter_clockwise_stage_and_refuses_a_reversed_one(tmp_path):
+    out = urd("calibrate", "offset", tmp_path / "ds", "--stage", "sim", "--camera", "virtual", "--sim-offset", 7,
+              "--target-angle", 10, "--check-direction", 55)
+    assert out.returncode == 0, out.stderr
+    assert "sense of rotation: counter-clockwise, as urd takes it" in out.stdout
+    record = json.loads((tmp_path / "ds" / "calibration.json").read_text())
+    assert record["direction"]["target_angle_deg"] == 55.0 and abs(record["direction"]["difference_deg"]) < 0.1
+    assert record["direction"]["sweep"] == "calibration/sweep_02"
+    out = urd("calibrate", "offset", tmp_path / "rev", "--stage", "sim", "--camera", "virtual", "--sim-offset", 7,
+              "--target-angle", 10, "--check-direction", 55, "--sim-reversed")
+    assert out.returncode == 1 and "the stage turns the polarizer clockwise as the camera sees it" in out.stderr
+    assert not (tmp_path / "rev" / "calibration.json").exists()
+    assert sorted(p.name for p in (tmp_path / "rev" / "calibration").iterdir()) == ["sweep_01", "sweep_02"]   # kept to look at

@@ -28,10 +28,12 @@ def calibrate_offset_cmd(
     camera: str = typer.Option("gphoto2", help="Camera driver: gphoto2 or virtual (needs --stage sim)."),
     step: float = typer.Option(10.0, callback=within(1.0, 45.0), help="Sweep step (deg), 1 to 45: one shot every STEP deg over 180 deg."),
     target_angle: float = typer.Option(0.0, callback=within(-360.0, 360.0), help="Polarization angle of the target's light (deg, image plane, CCW from x)."),
+    check_direction: Optional[float] = typer.Option(None, callback=within(-360.0, 360.0), help="Check the stage's sense of rotation with a second sweep: after the first, turn the target's axis to this angle (deg, counter-clockwise as the camera sees it; 45 deg from --target-angle is best) and press Enter."),
     address: str = typer.Option("0", help="ELL14 device address 0-F.", callback=check_address),
     sim_offset: float = typer.Option(0.0, callback=within(-360.0, 360.0), help="[sim] true mounting offset of the simulated polarizer (deg)."),
     sim_size: str = typer.Option("256x192", help=SIM_SIZE_HELP),
     seed: int = typer.Option(0, callback=within(0), help="[sim/virtual] random seed."),
+    sim_reversed: bool = typer.Option(False, "--sim-reversed", help="[sim] the simulated mount turned round: the stage turns the polarizer clockwise as the camera sees it."),
 ) -> None:
     """Sweep the polarizer in front of a polarized target and fit Malus's law for the mounting offset.
 
@@ -39,13 +41,16 @@ def calibrate_offset_cmd(
     Writes, in DATASET:
       calibration.json         the fitted offset, with the history of earlier fits
       calibration/sweep_NN/    the sweep: raw/shot_NN_ANGLEdeg.dng and scene.json
-    Later captures with this stage use the offset.
+    Later captures with this stage use the offset. urd takes a positive stage move to turn the
+    polarizer counter-clockwise as the camera sees it; --check-direction checks that with a
+    second sweep (a mount turned round is refused, saying so).
     [sim] options need --stage sim, [virtual] options --camera virtual.
 
     \b
     Example:
       urd calibrate offset --stage /dev/ttyUSB0 --target-angle 90
       urd calibrate offset --stage sim --camera virtual --sim-offset 3
+      urd calibrate offset --stage /dev/ttyUSB0 --target-angle 0 --check-direction 45
     """
     from acquire.camera import CameraKind
     from acquire.rig import SimSettings
@@ -53,14 +58,28 @@ def calibrate_offset_cmd(
 
     choice(CameraKind, camera, "--camera")
     width, height = parse_size(sim_size, "--sim-size")
-    check_rig(ctx, stage, camera, ("sim_offset", "seed"), ("sim_size",))
+    check_rig(ctx, stage, camera, ("sim_offset", "seed", "sim_reversed"), ("sim_size",))
     root = dataset or default_root()
     note_new_dataset(root)
     sim = SimSettings(offset_deg=sim_offset, width=width, height=height, shake_px=0, shake_deg=0, seed=seed,
-                      target_angle_deg=target_angle)
-    record = run_guarded(sweep_and_calibrate, root, stage, camera, step, target_angle, address, sim, progress=TerminalProgress())
+                      target_angle_deg=target_angle, reversed=sim_reversed)
+
+    def turn_target(angle: float) -> None:
+        if stage != "sim":
+            typer.prompt(f"turn the target's axis to {angle:g} deg (counter-clockwise as the camera sees it), then press "
+                         "Enter", default="", show_default=False, err=True)
+
+    bar = TerminalProgress()
+    record = run_guarded(sweep_and_calibrate, root, stage, camera, step, target_angle, address, sim, progress=bar,
+                         check_target_deg=check_direction, turn_target=lambda angle: (bar.close(), turn_target(angle)))
     typer.echo(f"mounting offset {record.offset_deg:.3f} ± {record.uncertainty_deg:.3f} deg "
                f"(modulation {record.modulation:.2f}); written to {(Path(root) / 'calibration.json').resolve()}")
+    if record.direction is not None:
+        typer.echo(f"sense of rotation: counter-clockwise, as urd takes it (the offsets at target angles {target_angle:g} "
+                   f"and {check_direction:g} deg agree within {abs(record.direction['difference_deg']):.2f} deg)")
+    else:
+        typer.echo(f"sense of rotation not checked: add --check-direction {target_angle + 45:g} (a second sweep with the "
+                   "target turned by 45 deg counter-clockwise as the camera sees it)")
 
 
 @calibrate_app.command("shots")

@@ -124,8 +124,10 @@ class SceneStatus:
 @dataclasses.dataclass(frozen=True)
 class OffsetCalibration:
     """The polarizer's mounting offset (deg) with its uncertainty, the sweep it was fitted to
-    (a scene folder, or None), when, and the stage it was measured on (its identity, as
-    `acquire.rig.stage_identity` gives it; None where not recorded)."""
+    (a scene folder, or None), when, the stage it was measured on (its identity, as
+    `acquire.rig.stage_identity` gives it; None where not recorded), and the check of the
+    stage's sense of rotation (`calib.polarizer.check_direction`: the second target angle, its
+    offset and their difference, deg; None where not checked)."""
 
     offset_deg: float
     uncertainty_deg: float
@@ -135,6 +137,7 @@ class OffsetCalibration:
     sweep: Path | None
     earlier: int
     stage: dict | None = None
+    direction: dict | None = None
 
 
 # ---------------------------------------------------------------- scene
@@ -514,7 +517,7 @@ class Dataset:
         sweep = confined_path(self.root, record["sweep"], str(self.calibration_path)) if "sweep" in record else None
         return OffsetCalibration(float(record["offset_deg"]), float(record["uncertainty_deg"]), record.get("modulation"),
                                  float(record["target_angle_deg"]), record["time"], sweep, len(record["history"]),
-                                 record.get("stage"))
+                                 record.get("stage"), record.get("direction"))
 
     def verify_calibration(self) -> list[str]:
         """Problems of the calibration (an unreadable or invalid ``calibration.json``, missing or

@@ -171,7 +171,7 @@ SHOT_CAMERA = {"exposure_s": OPTIONAL_NUMBER, "iso": OPTIONAL_NUMBER, "aperture"
 #: and its camera (``info["camera"]``; the virtual camera's settings are required of it).
 CAPTURE_STAGE = {"kind": str, "port": str, "address": str, "serial": OPTIONAL_TEXT, "firmware": OPTIONAL_TEXT,
                  "pulses_per_rev": int, "simulated": dict}
-SIMULATED_STAGE = ({"offset_deg": NUMBER, "jitter_deg": NUMBER, "faults": dict}, {"seed": int})
+SIMULATED_STAGE = ({"offset_deg": NUMBER, "jitter_deg": NUMBER, "faults": dict}, {"seed": int, "reversed": bool})
 CAPTURE_CAMERA = {"kind": str, "model": str, "serial": str, "width": int, "height": int, "shake_px": NUMBER,
                   "shake_deg": NUMBER, "seed": int, "reflection": OPTIONAL_TEXT, "transmission": OPTIONAL_TEXT}
 VIRTUAL_CAMERA = ("width", "height", "shake_px", "seed")
@@ -321,7 +321,13 @@ def validate_calibration(record: Any, where: str) -> dict:
     """Check a calibration record (``calibration.json``); ManifestError naming file and field."""
     fields = {"schema": str, "schema_version": int, "time": str, "offset_deg": NUMBER, "uncertainty_deg": NUMBER,
               "target_angle_deg": NUMBER, "history": list}
-    _check(record, where, fields, {"modulation": NUMBER, "sweep": str, "residual_rms": NUMBER, "stage": dict})
+    _check(record, where, fields, {"modulation": NUMBER, "sweep": str, "residual_rms": NUMBER, "stage": dict,
+                                   "direction": dict})
+    if "direction" in record:
+        _check(record["direction"], f"{where}: direction", {"target_angle_deg": NUMBER, "offset_deg": NUMBER,
+                                                             "difference_deg": NUMBER, "sweep": str})
+        _check_texts(record["direction"], f"{where}: direction")
+        _check_angles(record["direction"], f"{where}: direction", ("target_angle_deg", "offset_deg"))
     _check_schema(record, where, "urd.calibration")
     _check_texts(record, where)
     _check_angles(record, where, ("offset_deg", "target_angle_deg"))
@@ -339,7 +345,7 @@ def _check_stage_identity(stage: Any, where: str) -> None:
     _check(stage, where, {"kind": str}, {"serial": OPTIONAL_TEXT, "address": OPTIONAL_TEXT})
     _check_texts(stage, where)
     if stage["kind"] == "ELL14 simulator":
-        _check(stage, where, {"sim_offset_deg": NUMBER})
+        _check(stage, where, {"sim_offset_deg": NUMBER}, {"sim_reversed": bool})
         _check_angles(stage, where, ("sim_offset_deg",))
 
 
