@@ -293,7 +293,11 @@ def test_ground_truth_is_hashed_and_checked(tmp_path):
     flip_keeping_size_and_mtime(scene.truth_dir() / "T_obs.tiff")
     assert any("T_obs.tiff" in p for p in verify(scene.path.parent)[SCENE])
     run, info = get_method("none")
-    with pytest.raises(ManifestError, match="T_obs.tiff: SHA-256 or size does not match"):
+    with pytest.raises(ManifestError, match="T_obs.tiff: SHA-256 or size does not match .*the ground truth feeds only "
+                                            "the figures against it: move .*truth away to separate without them"):
+        separate_scene(scene, "none", run, info, force=True)
+    (scene.truth_dir() / "T_obs.tiff").unlink()
+    with pytest.raises(ManifestError, match="T_obs.tiff: listed in the manifest but missing; the ground truth feeds only"):
         separate_scene(scene, "none", run, info, force=True)
 
 

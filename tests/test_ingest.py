@@ -362,3 +362,23 @@ def test_a_redo_says_which_results_went_stale_and_that_the_shot_calibration_was_
     assert "earlier alignment" in scene.reload().stale_reason("none")
     assert ingest_scene(scene, IngestOptions(redo=True)).notes == ["scene_01: results of none are stale (of the earlier "
                                                                    "alignment); renew them with: urd separate scene_01 --force"]
+
+
+def test_urds_own_shots_named_with_other_angles_than_the_default_are_refused_naming_the_option(tmp_path):
+    from typer.testing import CliRunner
+
+    from urd.cli import app
+    from urd.ingest import named_angles
+
+    scene, _ = capture_virtual(Dataset.open_or_create(tmp_path / "ds"), angles=(0, 30, 60, 90), size=(96, 64),
+                               shake_px=0, shake_deg=0)
+    folder = tmp_path / "raw"
+    shutil.copytree(scene.path / "raw", folder)
+    assert named_angles(sorted(folder.iterdir())) == [0.0, 30.0, 60.0, 90.0]
+    out = CliRunner().invoke(app, ["ingest", str(folder), str(tmp_path / "new")])
+    assert out.exit_code == 2 and "ingest them with --angles 0,30,60,90" in " ".join(out.output.split()), out.output
+    assert not (tmp_path / "new").exists()
+    out = CliRunner().invoke(app, ["ingest", str(folder), str(tmp_path / "new"), "--angles", "0,30,60,90"])
+    assert out.exit_code == 0 and "ingested scene_01 (from 4 files)" in out.output, out.output
+    (folder / "shot_00_000.0deg.dng").rename(folder / "IMG_0001.dng")        # not all urd's: the names say nothing
+    assert named_angles(sorted(folder.iterdir())) is None

@@ -448,3 +448,16 @@ def test_a_scene_folder_that_cannot_be_written_is_said_before_the_separation_run
     assert out.exit_code == 1 and "Read-only file system); the separation would fail at its end: nothing was done" in \
         " ".join(out.output.split()), out.output
     assert not ran
+
+
+def test_an_interrupted_demo_says_where_its_dataset_is_and_what_to_do_with_it(tmp_path, monkeypatch):
+    import urd.separation as separation
+
+    def stopped(*args, **kwargs):
+        raise KeyboardInterrupt                                # Ctrl-C while the network runs
+
+    monkeypatch.setattr(separation, "separate_scene", stopped)
+    out = invoke("demo", tmp_path / "demo", "--size", "256x192")
+    said = " ".join(out.output.split())
+    assert out.exit_code == 130 and f"the demo's dataset so far is {tmp_path / 'demo'}: delete it" in said, out.output
+    assert "'urd demo' starts afresh" in said and (tmp_path / "demo" / "scene_01" / "aligned").is_dir()

@@ -25,7 +25,24 @@ def run_demo(folder: Path, width: int, height: int, seed: int, precision: str = 
              announce: Callable[[str], None] = print, progress: Progress | None = None):
     """Capture a scene with the simulated ELL14 and virtual camera into a fresh dataset
     (`fresh_folder`; said when it is not ``folder``), ingest it, separate it with the shipped
-    network; returns the `urd.separation.Separation` (with PSNR against truth)."""
+    network; returns the `urd.separation.Separation` (with PSNR against truth). Interrupted, the
+    exception notes where the dataset made so far is."""
+    target = fresh_folder(folder)
+    if target != Path(folder):
+        announce(f"{Path(folder).resolve()} exists (an earlier run): this run writes a fresh dataset, {target.resolve()}")
+    folder = target
+    try:
+        return _run(folder, width, height, seed, precision, announce, progress)
+    except KeyboardInterrupt as exc:
+        if folder.exists():
+            exc.add_note(f"the demo's dataset so far is {folder.resolve()}: delete it, or look at it with 'urd report "
+                         f"{folder.resolve()}'; 'urd demo' starts afresh")
+        raise
+
+
+def _run(folder: Path, width: int, height: int, seed: int, precision: str, announce: Callable[[str], None],
+         progress: Progress | None):
+    """`run_demo`'s steps in ``folder`` (fresh)."""
     from acquire.plan import capture_scene
     from acquire.rig import SimSettings
     from separate.methods import get_method
@@ -33,10 +50,6 @@ def run_demo(folder: Path, width: int, height: int, seed: int, precision: str = 
     from urd.ingest import IngestOptions, ingest_scene
     from urd.separation import describe_incidence, separate_scene
 
-    target = fresh_folder(folder)
-    if target != Path(folder):
-        announce(f"{Path(folder).resolve()} exists (an earlier run): this run writes a fresh dataset, {target.resolve()}")
-    folder = target
     sim = SimSettings(offset_deg=0.0, jitter_deg=0.3, width=width, height=height, seed=seed)
     scene = capture_scene(folder, "sim", "virtual", [0.0, 45.0, 90.0], new=True, sim=sim,
                           announce=lambda line: None, progress=progress)

@@ -101,6 +101,21 @@ def find_raw_files(folder: Path) -> tuple[list[Path], list[Path]]:
     return raws, [p for p in files if p not in raws]
 
 
+#: urd's own shot file names (`acquire.plan.shot_name`): shot_NN_ANGLEdeg.SUFFIX.
+SHOT_NAME = re.compile(r"shot_(\d+)_(-?\d+(?:\.\d+)?)deg\.[^.]+\Z")
+
+
+def named_angles(paths: list[Path]) -> list[float] | None:
+    """The polarizer angles (deg) that urd's own shot files carry in their names, by shot number
+    (shot_00 first), where every file is so named and each shot number names one angle; else None."""
+    named: dict[int, float] = {}
+    for path in paths:
+        match = SHOT_NAME.match(path.name)
+        if match is None or named.setdefault(int(match.group(1)), float(match.group(2))) != float(match.group(2)):
+            return None
+    return [named[k] for k in sorted(named)] if named and sorted(named) == list(range(len(named))) else None
+
+
 def read_shots(paths: list[Path], progress: Progress | None = None) -> tuple[dict[Path, dict], dict[Path, str]]:
     """Each file's RAW metadata (`urd.core.raw.metadata`), read once, and for each file that
     cannot be ingested (empty, corrupt, not RAW) why."""

@@ -88,6 +88,14 @@ def ingest(
     if mosaic and given(ctx, "half_size"):
         raise usage(f"--{'' if half_size else 'no-'}half-size: for RAW shots; --mosaic frames are always demosaiced at "
                     "half size (one pixel per 2x2 polarizer cell)")
+    if not recorded and not mosaic and not given(ctx, "angles") and source.is_dir():
+        from urd.ingest import find_raw_files, named_angles
+
+        named = named_angles(find_raw_files(source)[0])
+        if named is not None and named != list(opts.angles_deg):
+            listed = ",".join(f"{a:g}" for a in named)
+            raise usage(f"{source}: urd's own shots, named with their angles ({listed} deg), not the default "
+                        f"--angles {','.join(f'{a:g}' for a in opts.angles_deg)}; ingest them with --angles {listed}")
     root = dataset or default_root()
     if not recorded:
         note_new_dataset(root)

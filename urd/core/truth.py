@@ -67,7 +67,11 @@ class SceneTruth:
         records = self._truth_records()
         if not self.truth_dir().is_dir():
             return None
-        self.check_files(records)
+        try:
+            self.check_files(records)
+        except ManifestError as exc:
+            raise ManifestError(f"{exc}; the ground truth feeds only the figures against it: move {self.truth_dir()} "
+                                "away to separate without them") from exc
         if records:
             return {Path(rec["file"]).name: self.path / rec["file"] for rec in records}
         return {p.name: p for p in sorted(self.truth_dir().glob("*.tiff"))}
