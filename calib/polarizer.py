@@ -106,6 +106,17 @@ def wrapped_deg(angle: float) -> float:
     return 90.0 - (90.0 - angle) % 180.0
 
 
+def check_target_turn(first_target_deg: float, second_target_deg: float) -> float:
+    """The target's turn between the two sweeps of a direction check (deg, wrapped to ±90°);
+    CalibrationError unless it lies `MIN_TARGET_TURN_DEG` or more away from 0° and 90°."""
+    turn = wrapped_deg(second_target_deg - first_target_deg)
+    if not MIN_TARGET_TURN_DEG <= abs(turn) <= 90.0 - MIN_TARGET_TURN_DEG:
+        raise CalibrationError(f"the target turns by {turn:.1f} deg between the sweeps (mod 180): the two senses of "
+                               f"rotation give the same offsets there; turn it by {MIN_TARGET_TURN_DEG:g} to "
+                               f"{90 - MIN_TARGET_TURN_DEG:g} deg (45 is best)")
+    return turn
+
+
 def check_direction(first: OffsetFit, first_target_deg: float, second: OffsetFit, second_target_deg: float) -> float:
     """Whether the stage turns the polarizer counter-clockwise as the camera sees it, as urd takes
     stage angles, from two sweeps with the target's axis at two angles: the offset is
@@ -113,11 +124,7 @@ def check_direction(first: OffsetFit, first_target_deg: float, second: OffsetFit
     ψ = offset − a, so they differ by twice the target's turn. Returns their difference (deg,
     wrapped to ±90°); CalibrationError when the stage turns the polarizer clockwise, when the target
     was turned too little (or by about 90°) to tell, or when neither sense explains the two sweeps."""
-    turn = wrapped_deg(second_target_deg - first_target_deg)
-    if not MIN_TARGET_TURN_DEG <= abs(turn) <= 90.0 - MIN_TARGET_TURN_DEG:
-        raise CalibrationError(f"the target turned by {turn:.1f} deg between the sweeps (mod 180): the two senses of "
-                               f"rotation give the same offsets there; turn it by {MIN_TARGET_TURN_DEG:g} to "
-                               f"{90 - MIN_TARGET_TURN_DEG:g} deg (45 is best)")
+    turn = check_target_turn(first_target_deg, second_target_deg)
     difference = wrapped_deg(second.offset_deg - first.offset_deg)
     clockwise = wrapped_deg(difference - 2.0 * turn)
     slack = DIRECTION_TOLERANCE_DEG + 3.0 * math.hypot(first.uncertainty_deg, second.uncertainty_deg)

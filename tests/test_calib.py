@@ -173,12 +173,13 @@ def test_two_sweeps_tell_the_stages_sense_of_rotation_which_one_cannot():
     assert check_direction(ccw, 10.0, sweep_fit(55.0, 7.0, 1.0), 55.0) == pytest.approx(0.0, abs=1e-6)
     with pytest.raises(CalibrationError, match="turns the polarizer clockwise as the camera sees it: .* differ by 90.00 deg"):
         check_direction(cw, 10.0, sweep_fit(55.0, 7.0, -1.0), 55.0)
-    with pytest.raises(CalibrationError, match="turned by 85.0 deg between the sweeps"):
+    with pytest.raises(CalibrationError, match="turns by 85.0 deg between the sweeps"):
         check_direction(ccw, 10.0, sweep_fit(95.0, 7.0, 1.0), 95.0)
     with pytest.raises(CalibrationError, match="which neither sense of rotation explains"):
         check_direction(ccw, 10.0, sweep_fit(55.0, 37.0, 1.0), 55.0)
 
 
+@pytest.mark.slow
 def test_the_direction_check_on_the_virtual_rig_records_a_counter_clockwise_stage_and_refuses_a_reversed_one(tmp_path):
     out = urd("calibrate", "offset", tmp_path / "ds", "--stage", "sim", "--camera", "virtual", "--sim-offset", 7,
               "--target-angle", 10, "--check-direction", 55)
@@ -192,3 +193,10 @@ def test_the_direction_check_on_the_virtual_rig_records_a_counter_clockwise_stag
     assert out.returncode == 1 and "the stage turns the polarizer clockwise as the camera sees it" in out.stderr
     assert not (tmp_path / "rev" / "calibration.json").exists()
     assert sorted(p.name for p in (tmp_path / "rev" / "calibration").iterdir()) == ["sweep_01", "sweep_02"]   # kept to look at
+
+
+def test_a_target_turn_that_cannot_tell_the_sense_is_refused_before_any_sweep(tmp_path):
+    out = urd("calibrate", "offset", tmp_path / "ds", "--stage", "sim", "--camera", "virtual", "--target-angle", 0,
+              "--check-direction", 90)
+    assert out.returncode == 1 and "turns by 90.0 deg between the sweeps" in out.stderr
+    assert not (tmp_path / "ds" / "calibration").exists()

@@ -130,6 +130,7 @@ def test_a_writer_failing_without_an_errno_on_a_full_disk_is_a_disk_full_error(t
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.slow
 def test_an_aligned_shot_replaced_by_a_compressed_file_is_refused_before_its_pixels_are_allocated(tmp_path_factory):
     import numpy as np
     import tifffile

@@ -158,3 +158,19 @@ def test_a_compressed_tiff_announcing_more_pixels_than_memory_holds_is_refused_b
         read_raw_codes(tmp_path / "flat.tif")
     monkeypatch.setattr(images, "available_memory", lambda: 3_000_000)
     assert read_raw_codes(tmp_path / "flat.tif").shape == (600, 800, 3)
+
+
+def test_a_stored_tiff_with_an_unknown_compression_code_is_refused_as_not_urds(tmp_path):
+    from urd.core.errors import DatasetError
+    from urd.core.images import read_stored_tiff
+
+    path = tmp_path / "R.tiff"
+    tifffile.imwrite(path, np.zeros((8, 8, 3), np.uint16), photometric="rgb")
+    assert read_stored_tiff(path).shape == (8, 8, 3)
+    with tifffile.TiffFile(path) as tif:
+        offset = tif.pages[0].tags["Compression"].valueoffset
+    data = bytearray(path.read_bytes())
+    data[offset:offset + 2] = (54321).to_bytes(2, "little")
+    path.write_bytes(bytes(data))
+    with pytest.raises(DatasetError, match="not an image as urd writes them .*compression 54321"):
+        read_stored_tiff(path)

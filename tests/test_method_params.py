@@ -100,6 +100,7 @@ def test_a_reference_is_any_finite_real_number():
             check_reference(reference)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("param, said", [("grid_step_deg=abc", "schechner parameter grid_step_deg to be a finite number"),
                                          ("foo=1", "unknown parameters ['foo'] for schechner")])
 def test_the_cli_says_a_bad_parameter_as_a_usage_error_before_it_says_the_results_exist(tmp_path_factory, param, said):

@@ -461,3 +461,19 @@ def test_an_interrupted_demo_says_where_its_dataset_is_and_what_to_do_with_it(tm
     said = " ".join(out.output.split())
     assert out.exit_code == 130 and f"the demo's dataset so far is {tmp_path / 'demo'}: delete it" in said, out.output
     assert "'urd demo' starts afresh" in said and (tmp_path / "demo" / "scene_01" / "aligned").is_dir()
+
+
+def test_urd_keeps_ignoring_an_interrupt_its_shell_told_it_to_ignore():
+    import signal
+
+    from urd.core import processes
+
+    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)           # a background job of a shell script
+        processes.handle_interrupts()
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+        assert signal.getsignal(signal.SIGTERM) is processes._interrupt
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)

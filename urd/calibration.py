@@ -19,7 +19,7 @@ import numpy as np
 from acquire.plan import capture_plan_record, run_capture
 from acquire.rig import open_rig, stage_identity
 from acquire.virtual_camera import PolarizedTarget
-from calib.polarizer import OffsetFit, check_direction, fit_offset
+from calib.polarizer import OffsetFit, check_direction, check_target_turn, fit_offset
 from calib.store import sweep_intensities
 from urd.core.dataset import Dataset, Scene
 from urd.core.errors import UrdError
@@ -56,6 +56,8 @@ def sweep_and_calibrate(root: Path, stage: str, camera: str, step_deg: float, ta
     and the two fits must say that the stage turns the polarizer counter-clockwise
     (`calib.polarizer.check_direction`); CalibrationError otherwise, and nothing is stored."""
     angles = [float(a) for a in np.arange(0.0, 180.0, step_deg)]
+    if check_target_deg is not None:
+        check_target_turn(target_angle_deg, check_target_deg)     # before any sweep
     with open_rig(stage, camera, address, sim=sim) as rig, Dataset.made_for(root) as ds:
         with ds.lock():
             try:

@@ -78,7 +78,7 @@ def calibrate_offset_cmd(
         typer.echo(f"sense of rotation: counter-clockwise, as urd takes it (the offsets at target angles {target_angle:g} "
                    f"and {check_direction:g} deg agree within {abs(record.direction['difference_deg']):.2f} deg)")
     else:
-        typer.echo(f"sense of rotation not checked: add --check-direction {target_angle + 45:g} (a second sweep with the "
+        typer.echo(f"sense of rotation not checked: add --check-direction {(target_angle + 45) % 180:g} (a second sweep with the "
                    "target turned by 45 deg counter-clockwise as the camera sees it)")
 
 

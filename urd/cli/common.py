@@ -118,12 +118,14 @@ def check_rig(ctx: typer.Context, stage: str, camera: str, stage_options: tuple[
         raise usage("; ".join(problems))
 
 
-def refuse_weights_folder(path: Optional[Path], option: str) -> None:
+def refuse_weights_folder(path: Optional[Path], option: str, by_name: bool = True) -> None:
     """A usage error naming ``option`` when the weights file ``path`` is a folder (a run folder
-    points at its best.pt) or neither a file nor the name of shipped weights."""
+    points at its best.pt) or not a file (nor, ``by_name``, the name of shipped weights)."""
     if path is not None and path.is_dir():
         raise bad(option, f"{path} is a folder, expected a weights file"
                   + (" (a run folder: pass its best.pt)" if (path / "best.pt").is_file() else ""))
+    if path is not None and not path.exists() and not by_name:
+        raise bad(option, f"{path}: no such file")
     shipped = Path(__file__).resolve().parents[2] / "separate" / "weights"
     if path is not None and not path.exists() and not (path.name == str(path) and (shipped / f"{path}.pt").is_file()):
         names = ", ".join(sorted(p.stem for p in shipped.glob("*.pt")))

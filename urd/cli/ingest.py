@@ -91,7 +91,7 @@ def ingest(
     if not recorded and not mosaic and not given(ctx, "angles") and source.is_dir():
         from urd.ingest import find_raw_files, named_angles
 
-        named = named_angles(find_raw_files(source)[0])
+        named = named_angles(run_guarded(find_raw_files, source)[0])
         if named is not None and named != list(opts.angles_deg):
             listed = ",".join(f"{a:g}" for a in named)
             raise usage(f"{source}: urd's own shots, named with their angles ({listed} deg), not the default "

@@ -115,9 +115,7 @@ def check_paths(config: Path, run_dir: Path, init: Optional[Path]) -> None:
         raise bad("CONFIG", f"{config}: no such file")
     if run_dir.exists() and not run_dir.is_dir():
         raise bad("RUN_DIR", f"{run_dir} is a file, expected a run folder")
-    refuse_weights_folder(init, "--init")
-    if init is not None and not init.exists():
-        raise bad("--init", f"{init}: no such file")
+    refuse_weights_folder(init, "--init", by_name=False)
 
 
 def resume_point(run_dir: Path, cfg: "TrainConfig", init: Optional[Path]) -> dict:

@@ -48,9 +48,17 @@ class Alignment:
     ok: bool
     reason: str = ""
 
+    @property
+    def turn_deg(self) -> float:
+        """The shot's turn against the reference (deg, counter-clockwise in urd's convention):
+        atan2(W₁₀, W₀₀) of the warp (pixels, rows downwards)."""
+        return float(np.degrees(np.arctan2(self.warp[1, 0], self.warp[0, 0])))
+
     def record(self) -> dict:
+        """The manifest's record; an accepted warp carries its turn (`turn_deg`), which the polarizer
+        in front of the lens shares (`urd.core.shots.SceneShots.frame_turns_deg`)."""
         return {"warp": np.round(self.warp, 6).tolist(), "ecc_correlation": round(self.correlation, 4),
-                "ok": self.ok, "reason": self.reason}
+                "ok": self.ok, "reason": self.reason, **({"turn_deg": round(self.turn_deg, 4)} if self.ok else {})}
 
 
 def representation(lum: np.ndarray, clipped: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -72,11 +72,12 @@ def atomic_path(path: Path, overwrite: bool = False) -> Iterator[Path]:
         if full:
             raise write_error(path, exc if isinstance(exc, OSError) else None, full=True) from exc
         raise
-    folder = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(folder)
-    finally:
-        os.close(folder)
+    with contextlib.suppress(OSError):                # the file is in place; some file systems cannot sync a folder
+        folder = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(folder)
+        finally:
+            os.close(folder)
 
 
 def check_writable(folder: Path, then: str) -> None:

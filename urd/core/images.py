@@ -134,7 +134,8 @@ def _read_tiff(path: Path) -> np.ndarray:
         if page.samplesperpixel == 2 and not any(extra in alpha for extra in page.extrasamples):
             raise RawFormatError(f"{path}: a TIFF of 2 samples per pixel, neither grey with alpha nor RGB; save it as "
                                  "RGB or grey")
-        check_decodable(path, int(np.prod(page.shape)) * page.dtype.itemsize)
+        if page.dtype is not None:                 # a sample format tifffile does not know fails in asarray below
+            check_decodable(path, int(np.prod(page.shape)) * page.dtype.itemsize)
         data = page.asarray()
         if page.planarconfig == tifffile.PLANARCONFIG.SEPARATE and page.samplesperpixel > 1:
             data = np.moveaxis(data, 0, -1)
@@ -167,10 +168,12 @@ def stored_tiff_layout(path: Path) -> tuple[tuple[int, ...], np.dtype]:
     announce more pixels than memory holds (a file received with a dataset is not trusted)."""
     with tifffile.TiffFile(path) as tif:
         page = tif.pages[0]
-        nbytes = int(np.prod(page.shape)) * page.dtype.itemsize
-        if len(tif.pages) != 1 or page.compression != tifffile.COMPRESSION.NONE or nbytes > path.stat().st_size:
-            raise DatasetError(f"{path}: not an image as urd writes them (one uncompressed image, {len(tif.pages)} "
-                               f"page(s), compression {page.compression.name.lower()}, "
+        nbytes = int(np.prod(page.shape)) * (page.dtype.itemsize if page.dtype is not None else 1)
+        compression = getattr(page.compression, "name", str(page.compression)).lower()    # an unknown code is an int
+        if (len(tif.pages) != 1 or page.compression != tifffile.COMPRESSION.NONE or page.dtype is None
+                or nbytes > path.stat().st_size):
+            raise DatasetError(f"{path}: not an image as urd writes them (one uncompressed image of a known sample "
+                               f"format; {len(tif.pages)} page(s), compression {compression}, "
                                f"{nbytes} bytes of pixels in a file of {path.stat().st_size})")
         return tuple(page.shape), page.dtype
 

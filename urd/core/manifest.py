@@ -269,9 +269,10 @@ def _check_ingest(ingest: Any, where: str, base: Path, shots: int) -> None:
 
 def _check_alignment(entry: Any, where: str) -> None:
     """One shot's alignment: its index and, where it was aligned, its warp (2×3 or 3×3 finite
-    numbers, with W₀₀ and W₁₀ not both 0: the shot's turn is read from them)."""
+    numbers, with W₀₀ and W₁₀ not both 0) and its turn (deg)."""
     _check(entry, where, {"shot": int}, {"warp": list, "reference": bool, "ecc_correlation": NUMBER, "ok": bool,
-                                         "reason": str})
+                                         "reason": str, "turn_deg": NUMBER})
+    _check_angles(entry, where, ("turn_deg",))
     warp = entry.get("warp")
     if warp is None:
         return

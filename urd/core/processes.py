@@ -56,9 +56,11 @@ def _interrupt(signum: int, frame) -> None:
 def handle_interrupts() -> None:
     """Ctrl-C raises KeyboardInterrupt and SIGTERM `Terminated` in the main thread, each noted so
     that `check_interrupted` raises it again where Python swallowed it (an exception raised while
-    a finalizer or weak-reference callback runs is only printed). Call once, from the main thread."""
+    a finalizer or weak-reference callback runs is only printed). A signal the process was started
+    ignoring (a shell's background job ignores Ctrl-C) stays ignored. Call once, from the main thread."""
     for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, _interrupt)
+        if signal.getsignal(sig) is not signal.SIG_IGN:
+            signal.signal(sig, _interrupt)
 
 
 def check_interrupted() -> None:

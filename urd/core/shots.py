@@ -7,7 +7,6 @@ from __future__ import annotations
 import contextlib
 import copy
 import dataclasses
-import math
 from pathlib import Path
 
 from urd.core.errors import DatasetError, ManifestError
@@ -101,14 +100,14 @@ class SceneShots:
 
     def frame_turns_deg(self) -> list[float]:
         """Each shot's turn against the reference shot (deg, counter-clockwise in urd's convention),
-        read from its alignment warp W (reference → shot pixels): atan2(W₁₀, W₀₀). The polarizer
-        sits in front of the lens and turns with the camera, so in the aligned stack (the
-        reference's frame) its angle is the stage's plus this. Zero before an ingest and for the
-        reference."""
+        as its ingest recorded it from the accepted alignment warp (`urd.core.align.Alignment.turn_deg`).
+        The polarizer sits in front of the lens and turns with the camera, so in the aligned stack
+        (the reference's frame) its angle is the stage's plus this. Zero before an ingest, for the
+        reference, and for an ingest that recorded no turns (urd before 2026-11-29: its results
+        were made at the stage's angles, and stay consistent with them until ``--redo``)."""
         ingest = self._data().get("ingest") or {}
         alignment = ingest.get("alignment") if isinstance(ingest.get("alignment"), list) else []
-        turns = {entry["shot"]: math.degrees(math.atan2(entry["warp"][1][0], entry["warp"][0][0]))
-                 for entry in alignment if entry.get("warp") is not None}
+        turns = {entry["shot"]: float(entry.get("turn_deg", 0.0)) for entry in alignment}
         return [turns.get(s.index, 0.0) for s in self.shots()]
 
     def capture_angles_deg(self) -> list[float] | None:
