@@ -67,10 +67,9 @@ def test_a_folder_where_an_output_file_goes_refuses_the_separation_naming_it(bas
     assert not list((root / SCENE).glob(".staging-*"))
 
 
-def test_a_swap_a_failure_left_is_named_by_the_report_and_recovered_without_link_files(base, tmp_path, monkeypatch):
-    """The recorded outputs are whole (verify finds nothing wrong); the report says they wait to be
-    put in place, and the next command that writes does it, leaving no temporary link."""
-    root = shutil.copytree(base, tmp_path / "ds")
+def stop_a_swap(root, monkeypatch) -> None:
+    """Separate scene_01 again with the swap's second placing failing: the new outputs are
+    recorded but not all put in place."""
     real_place, calls = swap_module._place, []
 
     def place_failing_the_second_file(source, target):
@@ -83,6 +82,13 @@ def test_a_swap_a_failure_left_is_named_by_the_report_and_recovered_without_link
     with pytest.raises(DatasetError, match="cannot be put in place"):
         separate_again(root)
     monkeypatch.undo()
+
+
+def test_a_swap_a_failure_left_is_named_by_the_report_and_recovered_without_link_files(base, tmp_path, monkeypatch):
+    """The recorded outputs are whole (verify finds nothing wrong); the report says they wait to be
+    put in place, and the next command that writes does it, leaving no temporary link."""
+    root = shutil.copytree(base, tmp_path / "ds")
+    stop_a_swap(root, monkeypatch)
     assert verify(root) == {SCENE: []}
     text = report_text(root)
     assert "not put in place" in text and f"urd ingest {root}" in text
@@ -94,18 +100,7 @@ def test_a_swap_a_failure_left_is_named_by_the_report_and_recovered_without_link
 
 def test_separating_again_after_a_stopped_swap_finishes_it_before_saying_the_results_exist(base, tmp_path, monkeypatch):
     root = shutil.copytree(base, tmp_path / "ds")
-    real_place, calls = swap_module._place, []
-
-    def place_failing_the_second_file(source, target):
-        calls.append(target)
-        if len(calls) == 2:
-            raise IsADirectoryError(21, "Is a directory")
-        real_place(source, target)
-
-    monkeypatch.setattr(swap_module, "_place", place_failing_the_second_file)
-    with pytest.raises(DatasetError, match="cannot be put in place"):
-        separate_again(root)
-    monkeypatch.undo()
+    stop_a_swap(root, monkeypatch)
     assert Scene(root / SCENE).unfinished_swap() is not None
     out = invoke("separate", SCENE, "--dataset", root, "--method", "none")
     assert out.exit_code == 1 and "already has none results" in out.output, out.output
