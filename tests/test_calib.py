@@ -106,6 +106,8 @@ def test_per_shot_errors_on_the_virtual_rig_and_their_effect_on_the_stokes_fit(t
     record = scene.load()
     true = np.array([shot_truth(scene.path / s["file"])["scene_angle_deg"] for s in record["shots"]])   # aligned frame
     uncalibrated = np.array(scene.uncalibrated_angles_deg())          # the stage's angles, turned with the camera
+    stage_truth = np.array([shot_truth(scene.path / s["file"])["true_angle_deg"] for s in record["shots"]])
+    np.testing.assert_allclose(uncalibrated - scene.stage_angles_deg(), true - stage_truth, atol=0.05)   # the turns
     true_err = true - uncalibrated
     assert np.abs(true_err).max() > 1.0                               # the jitter is real
     assert np.abs(np.array(result.errors_deg) - (true_err - true_err.mean())).max() < 0.5

@@ -163,3 +163,23 @@ def test_read_only_dataset_folder(tmp_path):
     with mounted_tmpfs(tmp_path / "ro", "ro,size=1m", "a read-only tmpfs") as ro:
         out = urd("capture", ro / "ds", "--stage", "sim", "--camera", "virtual", "--sim-size", "64x48")
         assert out.returncode == 1 and "cannot create dataset folder" in out.stderr
+
+
+def test_the_virtual_cameras_polarizer_turns_with_the_camera():
+    """A shot turned by the shake sees the scene through the polarizer at its angle in the
+    camera's frame less the turn (the polarizer sits in front of the lens)."""
+    import cv2
+    import numpy as np
+
+    cam = VirtualCamera(make_glass_scene(128, 96, curved=False, phi_perp_deg=90.0), lambda: 0.0, shake_px=0, shake_deg=5.0, seed=4)
+    turn = -cam.shake(1)[1, 0]                                # sin of the turn: the scene turns counter-clockwise by it
+    turn_deg = float(np.degrees(np.arcsin(turn)))
+    assert abs(turn_deg) > 0.5 and cam.scene_angle_deg(30.0, 1) == pytest.approx(30.0 - turn_deg, abs=1e-4)
+    shot = cam.render(30.0, 1)
+
+    def warped(angle_deg):
+        return cv2.warpAffine((cam.scene.render(np.radians(angle_deg)) * cam.gain).astype(np.float32), cam.shake(1),
+                              (128, 96), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+
+    assert np.abs(shot - warped(30.0 - turn_deg)).max() < 1e-6
+    assert np.abs(shot - warped(30.0)).max() > 1e-3                 # a polarizer fixed to the scene would see this

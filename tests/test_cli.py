@@ -101,9 +101,10 @@ def test_the_installed_urd_command_is_main_with_its_sigterm_handling_and_quick_e
     ended = []
     monkeypatch.setattr(sys, "argv", ["urd", "--version"])
     monkeypatch.setattr(urd.cli, "exit_now", ended.append)
-    monkeypatch.setattr(urd.cli, "handle_interrupts", lambda: None)     # this process's handlers stay pytest's
+    installed = []
+    monkeypatch.setattr(urd.cli, "handle_interrupts", lambda: installed.append(1))   # this process's stay pytest's
     urd.cli.main()
-    assert ended == [0]
+    assert ended == [0] and installed == [1]
 
 
 @pytest.mark.parametrize("code,status,stderr", [(3, 3, ""), (None, 0, ""), ("Error: gone", 1, "Error: gone\n")])

@@ -299,14 +299,22 @@ def test_an_interrupted_ingest_decodes_no_further_shot_and_leaves_no_staging(tmp
     def decode(path, half_size=False):                        # shots 2.. wait, as a 24 MP decode takes seconds
         decoded.append(path.name)
         if path.name not in first_two:
-            held.wait(2.0)
+            held.wait(60.0)
         return real_decode(path, half_size)
 
     def progress(done, total, label):
         if done == 1:
             raise KeyboardInterrupt                           # Ctrl-C, in the main thread, after the first shot
 
+    real_shutdown = ingest_module.ThreadPoolExecutor.shutdown
+
+    def shutdown(pool, wait=True, *, cancel_futures=False):   # the held decodes go on once the queue is cancelled
+        real_shutdown(pool, wait=False, cancel_futures=cancel_futures)
+        held.set()
+        real_shutdown(pool, wait=wait)
+
     monkeypatch.setattr(ingest_module.rawio, "decode", decode)
+    monkeypatch.setattr(ingest_module.ThreadPoolExecutor, "shutdown", shutdown)
     with pytest.raises(KeyboardInterrupt):
         ingest_module.prepare_ingest(scene, IngestOptions(), progress)
     never = {path.name for path in scene.raw_paths()[4:]}    # two threads: at most shots 2 and 3 had begun

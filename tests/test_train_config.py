@@ -58,7 +58,11 @@ def tiny_config(folder: Path, **changes: str) -> Path:
     ("strength", "[2.0, 0.5]", "expected strength"),
     ("pipeline", '"DR+FOO"', "pipeline: expected one of"),
 ])
-def test_a_bad_setting_is_one_error_line_naming_the_file_and_key_and_makes_no_run_folder(tmp_path, key, value, expected):
+def test_a_bad_setting_is_one_error_line_naming_the_file_and_key_and_makes_no_run_folder(tmp_path, monkeypatch, key,
+                                                                                         value, expected):
+    import separate.train as train_module
+
+    monkeypatch.setattr(train_module, "_train", lambda *args: pytest.fail("trained with a bad setting"))
     config = tiny_config(tmp_path, **{key: value})
     out = invoke("train", config, tmp_path / "run")
     assert out.exit_code == 1, out.output
@@ -218,7 +222,10 @@ def test_a_run_from_init_weights_stopped_before_its_first_step_resumes_with_the_
     assert load_checkpoint(run / "last.pt")["step"] == 2 and not list(run.glob(".last.*"))
 
 
-def test_an_empty_config_file_is_refused_rather_than_training_on_every_default(tmp_path):
+def test_an_empty_config_file_is_refused_rather_than_training_on_every_default(tmp_path, monkeypatch):
+    import separate.train as train_module
+
+    monkeypatch.setattr(train_module, "_train", lambda *args: pytest.fail("trained on every default"))
     (tmp_path / "empty.toml").write_text("# nothing set\n")
     out = invoke("train", tmp_path / "empty.toml", tmp_path / "run")
     assert out.exit_code == 1 and "empty.toml: no settings" in out.output, out.output      # as every bad config
