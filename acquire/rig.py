@@ -75,7 +75,7 @@ def _sim_options(identity: dict) -> str:
 def describe_stage(identity: dict) -> str:
     """A `stage_identity` in words, e.g. 'the ELL14 with serial 11400123 at address 0'."""
     if identity.get("kind") == "ELL14 simulator":
-        return f"the simulated ELL14 with --sim-offset {identity['sim_offset_deg']:g}"
+        return f"the simulated ELL14 with --sim-offset {identity['sim_offset_deg']:g}" + (" --sim-reversed" if identity.get("sim_reversed") else "")
     return f"the ELL14 with serial {identity.get('serial')} at address {identity.get('address')}"
 
 
@@ -217,5 +217,7 @@ def offset_for_stage(ds: Dataset, stage_info: dict) -> tuple[float, str]:
             f"with 'urd calibrate offset {ds.root.resolve()} --stage {stage_info.get('port') or 'PORT'}"
             f"{_sim_options(this)}', or capture into another dataset")
     whose = describe_stage(owner) if owner is not None else "a stage it does not record"
+    sense = ("" if calibration.direction is not None else
+             "; the stage's sense of rotation is not checked (urd calibrate offset --check-direction)")
     return calibration.offset_deg, (f"mounting offset: {calibration.offset_deg:.3f} ± {calibration.uncertainty_deg:.3f} deg "
-                                    f"from {ds.calibration_path.resolve()} ({calibration.time}, on {whose})")
+                                    f"from {ds.calibration_path.resolve()} ({calibration.time}, on {whose}){sense}")

@@ -111,9 +111,9 @@ def check_target_turn(first_target_deg: float, second_target_deg: float) -> floa
     CalibrationError unless it lies `MIN_TARGET_TURN_DEG` or more away from 0° and 90°."""
     turn = wrapped_deg(second_target_deg - first_target_deg)
     if not MIN_TARGET_TURN_DEG <= abs(turn) <= 90.0 - MIN_TARGET_TURN_DEG:
-        raise CalibrationError(f"the target turns by {turn:.1f} deg between the sweeps (mod 180): the two senses of "
-                               f"rotation give the same offsets there; turn it by {MIN_TARGET_TURN_DEG:g} to "
-                               f"{90 - MIN_TARGET_TURN_DEG:g} deg (45 is best)")
+        raise CalibrationError(f"the target turns by {turn:.1f} deg between the sweeps (mod 180): too near 0 or 90 deg, "
+                               f"where the two senses of rotation give offsets too alike to tell apart; turn it by "
+                               f"{MIN_TARGET_TURN_DEG:g} to {90 - MIN_TARGET_TURN_DEG:g} deg (45 is best)")
     return turn
 
 

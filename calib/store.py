@@ -11,6 +11,8 @@ itself (`acquire.rig.offset_for_stage`).
 
 from __future__ import annotations
 
+import math
+
 from calib.polarizer import ShotErrors, estimate_shot_errors
 from urd.core import raw as rawio
 from urd.core.dataset import Scene
@@ -32,6 +34,20 @@ def sweep_intensities(scene: Scene) -> tuple[list[float], list[float]]:
         values.append(float(image[h // 4 : 3 * h // 4, w // 4 : 3 * w // 4].mean()))
         angles.append(float(shot.stage_position_deg))
     return angles, values
+
+
+#: Camera motion between the shots (px of shift, deg of turn) above which the shots were not taken
+#: from a tripod: per-shot angle errors need shots registered to a few hundredths of a pixel.
+TRIPOD_SHIFT_PX, TRIPOD_TURN_DEG = 0.5, 0.05
+
+
+def shot_motion(scene: Scene) -> tuple[float, float]:
+    """The largest shift (px) and turn (deg) of a shot against the reference that the scene's
+    ingest recorded (0, 0 for a mosaic frame, registered as taken)."""
+    alignment = scene.load(verify=False)["ingest"].get("alignment")
+    warps = [entry["warp"] for entry in alignment if entry.get("warp")] if isinstance(alignment, list) else []
+    shift = max((math.hypot(w[0][2], w[1][2]) for w in warps), default=0.0)
+    return shift, max((abs(turn) for turn in scene.frame_turns_deg()), default=0.0)
 
 
 def calibrate_shots(scene: Scene, apply: bool = True) -> ShotErrors:

@@ -123,6 +123,15 @@ def test_per_shot_errors_on_the_virtual_rig_and_their_effect_on_the_stokes_fit(t
     with capsys.disabled():
         print(f"\nS1,S2 RMS error vs truth: nominal angles {rows['nominal']:.5f}, calibrated {rows['calibrated']:.5f}")
     assert rows["calibrated"] < 0.7 * rows["nominal"]
+    from typer.testing import CliRunner
+
+    from urd.cli import app
+
+    out = CliRunner().invoke(app, ["calibrate", "shots", str(scene.path)])        # said where a user looks
+    said = " ".join(out.output.split())
+    assert out.exit_code == 0 and "the shots moved between frames (up to" in said and "calibrate from a tripod" in said
+    assert f"results of none are now stale (separated at the uncalibrated angles); renew them with: urd separate " \
+           f"scene_01 --dataset {scene.path.parent} --force" in said
 
 
 def test_angles_the_images_do_not_determine_are_refused_and_nothing_is_stored(tmp_path):

@@ -151,7 +151,8 @@ def test_a_mounting_offset_is_applied_only_with_the_stage_it_was_calibrated_on(t
     assert printed == f"urd calibrate offset {root.resolve()} --stage sim --camera virtual --sim-offset 0"
     out = invoke("capture", root, *SIM, "--sim-size", "96x64", "--sim-offset", "3")
     assert out.exit_code == 0, out.output
-    assert re.search(r"^mounting offset: 3\.\d{3} ± \d\.\d{3} deg from .*calibration\.json .*--sim-offset 3\)$", out.stdout, re.M)
+    assert re.search(r"^mounting offset: 3\.\d{3} ± \d\.\d{3} deg from .*calibration\.json .*--sim-offset 3\); the stage's "
+                     r"sense of rotation is not checked \(urd calibrate offset --check-direction\)$", out.stdout, re.M)
     scene = Dataset.open(root).scene("scene_01")
     for shot in scene.load()["shots"]:
         truth = shot_truth(scene.path / shot["file"])

@@ -54,7 +54,8 @@ def sweep_and_calibrate(root: Path, stage: str, camera: str, step_deg: float, ta
     With ``check_target_deg`` a second sweep follows once ``turn_target(check_target_deg)`` has
     returned (the user turned the target there; on the simulated rig the virtual target turns),
     and the two fits must say that the stage turns the polarizer counter-clockwise
-    (`calib.polarizer.check_direction`); CalibrationError otherwise, and nothing is stored."""
+    (`calib.polarizer.check_direction`); CalibrationError otherwise, and calibration.json is not
+    written (the two sweeps stay in ``calibration/``, to look at)."""
     angles = [float(a) for a in np.arange(0.0, 180.0, step_deg)]
     if check_target_deg is not None:
         check_target_turn(target_angle_deg, check_target_deg)     # before any sweep

@@ -448,10 +448,11 @@ def _outcome(scene: Scene, error: str | None, notes: list[str]) -> SceneOutcome:
         earlier = steps[-2].get("parameters", {}) if len(steps) >= 2 and steps[-2].get("step") == "supersede" else {}
         if earlier.get("stale_results"):
             notes = [*notes, f"{scene.name}: results of {', '.join(earlier['stale_results'])} are stale (of the earlier "
-                             f"alignment); renew them with: urd separate {scene.name} --force"]
+                             f"alignment); renew them with: urd separate {scene.name} --dataset {scene.path.parent} --force"]
         if "calibration" in earlier:
             notes = [*notes, f"{scene.name}: its per-shot angle calibration was of the earlier alignment and is removed "
-                             f"(kept in the provenance); calibrate again with: urd calibrate shots {scene.name}"]
+                             f"(kept in the provenance); calibrate again with: urd calibrate shots {scene.name} "
+                             f"--dataset {scene.path.parent}"]
     return SceneOutcome(scene.name, scene.raw_paths(), error, "failed" if error else "ingested", notes)
 
 

@@ -95,9 +95,10 @@ def calibrate_shots_cmd(
       urd calibrate shots scene_01
       urd calibrate shots dataset/scene_01 --no-apply
     """
-    from calib.store import calibrate_shots
+    from calib.store import TRIPOD_SHIFT_PX, TRIPOD_TURN_DEG, calibrate_shots, shot_motion
 
-    result = run_guarded(lambda: calibrate_shots(resolve_scene(scene, dataset), apply))
+    target = run_guarded(resolve_scene, scene, dataset)
+    result = run_guarded(calibrate_shots, target, apply)
     for i, (e, u) in enumerate(zip(result.errors_deg, result.uncertainty_deg)):
         typer.echo(f"shot {i}: {e:+.3f} ± {u:.3f} deg")
     if result.unobservable is not None:
@@ -105,3 +106,12 @@ def calibrate_shots_cmd(
              f"(direction {[round(v, 2) for v in result.unobservable]}); the smallest consistent "
              "correction is reported. Capture 5 or more angles to determine every error.")
     typer.echo("calibrated angles stored in the manifest" if apply else "manifest unchanged (--no-apply)")
+    shift, turn = run_guarded(shot_motion, target)
+    if shift > TRIPOD_SHIFT_PX or turn > TRIPOD_TURN_DEG:
+        warn(f"the shots moved between frames (up to {shift:.1f} px and {turn:.2f} deg): per-shot angle errors need shots "
+             "registered to a few hundredths of a pixel, which hand-held shots are not; calibrate from a tripod "
+             "(--no-apply only reports the estimate)")
+    stale = run_guarded(lambda: target.reload().status().stale)
+    if apply and stale:
+        warn(f"results of {', '.join(stale)} are now stale (separated at the uncalibrated angles); renew them with: "
+             f"urd separate {target.name} --dataset {target.path.parent} --force")

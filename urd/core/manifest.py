@@ -293,7 +293,8 @@ def _check_result(method: Any, entry: Any, where: str, base: Path) -> None:
     where = f"{where}.{method}"
     _check(entry, where, {"time": str, "method": str, "files": list},
            {"angles_deg": list, "parameters": dict, "truth_metrics": (dict, type(None)), "stale": str,
-            "reference_deg": NUMBER, "full_scale": NUMBER, "warnings": list})
+            "reference_deg": NUMBER, "full_scale": NUMBER, "warnings": list, "weights": dict, "incidence": dict,
+            "reference_policy": str, "reference": str, "paper": str})
     _check_name(entry["method"], f"{where}: field 'method'")
     if "angles_deg" in entry:
         _check_numbers(entry["angles_deg"], f"{where}.angles_deg", MAX_ANGLE_DEG)
