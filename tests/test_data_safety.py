@@ -50,8 +50,10 @@ def base(tmp_path_factory):
 
 
 def redo(root):
-    """``urd ingest SCENE --redo``."""
-    report = ingest(root / SCENE, root, IngestOptions(redo=True))
+    """``urd ingest SCENE --redo --motion translation``: another alignment than the first."""
+    from urd.core.align import Motion
+
+    report = ingest(root / SCENE, root, IngestOptions(redo=True, motion=Motion.TRANSLATION))
     assert [o.state for o in report.outcomes] == ["ingested"], report.outcomes
 
 

@@ -15,6 +15,7 @@ from rig import capture_virtual
 from urd.core import raw as rawio
 from urd.core.dataset import Dataset
 from urd.core.errors import RawFormatError
+from urd.core.align import Motion
 from urd.ingest import IngestOptions, counter_wraps, group_shots, ingest_folder, ingest_scene
 
 
@@ -362,7 +363,10 @@ def test_a_redo_says_which_results_went_stale_and_that_the_shot_calibration_was_
     scene = separated_virtual_scene(Dataset.open_or_create(tmp_path / "ds"))
     record = ShotErrors([0.1, -0.2, 0.1], [0.05, 0.05, 0.05], 400, 4, None).record()
     scene.set_shot_calibration(record, [0.1, 44.8, 90.1])
-    outcome = ingest_scene(scene.reload(), IngestOptions(redo=True))
+    again = ingest_scene(scene.reload(), IngestOptions(redo=True))            # the same aligned files: nothing to renew
+    assert again.state == "ingested" and again.notes == [] and scene.reload().status().calibrated
+    assert scene.stale_reason("none") is not None                             # separated before the calibration
+    outcome = ingest_scene(scene.reload(), IngestOptions(redo=True, motion=Motion.TRANSLATION))
     assert outcome.state == "ingested", outcome
     said = " ".join(outcome.notes)
     assert "results of none are stale" in said and f"urd separate scene_01 --dataset {scene.path.parent} --force" in said

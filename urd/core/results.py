@@ -123,7 +123,8 @@ class SceneResults:
         aligned files of an earlier ingest that are no longer named are removed. What was
         computed from an earlier alignment is superseded: results are marked stale (kept, with
         the command that renews them), a per-shot angle calibration is removed (its record and
-        the calibrated angles are kept in the provenance).
+        the calibrated angles are kept in the provenance); an alignment giving the very same
+        aligned files (by SHA-256) at the same angles supersedes nothing.
 
         A failed ingest (``ok`` false) of a scene whose earlier ingest aligned changes nothing but
         the provenance, where the attempt and its error are recorded: the earlier aligned shots,
@@ -144,7 +145,10 @@ class SceneResults:
 
         def change(files: list[dict]) -> None:
             data = self._data()
-            earlier = self._supersede(data) if "ingest" in data else None
+            before = data.get("ingest") or {}
+            same = (before.get("ok") and [f["sha256"] for f in before.get("aligned", [])] == [f["sha256"] for f in files]
+                    and _turns(before.get("alignment")) == _turns(alignment))
+            earlier = self._supersede(data) if "ingest" in data and not same else None    # the same stack: nothing to renew
             data["ingest"] = {**record, "aligned": files}
             data["ingest"]["angles_deg"] = self.angles_deg()              # in the new alignment's frame
             if earlier:
@@ -224,3 +228,8 @@ class SceneResults:
 
         self._commit(staged, change)
         return self.result(method, verify=False)
+
+
+def _turns(alignment: list | str | None) -> list[float]:
+    """The shots' recorded turns (deg) of an ingest's alignment record (0 where none is)."""
+    return [float(entry.get("turn_deg", 0.0)) for entry in alignment] if isinstance(alignment, list) else []
