@@ -137,3 +137,9 @@ def test_a_link_to_a_scene_is_named_as_one_by_separate_and_verify(base, tmp_path
         out = invoke(*args)
         assert out.exit_code == 2, out.output
         assert f"is a symbolic link to the scene {(base / SCENE).resolve()}; give that folder itself" in " ".join(out.output.split())
+
+
+def test_the_status_says_when_the_stacks_angles_turned_with_the_camera():
+    turned = SceneStatus(SCENE, "ingested", 3, 3, [0.0, 45.0, 90.0], [], turned_deg=0.36).describe()
+    assert "3 shots at 0,45,90 deg, aligned, the stage's angles turned with the camera by up to 0.36 deg" in turned
+    assert "nominal angles" in SceneStatus(SCENE, "ingested", 3, 3, [0.0, 45.0, 90.0], [], turned_deg=0.001).describe()

@@ -171,6 +171,8 @@ def test_a_scene_captured_with_another_offset_is_flagged(dataset):
     assert note in scene_view(scene, calibration=stale).notes
     close = OffsetCalibration(0.1, 0.2, None, 0.0, "t", None, 0)
     assert not [n for n in scene_view(scene, calibration=close).notes if "polarizer offset" in n]
+    other = OffsetCalibration(2.5, 0.2, None, 0.0, "t", None, 0, {"kind": "ELL14 simulator", "sim_offset_deg": 8.0})
+    assert not [n for n in scene_view(scene, calibration=other).notes if "polarizer offset" in n]   # another stage's
 
 
 def test_the_report_flags_scenes_captured_before_the_calibration(dataset, tmp_path):

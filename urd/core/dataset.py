@@ -91,7 +91,9 @@ SCENE_NAME = re.compile(r"^scene_([0-9]{2,})\Z")        # \Z: "scene_01\n" is no
 
 @dataclasses.dataclass(frozen=True)
 class SceneStatus:
-    """Where a scene stands. ``state``: broken, incomplete, captured, alignment failed, ingested."""
+    """Where a scene stands. ``state``: broken, incomplete, captured, alignment failed, ingested;
+    ``angles_deg`` the commanded ones; ``turned_deg`` the largest turn of a shot against the
+    reference that its ingest recorded (the polarizer turns with the camera)."""
 
     name: str
     state: str
@@ -102,6 +104,7 @@ class SceneStatus:
     calibrated: bool = False
     problem: str | None = None
     stale: tuple[str, ...] = ()
+    turned_deg: float = 0.0
 
     def describe(self) -> str:
         """One line for a terminal."""
@@ -114,7 +117,12 @@ class SceneStatus:
         else:
             parts.append({"captured": "not ingested", "ingested": "aligned",
                           "alignment failed": "ALIGNMENT FAILED"}[self.state])
-        parts.append("angles calibrated" if self.calibrated else "nominal angles")
+        if self.calibrated:
+            parts.append("angles calibrated")
+        elif self.turned_deg >= 0.005:
+            parts.append(f"the stage's angles turned with the camera by up to {self.turned_deg:.2f} deg")
+        else:
+            parts.append("nominal angles")
         methods = [f"{m} (STALE: separate again with --force)" if m in self.stale else m
                    for m in self.methods]
         parts.append(", ".join(methods) if methods else "no results")
@@ -225,7 +233,8 @@ class Scene(SceneShots, SceneResults, SceneTruth, SceneSwap):
         calibrated = bool(data.get("calibration", {}).get("applied"))
         results = data.get("results", {})
         return SceneStatus(self.name, state, len(shots), expected, [s.angle_commanded_deg for s in shots],
-                           sorted(results), calibrated, stale=tuple(sorted(m for m, e in results.items() if "stale" in e)))
+                           sorted(results), calibrated, stale=tuple(sorted(m for m, e in results.items() if "stale" in e)),
+                           turned_deg=max((abs(t) for t in self.frame_turns_deg()), default=0.0))
 
     def _save(self) -> None:
         validate_scene(self._record, str(self.manifest_path), self.path)
