@@ -410,3 +410,26 @@ def test_a_scene_ingested_before_turns_were_recorded_keeps_the_stage_angles_its_
 
     write_json_atomic(scene.manifest_path, record)
     assert scene.reload().angles_deg() == [0.0, 45.0, 90.0] == scene.uncalibrated_angles_deg()
+
+
+def test_an_interrupted_redo_says_what_the_scenes_it_kept_superseded(tmp_path, monkeypatch):
+    import urd.ingest as ingest_module
+    from rig import separated_virtual_scene
+
+    ds = Dataset.open_or_create(tmp_path / "ds")
+    first, second = separated_virtual_scene(ds, seed=1), separated_virtual_scene(ds, seed=2)
+    real, calls = ingest_module.ingest_scene, []
+
+    def stopped_at_the_second(scene, opts, progress=None):
+        calls.append(scene.name)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(scene, opts, progress)
+
+    monkeypatch.setattr(ingest_module, "ingest_scene", stopped_at_the_second)
+    with pytest.raises(KeyboardInterrupt) as stopped:
+        ingest_module.ingest(ds.root, ds.root, IngestOptions(redo=True, motion=Motion.TRANSLATION))
+    notes = stopped.value.__notes__
+    assert notes[0].startswith("1 scene ingested before it (scene_01) kept, the others unchanged")
+    assert any(note.startswith("scene_01: results of none are stale") for note in notes), notes
+    assert first.reload().stale_reason("none") and not second.reload().stale_reason("none")

@@ -518,11 +518,19 @@ def ingest_scenes(scenes: list[Scene], opts: IngestOptions, jobs: int, progress:
                 if progress:
                     progress(done, len(todo), label)
     except KeyboardInterrupt as exc:
-        names = {scene.name for scene in todo}
-        exc.add_note(kept_note([o.name for o in outcomes if o.name in names and o.state == "ingested"], "ingested", opts.redo))
+        _note_kept(exc, outcomes, {scene.name for scene in todo}, opts)
         raise
     order = {scene.name: k for k, scene in enumerate(scenes)}
     return sorted(outcomes, key=lambda o: order.get(o.name, len(order)))
+
+
+def _note_kept(exc: KeyboardInterrupt, outcomes: list[SceneOutcome], names: set[str], opts: IngestOptions) -> None:
+    """Note on an interrupt what the scenes ``names`` ingested before it kept, with what each
+    superseded (`_outcome`'s notes: stale results, a removed shot calibration)."""
+    kept = [o for o in outcomes if o.name in names and o.state == "ingested"]
+    exc.add_note(kept_note([o.name for o in kept], "ingested", opts.redo))
+    for note in (note for o in kept for note in o.notes):
+        exc.add_note(note)
 
 
 def ingest_group(ds: Dataset, files: list[Path], metas: list[dict], digests: list[str], opts: IngestOptions,
@@ -715,4 +723,11 @@ def _ingest_into(ds: Dataset, source: Path, scenes: list[str] | None, opts: Inge
         if jobs > 1:
             return IngestReport(ingest_scenes([Scene(path) for path in targets], opts, jobs, progress), [])
 
-        return IngestReport([ingest_scene(Scene(path), opts, progress) for path in targets], [])
+        outcomes = []
+        try:
+            for path in targets:
+                outcomes.append(ingest_scene(Scene(path), opts, progress))
+        except KeyboardInterrupt as exc:
+            _note_kept(exc, outcomes, {path.name for path in targets}, opts)
+            raise
+        return IngestReport(outcomes, [])
