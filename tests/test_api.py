@@ -101,6 +101,8 @@ def test_separate_scene_exports_the_maps_hashed_with_units(ingested):
         meta = json.loads(tif.pages[0].description)
         aolp = tif.asarray()
     assert meta["unit"].startswith("deg") and "counter-clockwise" in meta["angle_convention"]
+    with tifffile.TiffFile(scene.results_dir("schechner") / "maps" / "theta.tiff") as tif:
+        assert "angle_convention" not in json.loads(tif.pages[0].description)    # an angle of incidence, not in the image
     assert aolp.dtype == np.float32 and 0.0 <= np.nanmin(aolp) and np.nanmax(aolp) < 180.0
     assert Dataset.open(root).scene(name).verify() == []
     (scene.results_dir("schechner") / "maps" / "DoLP.tiff").write_bytes(b"broken")

@@ -242,3 +242,10 @@ def test_the_report_holds_one_scenes_views_at_a_time(tmp_path):
     write_html_report(Views(), tmp_path / "r", "t")
     assert alive == [0, 0, 0, 0]                          # the views made before are gone
     assert _page(tmp_path / "r" / "index.html").count('<section class="card scene"') == 4
+
+
+def test_map_previews_say_their_ranges_units():
+    values = np.linspace(0.0, 2.0, 64, dtype=np.float32).reshape(8, 8)
+    assert map_preview("phi_perp", values)[1].endswith(" deg") and map_preview("theta", values)[1].endswith(" deg")
+    assert map_preview("S0", values)[1].endswith("(linear, 1.0 = sensor white)")
+    assert map_preview("AoLP", values)[1] == "0 to 180 deg as hue, cyclic"

@@ -19,6 +19,7 @@ from typing import Sequence
 import cv2
 import numpy as np
 
+from separate.maps import MAPS
 from separate.optics import aolp, dolp, stokes_from_images
 from urd.core.errors import DatasetError
 
@@ -111,7 +112,7 @@ def map_preview(name: str, values: np.ndarray) -> tuple[np.ndarray, str]:
         full = np.ones_like(values)
         rgb = np.round(hsv_to_rgb(np.nan_to_num(values) / 180.0, full, full) * 255.0).astype(np.uint8)
         rgb[~np.isfinite(values)] = 0
-        return rgb, "0 to 180 as hue, cyclic"
+        return rgb, "0 to 180 deg as hue, cyclic"
     finite = values[np.isfinite(values)]
     if name == "DoLP":
         lo, hi = 0.0, 1.0
@@ -125,7 +126,8 @@ def map_preview(name: str, values: np.ndarray) -> tuple[np.ndarray, str]:
     span = hi - lo if hi - lo > 1e-9 else 1.0
     rgb = colormap_image((values - lo) / span)
     rgb[~np.isfinite(values)] = 0
-    return rgb, f"{lo:.3g} to {hi:.3g}"
+    unit = MAPS[name][0].split()[0].rstrip(",") if name in MAPS else ""      # "deg", "linear", "1"
+    return rgb, f"{lo:.3g} to {hi:.3g}" + (f" {unit}" if unit == "deg" else " (linear, 1.0 = sensor white)" if unit == "linear" else "")
 
 
 def write_png(path: Path, rgb: np.ndarray, long_side: int = 1024) -> None:

@@ -142,12 +142,18 @@ def write_confidence(path: Path, confidence: np.ndarray, overwrite: bool = False
     write_float_map(path, confidence, PRESENCE_QUANTITY, "1 (a fraction)", overwrite)
 
 
-def write_float_map(path: Path, values: np.ndarray, quantity: str, unit: str, overwrite: bool = False) -> None:
+#: The maps whose values are angles in the image plane (`ANGLE_CONVENTION`); θ is an angle of incidence.
+IN_PLANE_ANGLES = ("AoLP", "phi_perp")
+
+
+def write_float_map(path: Path, values: np.ndarray, quantity: str, unit: str, overwrite: bool = False,
+                    in_plane: bool = False) -> None:
     """A float32 map (H×W or H×W×C) as a one-page TIFF (RGB where C is 3, the channels of each
     pixel together: what image programs read as an H×W image) whose ImageDescription is JSON:
-    ``quantity``, ``unit`` and urd's angle convention; atomically."""
+    ``quantity``, ``unit`` and, for angles in the image plane (``in_plane``), urd's angle
+    convention; atomically."""
     values = np.asarray(values, np.float32)
-    description = json.dumps({"quantity": quantity, "unit": unit, "angle_convention": ANGLE_CONVENTION,
+    description = json.dumps({"quantity": quantity, "unit": unit, **({"angle_convention": ANGLE_CONVENTION} if in_plane else {}),
                               "software": "urd"})
     layout = ({"photometric": "rgb"} if values.ndim == 3 and values.shape[2] == 3 else
               {"photometric": "minisblack", "planarconfig": "contig"} if values.ndim == 3 else {"photometric": "minisblack"})
@@ -189,7 +195,7 @@ def write_maps(folder: Path, maps: dict[str, np.ndarray], overwrite: bool = Fals
     paths = []
     for name, values in maps.items():
         unit, meaning = MAPS[name]
-        write_float_map(folder / f"{name}.tiff", values, meaning, unit, overwrite)
+        write_float_map(folder / f"{name}.tiff", values, meaning, unit, overwrite, in_plane=name in IN_PLANE_ANGLES)
         paths.append(folder / f"{name}.tiff")
     return paths
 
@@ -234,7 +240,7 @@ def write_results(folder: Path, r_hat: np.ndarray, t_hat: np.ndarray, overwrite:
     if reference_field is not None:
         jobs[folder / "reference_deg.tiff"] = (functools.partial(
             write_float_map, quantity="reference s-direction phi_perp used for separation (reduced grid)",
-            unit="deg"), reference_field)
+            unit="deg", in_plane=True), reference_field)
     with concurrent.futures.ThreadPoolExecutor(max_workers=2) as pool:
         for done in [pool.submit(write, path, image, overwrite=overwrite) for path, (write, image) in jobs.items()]:
             done.result()
