@@ -72,7 +72,9 @@ def sweep_and_calibrate(root: Path, stage: str, camera: str, step_deg: float, ta
                 turn_target(check_target_deg)
             if isinstance(getattr(rig.camera, "scene", None), PolarizedTarget):      # the virtual target turns
                 rig.camera.scene.angle = float(np.radians(check_target_deg))
-            second = _sweep(ds, rig, angles, progress, "second sweep")
+            second = _sweep(ds, rig, angles, progress, "second sweep",
+                            f"the direction check's second sweep (the first, {first.path.name}, is complete but unused: "
+                            "calibration.json is written after both)")
             fit, check = fit_sweep(first, target_angle_deg), fit_sweep(second, check_target_deg)
             difference = check_direction(fit, target_angle_deg, check, check_target_deg)
             return calibrate_offset(ds, first, target_angle_deg, {
@@ -80,17 +82,19 @@ def sweep_and_calibrate(root: Path, stage: str, camera: str, step_deg: float, ta
                 "difference_deg": round(difference, 5), "sweep": second.path.relative_to(ds.root).as_posix()})
 
 
-def _sweep(ds: Dataset, rig, angles: list[float], progress: Progress | None, label: str) -> Scene:
-    """One sweep of the polarizer at ``angles`` (deg) into a new ``calibration/sweep_NN``."""
+def _sweep(ds: Dataset, rig, angles: list[float], progress: Progress | None, label: str,
+           what: str = "calibration sweep") -> Scene:
+    """One sweep of the polarizer at ``angles`` (deg) into a new ``calibration/sweep_NN``; stopped,
+    the message names it as ``what``."""
     sweep = ds.new_sweep(capture_plan_record(angles, 0.0, 0.5, rig.info))
     counter = iter(range(1, len(angles) + 1))
     try:
         run_capture(sweep, rig.stage, rig.camera, angles,
                     progress=lambda st: progress and st.kind == "record" and progress(next(counter), len(angles), label))
     except KeyboardInterrupt as exc:
-        raise capture_stopped(exc, "calibration sweep", _left(sweep)) from None
+        raise capture_stopped(exc, what, _left(sweep)) from None
     except (UrdError, OSError) as exc:
-        raise UrdError(f"{exc}\ncalibration sweep stopped; {_left(sweep)}") from exc
+        raise UrdError(f"{exc}\n{what} stopped; {_left(sweep)}") from exc
     except BaseException:
         sweep.discard_if_empty()
         raise
