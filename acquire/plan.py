@@ -185,6 +185,8 @@ def resume_command(root: Path, scene: Scene) -> str:
     for option, (value, usual) in options.items():
         if value != usual:
             words += [option, f"{value:g}" if isinstance(value, float) else str(value)]
+    if simulated is not None and simulated.get("reversed"):
+        words.append("--sim-reversed")
     return " ".join(shlex.quote(word) for word in words)
 
 

@@ -22,7 +22,7 @@ from acquire.camera import CameraKind, Gphoto2Camera
 from acquire.ell14 import Ell14
 from acquire.sim_ell14 import SimulatedEll14
 from acquire.virtual_camera import VirtualCamera, make_glass_scene, make_polarized_target
-from urd.core.dataset import Dataset, Scene
+from urd.core.dataset import Dataset, OffsetCalibration, Scene
 from urd.core.errors import CalibrationError, DeviceError
 
 SIM = "sim"
@@ -190,8 +190,12 @@ def calibration_stage(ds: Dataset) -> dict | None:
     was calibrated on: as recorded in ``calibration.json``, else (calibrations written before
     it was recorded) from the sweep's manifest; None when not known."""
     calibration = ds.calibration()
-    if calibration is None:
-        return None
+    return None if calibration is None else calibration_owner(calibration)
+
+
+def calibration_owner(calibration: OffsetCalibration) -> dict | None:
+    """The identity of the stage ``calibration`` was measured on: as it records it, else (records
+    written before it was recorded) from its sweep's manifest; None when not known."""
     stage = calibration.stage
     if stage is None and calibration.sweep is not None and Scene(calibration.sweep).exists():
         recorded = Scene(calibration.sweep).load(verify=False)["capture"].get("stage")

@@ -11,12 +11,13 @@ itself (`acquire.rig.offset_for_stage`).
 
 from __future__ import annotations
 
-import math
+import numpy as np
 
 from calib.polarizer import ShotErrors, estimate_shot_errors
 from urd.core import raw as rawio
 from urd.core.dataset import Scene
 from urd.core.errors import CalibrationError
+from urd.core.images import stored_tiff_layout
 
 
 def sweep_intensities(scene: Scene) -> tuple[list[float], list[float]]:
@@ -42,11 +43,18 @@ TRIPOD_SHIFT_PX, TRIPOD_TURN_DEG = 0.5, 0.05
 
 
 def shot_motion(scene: Scene) -> tuple[float, float]:
-    """The largest shift (px) and turn (deg) of a shot against the reference that the scene's
-    ingest recorded (0, 0 for a mosaic frame, registered as taken)."""
-    alignment = scene.load(verify=False)["ingest"].get("alignment")
-    warps = [entry["warp"] for entry in alignment if entry.get("warp")] if isinstance(alignment, list) else []
-    shift = max((math.hypot(w[0][2], w[1][2]) for w in warps), default=0.0)
+    """The largest shift (px, of the frame's centre: a warp turns about pixel (0, 0)) and turn (deg)
+    of a shot against the reference that the scene's ingest recorded (0, 0 for a mosaic frame,
+    registered as taken)."""
+    ingest = scene.load(verify=False)["ingest"]
+    alignment = ingest.get("alignment")
+    warps = [np.asarray(entry["warp"], np.float64)[:2] for entry in alignment if entry.get("warp")] \
+        if isinstance(alignment, list) else []
+    if not warps:
+        return 0.0, 0.0
+    height, width = stored_tiff_layout(scene.path / ingest["aligned"][0]["file"])[0][:2]
+    centre = np.array([width / 2.0, height / 2.0, 1.0])
+    shift = max(float(np.hypot(*(w @ centre - centre[:2]))) for w in warps)
     return shift, max((abs(turn) for turn in scene.frame_turns_deg()), default=0.0)
 
 

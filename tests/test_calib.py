@@ -1,6 +1,7 @@
 """Polarizer calibration: offset sweep, per-shot angle errors, application to the Stokes fit."""
 
 import json
+import shutil
 import subprocess
 import sys
 
@@ -97,6 +98,7 @@ def test_per_shot_errors_on_the_virtual_rig_and_their_effect_on_the_stokes_fit(t
     scene, cam = capture_virtual(ds, angles=angles, size=(768, 512), shake_px=4, shake_deg=0.5, seed=11, jitter_deg=2.0)
     ingest_scene(scene, IngestOptions())
     separate_scene(scene, "none", *get_method("none"))
+    separated = shutil.copytree(scene.path.parent, tmp_path / "separated")      # for the command line below
     before = (scene.path / "scene.json").read_bytes()
     dry = calibrate_shots(scene, apply=False)
     assert (scene.path / "scene.json").read_bytes() == before                 # --no-apply: the manifest as it was
@@ -127,11 +129,13 @@ def test_per_shot_errors_on_the_virtual_rig_and_their_effect_on_the_stokes_fit(t
 
     from urd.cli import app
 
-    out = CliRunner().invoke(app, ["calibrate", "shots", str(scene.path)])        # said where a user looks
+    out = CliRunner().invoke(app, ["calibrate", "shots", str(separated / "scene_01")])     # said where a user looks
     said = " ".join(out.output.split())
     assert out.exit_code == 0 and "the shots moved between frames (up to" in said and "calibrate from a tripod" in said
-    assert f"results of none are now stale (separated at the uncalibrated angles); renew them with: urd separate " \
-           f"scene_01 --dataset {scene.path.parent} --force" in said
+    assert f"results of none are now stale (separated at other angles than the calibrated ones); renew them with: urd " \
+           f"separate scene_01 --dataset {separated} --method none --force" in said
+    again = " ".join(CliRunner().invoke(app, ["calibrate", "shots", str(separated / "scene_01")]).output.split())
+    assert "now stale" not in again                                  # stale before: not said again
 
 
 def test_angles_the_images_do_not_determine_are_refused_and_nothing_is_stored(tmp_path):
@@ -211,3 +215,20 @@ def test_a_target_turn_that_cannot_tell_the_sense_is_refused_before_any_sweep(tm
               "--check-direction", 90)
     assert out.returncode == 1 and "turns by 90.0 deg between the sweeps" in out.stderr
     assert not (tmp_path / "ds" / "calibration").exists()
+
+
+def test_a_turn_about_the_frames_centre_is_no_shift(tmp_path):
+    import cv2
+
+    from calib.store import shot_motion
+    from urd.core.files import write_json_atomic
+
+    scene, _ = capture_virtual(Dataset.open_or_create(tmp_path / "ds"), size=(640, 480), shake_px=0, shake_deg=0)
+    ingest_scene(scene, IngestOptions())
+    record = scene.load()
+    turn = cv2.getRotationMatrix2D((320.0, 240.0), 0.02, 1.0)       # a warp turning about the centre, not about (0, 0)
+    record["ingest"]["alignment"][1].update(warp=turn.tolist(), turn_deg=-0.02)
+    record["ingest"]["alignment"][2].update(warp=[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], turn_deg=0.0)
+    write_json_atomic(scene.manifest_path, record)
+    shift, turned = shot_motion(scene.reload())
+    assert shift < 1e-6 and turned == pytest.approx(0.02)

@@ -44,8 +44,9 @@ def interrupted_scene(root, monkeypatch, *options):
 
 def test_the_printed_resume_command_resumes_with_the_settings_the_scene_was_started_with(tmp_path, monkeypatch):
     root = tmp_path / "ds"
-    command = interrupted_scene(root, monkeypatch, "--sim-shake", "2", "--sim-offset", "1.5")
-    for option in ("--sim-size 96x64", "--seed 3", "--sim-shake 2", "--sim-offset 1.5", "--angles 0,60,120", "--scene scene_01"):
+    command = interrupted_scene(root, monkeypatch, "--sim-shake", "2", "--sim-offset", "1.5", "--sim-reversed")
+    for option in ("--sim-size 96x64", "--seed 3", "--sim-shake 2", "--sim-offset 1.5", "--angles 0,60,120", "--scene scene_01",
+                   "--sim-reversed"):
         assert option in command
     words = shlex.split(command)
     assert words[:2] == ["urd", "capture"]

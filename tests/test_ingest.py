@@ -369,12 +369,12 @@ def test_a_redo_says_which_results_went_stale_and_that_the_shot_calibration_was_
     outcome = ingest_scene(scene.reload(), IngestOptions(redo=True, motion=Motion.TRANSLATION))
     assert outcome.state == "ingested", outcome
     said = " ".join(outcome.notes)
-    assert "results of none are stale" in said and f"urd separate scene_01 --dataset {scene.path.parent} --force" in said
+    assert "results of none are stale" in said and f"urd separate scene_01 --dataset {scene.path.parent} --method none --force" in said
     assert "per-shot angle calibration was of the earlier alignment and is removed" in said
     assert "earlier alignment" in scene.reload().stale_reason("none")
     assert ingest_scene(scene, IngestOptions(redo=True)).notes == [
         f"scene_01: results of none are stale (of the earlier alignment); renew them with: urd separate scene_01 "
-        f"--dataset {scene.path.parent} --force"]
+        f"--dataset {scene.path.parent} --method none --force"]
 
 
 def test_urds_own_shots_named_with_other_angles_than_the_default_are_refused_naming_the_option(tmp_path):

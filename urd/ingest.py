@@ -42,7 +42,7 @@ from urd.core.swap import STAGING_PREFIX
 from urd.core.errors import AlignmentError, DatasetError, RawFormatError, UrdError
 from urd.core.files import atomic_path, sha256_file
 from urd.core.processes import kept_note, process_pool
-from urd.core.manifest import printable
+from urd.core.manifest import printable, renew_command
 from urd.core.images import IMAGE_SUFFIXES, Transfer, codes_to_linear, linear_to_u16, read_raw_codes
 from urd.core.mosaic import MosaicLayout
 from urd.core.progress import Progress
@@ -446,9 +446,9 @@ def _outcome(scene: Scene, error: str | None, notes: list[str]) -> SceneOutcome:
     if error is None:
         steps = scene.reload().provenance()
         earlier = steps[-2].get("parameters", {}) if len(steps) >= 2 and steps[-2].get("step") == "supersede" else {}
-        if earlier.get("stale_results"):
-            notes = [*notes, f"{scene.name}: results of {', '.join(earlier['stale_results'])} are stale (of the earlier "
-                             f"alignment); renew them with: urd separate {scene.name} --dataset {scene.path.parent} --force"]
+        for method in earlier.get("stale_results", []):
+            notes = [*notes, f"{scene.name}: results of {method} are stale (of the earlier alignment); renew them with: "
+                             f"{renew_command(scene.path, method)}"]
         if "calibration" in earlier:
             notes = [*notes, f"{scene.name}: its per-shot angle calibration was of the earlier alignment and is removed "
                              f"(kept in the provenance); calibrate again with: urd calibrate shots {scene.name} "

@@ -98,12 +98,13 @@ def _offset_note(scene: Scene, calibration: OffsetCalibration | None) -> str | N
     """A note when ``scene`` was captured on the stage of the dataset's ``calibration`` with another
     polarizer offset (by more than its uncertainty, or with none recorded), else None; a scene
     captured on another stage, or ingested from RAW files, has the angles it was given."""
-    from acquire.rig import stage_identity
+    from acquire.rig import calibration_owner, stage_identity
 
     capture = scene.load(verify=False).get("capture", {})
     if calibration is None or "stage" not in capture:
         return None
-    if calibration.stage is not None and stage_identity(capture["stage"]) != calibration.stage:
+    owner = calibration_owner(calibration)
+    if owner is not None and stage_identity(capture["stage"]) != owner:
         return None                                   # another stage: the dataset's calibration is not its offset
     taken = capture.get("offset_deg")
     if taken is not None and abs(float(taken) - calibration.offset_deg) <= calibration.uncertainty_deg:

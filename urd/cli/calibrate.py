@@ -12,6 +12,7 @@ from urd.cli.capture import SIM_SIZE_HELP
 from urd.cli.common import (DATASET_HELP, HELP_OPTIONS, WorkflowOrder, check_address, check_rig, choice, parse_size, resolve_scene,
                             note_new_dataset, run_guarded, warn, within)
 from urd.core.dataset import default_root
+from urd.core.manifest import renew_command
 from urd.core.progress import TerminalProgress
 
 
@@ -98,6 +99,7 @@ def calibrate_shots_cmd(
     from calib.store import TRIPOD_SHIFT_PX, TRIPOD_TURN_DEG, calibrate_shots, shot_motion
 
     target = run_guarded(resolve_scene, scene, dataset)
+    stale_before = run_guarded(lambda: target.status().stale)
     result = run_guarded(calibrate_shots, target, apply)
     for i, (e, u) in enumerate(zip(result.errors_deg, result.uncertainty_deg)):
         typer.echo(f"shot {i}: {e:+.3f} ± {u:.3f} deg")
@@ -111,7 +113,7 @@ def calibrate_shots_cmd(
         warn(f"the shots moved between frames (up to {shift:.1f} px and {turn:.2f} deg): per-shot angle errors need shots "
              "registered to a few hundredths of a pixel, which hand-held shots are not; calibrate from a tripod "
              "(--no-apply only reports the estimate)")
-    stale = run_guarded(lambda: target.reload().status().stale)
-    if apply and stale:
-        warn(f"results of {', '.join(stale)} are now stale (separated at the uncalibrated angles); renew them with: "
-             f"urd separate {target.name} --dataset {target.path.parent} --force")
+    for method in run_guarded(lambda: target.reload().status().stale):
+        if method not in stale_before:
+            warn(f"results of {method} are now stale (separated at other angles than the calibrated ones); renew them "
+                 f"with: {renew_command(target.path, method)}")

@@ -234,7 +234,7 @@ class Scene(SceneShots, SceneResults, SceneTruth, SceneSwap):
         results = data.get("results", {})
         return SceneStatus(self.name, state, len(shots), expected, [s.angle_commanded_deg for s in shots],
                            sorted(results), calibrated, stale=tuple(sorted(m for m, e in results.items() if "stale" in e)),
-                           turned_deg=max((abs(t) for t in self.frame_turns_deg()), default=0.0))
+                           turned_deg=max((abs(t) for t in self.frame_turns_deg()), default=0.0) if state == "ingested" else 0.0)
 
     def _save(self) -> None:
         validate_scene(self._record, str(self.manifest_path), self.path)

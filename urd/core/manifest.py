@@ -35,8 +35,12 @@ def now_iso() -> str:
 def stale_note(scene: Path, method: str, why: str) -> str:
     """The ``stale`` field of a result of ``method`` in the scene folder ``scene``: ``why`` it no
     longer matches the scene, when, and the command that renews it."""
-    return (f"{why} ({now_iso()}); renew with: urd separate {scene.name} --dataset {scene.parent} "
-            f"--method {method} --force")
+    return f"{why} ({now_iso()}); renew with: {renew_command(scene, method)}"
+
+
+def renew_command(scene: Path, method: str) -> str:
+    """The command that separates ``method`` again in the scene folder ``scene``."""
+    return f"urd separate {scene.name} --dataset {scene.parent} --method {method} --force"
 
 
 def printable(text: str) -> str:
