@@ -181,6 +181,7 @@ def resume_command(root: Path, scene: Scene) -> str:
     if camera.get("kind") == "virtual":
         options.update({"--sim-size": (f"{camera['width']}x{camera['height']}", f"{default.width}x{default.height}"),
                         "--sim-shake": (camera["shake_px"], default.shake_px), "--seed": (camera["seed"], default.seed),
+                        "--sim-turn": (camera.get("shake_deg", 0.0), default.shake_deg if camera["shake_px"] > 0 else 0.0),
                         "--reflection": (camera.get("reflection"), None), "--transmission": (camera.get("transmission"), None)})
     for option, (value, usual) in options.items():
         if value != usual:

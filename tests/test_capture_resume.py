@@ -44,9 +44,9 @@ def interrupted_scene(root, monkeypatch, *options):
 
 def test_the_printed_resume_command_resumes_with_the_settings_the_scene_was_started_with(tmp_path, monkeypatch):
     root = tmp_path / "ds"
-    command = interrupted_scene(root, monkeypatch, "--sim-shake", "2", "--sim-offset", "1.5", "--sim-reversed")
-    for option in ("--sim-size 96x64", "--seed 3", "--sim-shake 2", "--sim-offset 1.5", "--angles 0,60,120", "--scene scene_01",
-                   "--sim-reversed"):
+    command = interrupted_scene(root, monkeypatch, "--sim-shake", "2", "--sim-turn", "3", "--sim-offset", "1.5", "--sim-reversed")
+    for option in ("--sim-size 96x64", "--seed 3", "--sim-shake 2", "--sim-turn 3", "--sim-offset 1.5", "--angles 0,60,120",
+                   "--scene scene_01", "--sim-reversed"):
         assert option in command
     words = shlex.split(command)
     assert words[:2] == ["urd", "capture"]
@@ -55,6 +55,7 @@ def test_the_printed_resume_command_resumes_with_the_settings_the_scene_was_star
     record = Dataset.open(root).scene("scene_01").load(verify=True)
     assert record["capture"]["complete"] and [s["angle_commanded_deg"] for s in record["shots"]] == [0, 60, 120]
     assert {(s["camera"]["width"], s["camera"]["height"]) for s in record["shots"]} == {(96, 64)}
+    assert record["capture"]["camera"]["shake_deg"] == 3.0
 
 
 def test_resuming_with_another_camera_or_stage_is_refused_and_names_the_command_that_resumes(tmp_path, monkeypatch):

@@ -17,7 +17,9 @@ from urd.core.progress import TerminalProgress
 #: Options of ``urd capture`` that set the simulated stage (they need --stage sim) and the virtual
 #: camera (they need --camera virtual); parameter names.
 SIM_STAGE_OPTIONS = ("sim_offset", "sim_jitter", "sim_faults", "seed", "sim_reversed")
-VIRTUAL_CAMERA_OPTIONS = ("sim_size", "sim_shake", "reflection", "transmission")
+VIRTUAL_CAMERA_OPTIONS = ("sim_size", "sim_shake", "sim_turn", "reflection", "transmission")
+#: The virtual camera's largest turn between shots (deg) when it shakes and --sim-turn is not given.
+DEFAULT_TURN_DEG = 0.5
 
 SIM_SIZE_HELP = "[virtual] sensor size WIDTHxHEIGHT (px), each side an even number from 32 to 20000."
 
@@ -31,7 +33,7 @@ def check_tolerance(value: float) -> float:
 
 
 def sim_settings(offset: float, jitter: float, faults: str, size: str, shake: float, reflection, transmission, seed: int,
-                 reversed_mount: bool = False):
+                 reversed_mount: bool = False, turn: float | None = None):
     """Simulation knobs from the [sim]/[virtual] options."""
     from acquire.rig import SimSettings
     from acquire.sim_ell14 import parse_faults
@@ -41,8 +43,8 @@ def sim_settings(offset: float, jitter: float, faults: str, size: str, shake: fl
         fault_map = parse_faults(faults)
     except ValueError as exc:
         raise bad("--sim-faults", str(exc)) from None
-    return SimSettings(offset, jitter, fault_map, width, height, shake, 0.5 if shake > 0 else 0.0, reflection, transmission, seed,
-                       reversed=reversed_mount)
+    turn = (DEFAULT_TURN_DEG if shake > 0 else 0.0) if turn is None else turn
+    return SimSettings(offset, jitter, fault_map, width, height, shake, turn, reflection, transmission, seed, reversed=reversed_mount)
 
 
 def capture(
@@ -60,7 +62,8 @@ def capture(
     sim_faults: str = typer.Option("", help="[sim] fault probabilities per command, e.g. drop=0.05,garble=0.05,mech_timeout=0.02,miss=0.02,vanish=0.01."),
     sim_reversed: bool = typer.Option(False, "--sim-reversed", help="[sim] the mount turned round: the stage turns the polarizer clockwise as the camera sees it (urd calibrate offset --check-direction finds it out)."),
     sim_size: str = typer.Option("1536x1024", help=SIM_SIZE_HELP),
-    sim_shake: float = typer.Option(4.0, callback=within(0.0), help="[virtual] camera shake between shots: max translation (px), with a rotation of up to 0.5 deg; 0 is a tripod (neither)."),
+    sim_shake: float = typer.Option(4.0, callback=within(0.0), help="[virtual] camera shake between shots: max translation (px), with a turn of up to --sim-turn; 0 is a tripod (neither)."),
+    sim_turn: Optional[float] = typer.Option(None, callback=within(0.0, 5.0), help="[virtual] largest turn of the camera between shots (deg, 0 to 5; the polarizer turns with it); default 0.5 with --sim-shake above 0, else 0.", show_default=False),
     reflection: Optional[Path] = typer.Option(None, help="[virtual] image file reflected in the glass (default: bundled photo)."),
     transmission: Optional[Path] = typer.Option(None, help="[virtual] image file seen through the glass (default: bundled photo)."),
     seed: int = typer.Option(0, callback=within(0), help="[sim/virtual] random seed."),
@@ -95,7 +98,8 @@ def capture(
         if path is not None and not path.is_file():
             raise bad(option, f"{path}: no such image file")
     angle_list = parse_angles(angles) if given(ctx, "angles") else None
-    sim = sim_settings(sim_offset, sim_jitter, sim_faults, sim_size, sim_shake, reflection, transmission, seed, sim_reversed)
+    sim = sim_settings(sim_offset, sim_jitter, sim_faults, sim_size, sim_shake, reflection, transmission, seed, sim_reversed,
+                       sim_turn)
     check_rig(ctx, stage, camera, SIM_STAGE_OPTIONS, VIRTUAL_CAMERA_OPTIONS)
     root = dataset or default_root()
     note_new_dataset(root)
