@@ -174,3 +174,14 @@ def test_a_stored_tiff_with_an_unknown_compression_code_is_refused_as_not_urds(t
     path.write_bytes(bytes(data))
     with pytest.raises(DatasetError, match="not an image as urd writes them .*compression 54321"):
         read_stored_tiff(path)
+
+
+def test_a_stored_tiff_is_refused_for_its_compression_alone(tmp_path):
+    from urd.core.errors import DatasetError
+    from urd.core.images import stored_tiff_layout
+
+    noise = np.random.default_rng(0).integers(0, 65535, (16, 16, 3), dtype=np.uint16)   # does not compress
+    tifffile.imwrite(tmp_path / "T.tiff", noise, photometric="rgb", compression="zlib")
+    assert (tmp_path / "T.tiff").stat().st_size >= noise.nbytes                         # the size check passes it
+    with pytest.raises(DatasetError, match="compression (zlib|adobe_deflate)"):
+        stored_tiff_layout(tmp_path / "T.tiff")
