@@ -192,7 +192,9 @@ def run_guarded(func, *args, **kwargs):
         fail("out of memory: the work stopped (completed files are kept); try smaller images, or a machine with more memory")
     except KeyboardInterrupt as exc:
         stopped = "stopped by SIGTERM" if isinstance(exc, Terminated) else "interrupted"
-        kept = "; ".join(getattr(exc, "__notes__", [])) or "completed files are kept, unfinished outputs were discarded"
+        kept = "; ".join(getattr(exc, "__notes__", [])) or ("completed files are kept and earlier ones unchanged; what the "
+                                                            "stop left unfinished is removed by the next command that writes "
+                                                            "there")
         fail(f"{stopped}; {kept}", 143 if isinstance(exc, Terminated) else 130)
     finally:
         end_line(bar)
