@@ -33,11 +33,12 @@ def fit_sweep(sweep: Scene, target_angle_deg: float) -> OffsetFit:
     return fit_offset(np.asarray(angles), np.asarray(values), target_angle_deg)
 
 
-def calibrate_offset(ds: Dataset, sweep: Scene, target_angle_deg: float, direction: dict | None = None) -> dict:
-    """Fit the mounting offset to a captured sweep and store it in the dataset, with the
-    identity of the stage the sweep was captured with (and ``direction``, the record of a
-    checked sense of rotation, where there is one)."""
-    fit = fit_sweep(sweep, target_angle_deg)
+def calibrate_offset(ds: Dataset, sweep: Scene, target_angle_deg: float, direction: dict | None = None,
+                     fit: OffsetFit | None = None) -> dict:
+    """Fit the mounting offset to a captured sweep (unless its ``fit`` is given) and store it in
+    the dataset, with the identity of the stage the sweep was captured with (and ``direction``,
+    the record of a checked sense of rotation, where there is one)."""
+    fit = fit or fit_sweep(sweep, target_angle_deg)
     stage = sweep.load(verify=False)["capture"].get("stage")
     record = fit.record() if stage is None else {**fit.record(), "stage": stage_identity(stage)}
     if direction is not None:
@@ -79,7 +80,7 @@ def sweep_and_calibrate(root: Path, stage: str, camera: str, step_deg: float, ta
             difference = check_direction(fit, target_angle_deg, check, check_target_deg)
             return calibrate_offset(ds, first, target_angle_deg, {
                 "target_angle_deg": float(check_target_deg), "offset_deg": round(check.offset_deg, 5),
-                "difference_deg": round(difference, 5), "sweep": second.path.relative_to(ds.root).as_posix()})
+                "difference_deg": round(difference, 5), "sweep": second.path.relative_to(ds.root).as_posix()}, fit)
 
 
 def _sweep(ds: Dataset, rig, angles: list[float], progress: Progress | None, label: str,

@@ -151,9 +151,6 @@ def scene_view(scene, max_side: int = 2048, calibration: OffsetCalibration | Non
     if status.state == "ingested":
         try:
             stack, angles = scene.load_stack()
-            if stack.ndim not in (3, 4) or (stack.ndim == 4 and stack.shape[-1] not in (1, 3)) or 0 in stack.shape:
-                raise ManifestError(f"{scene.name}: the aligned shots are of shape {stack.shape[1:]}, expected H×W×3 (RGB) "
-                                    f"or H×W (grey); ingest the scene again: urd ingest {scene.path} --redo")
         except (OSError, ValueError) as exc:
             notes.append(f"shots not shown: {exc}")
         else:

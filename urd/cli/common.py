@@ -124,12 +124,14 @@ def refuse_weights_folder(path: Optional[Path], option: str, by_name: bool = Tru
     if path is not None and path.is_dir():
         raise bad(option, f"{path} is a folder, expected a weights file"
                   + (" (a run folder: pass its best.pt)" if (path / "best.pt").is_file() else ""))
-    if path is not None and not path.exists() and not by_name:
+    if path is None or path.exists():
+        return
+    if not by_name:
         raise bad(option, f"{path}: no such file")
-    shipped = Path(__file__).resolve().parents[2] / "separate" / "weights"
-    if path is not None and not path.exists() and not (path.name == str(path) and (shipped / f"{path}.pt").is_file()):
-        names = ", ".join(sorted(p.stem for p in shipped.glob("*.pt")))
-        raise bad(option, f"{path}: no such file (shipped weights, by name: {names})")
+    from separate.infer import WEIGHTS_DIR, shipped_weights                # torch: a name or a missing file only
+
+    if not (path.name == str(path) and (WEIGHTS_DIR / f"{path}.pt").is_file()):
+        raise bad(option, f"{path}: no such file (shipped weights, by name: {', '.join(shipped_weights())})")
 
 
 def check_address(value: str) -> str:

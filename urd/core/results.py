@@ -12,6 +12,7 @@ from typing import Any
 
 from urd.core.errors import DatasetError, ManifestError
 from urd.core.manifest import confined_path, now_iso, provenance, stale_note, stale_reason
+from urd.core.shots import recorded_turns
 from urd.core.swap import _final_name
 
 
@@ -105,6 +106,10 @@ class SceneResults:
             raise DatasetError(f"{self.name}: the aligned shots are not one stack of 16-bit images of one size "
                                f"({', '.join(f'{shape} {dtype}' for shape, dtype in layouts)}); ingest the scene "
                                f"again: urd ingest {self.path} --redo")
+        shape = layouts[0][0]
+        if len(shape) != 3 or shape[2] != 3 or 0 in shape:               # urd writes RGB (grey as three equal channels)
+            raise DatasetError(f"{self.name}: the aligned shots are of shape {shape}, expected H×W×3 (RGB); ingest "
+                               f"the scene again: urd ingest {self.path} --redo")
         images = np.empty((len(paths),) + layouts[0][0], np.uint16 if codes else np.float32)
 
         def read(k: int) -> None:                  # into the stack itself: no second copy of a shot
@@ -147,7 +152,7 @@ class SceneResults:
             data = self._data()
             before = data.get("ingest") or {}
             same = (before.get("ok") and [f["sha256"] for f in before.get("aligned", [])] == [f["sha256"] for f in files]
-                    and _turns(before.get("alignment")) == _turns(alignment))
+                    and recorded_turns(before.get("alignment")) == recorded_turns(alignment))
             earlier = self._supersede(data) if "ingest" in data and not same else None    # the same stack: nothing to renew
             data["ingest"] = {**record, "aligned": files}
             data["ingest"]["angles_deg"] = self.angles_deg()              # in the new alignment's frame
@@ -228,8 +233,3 @@ class SceneResults:
 
         self._commit(staged, change)
         return self.result(method, verify=False)
-
-
-def _turns(alignment: list | str | None) -> list[float]:
-    """The shots' recorded turns (deg) of an ingest's alignment record (0 where none is)."""
-    return [float(entry.get("turn_deg", 0.0)) for entry in alignment] if isinstance(alignment, list) else []

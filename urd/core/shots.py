@@ -73,6 +73,12 @@ def _hash(scene_dir: Path, path: Path, cache: dict, full: bool) -> str:
 # ---------------------------------------------------------------- scene
 
 
+def recorded_turns(alignment: list | str | None) -> dict[int, float]:
+    """Shot index → its turn against the reference (deg) as an ingest's alignment record holds
+    it (`urd.core.align.Alignment.record`); 0 where none is recorded, none for a mosaic's text."""
+    return {entry["shot"]: float(entry.get("turn_deg", 0.0)) for entry in alignment} if isinstance(alignment, list) else {}
+
+
 class SceneShots:
     """The shots of a `urd.core.dataset.Scene` and the integrity checks of its files (uses the
     scene's ``path``, ``name``, ``manifest_path``, ``_data``, ``reload``, ``_save``,
@@ -105,9 +111,7 @@ class SceneShots:
         (the reference's frame) its angle is the stage's plus this. Zero before an ingest, for the
         reference, and for an ingest that recorded no turns (urd before 2026-11-29: its results
         were made at the stage's angles, and stay consistent with them until ``--redo``)."""
-        ingest = self._data().get("ingest") or {}
-        alignment = ingest.get("alignment") if isinstance(ingest.get("alignment"), list) else []
-        turns = {entry["shot"]: float(entry.get("turn_deg", 0.0)) for entry in alignment}
+        turns = recorded_turns((self._data().get("ingest") or {}).get("alignment"))
         return [turns.get(s.index, 0.0) for s in self.shots()]
 
     def capture_angles_deg(self) -> list[float] | None:
